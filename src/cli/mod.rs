@@ -1,0 +1,19 @@
+//! The `ctrecon` command line: `serve` runs the HTTP service, `phantom` and `recon` work on local files.
+
+use clap::{Parser, Subcommand};
+
+/// CT reconstruction service and tools.
+#[derive(Debug, Parser)]
+#[command(name = "ctrecon", version, about)]
+pub struct Cli {
+    #[command(subcommand)]
+    pub command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+pub enum Command {
+    /// Run the HTTP service (SQLite and a local data directory by default).
+    Serve(serve::ServeArgs),
+}
+
+pub mod serve;

@@ -1,0 +1,1 @@
+//! Service configuration: file plus `CTRECON_*` environment variables.

@@ -1,0 +1,1 @@
+//! The one catalogue of stable API error codes.

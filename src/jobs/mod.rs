@@ -1,0 +1,1 @@
+//! Jobs: model and state machine, SQL repository, queue, rayon worker bridge, artifacts.

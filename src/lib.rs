@@ -1,0 +1,22 @@
+//! ctrecon: CT reconstruction as a library, a command-line tool and an HTTP service.
+//!
+//! Module map and the dependency rule, `http → jobs → {dicom, storage} → {recon, volume, mesh}`:
+//! - [`recon`]: the pure reconstruction core (geometry, phantoms, projectors, filters, algorithms, metrics);
+//! - [`volume`]: pure image-domain operations (slices, MPR, MIP, window/level, PNG encoding);
+//! - [`mesh`]: pure surface extraction and STL;
+//! - [`storage`]: blob store; [`jobs`]: job model, repository, queue and worker pool;
+//! - [`http`]: the axum service; [`cli`]: the `ctrecon` command line.
+//!
+//! The pure modules (`recon`, `volume`, `mesh`) import no async runtime, HTTP, database or DICOM crate and
+//! read no clock, environment or path; `tests/purity.rs` enforces it.
+
+pub mod cli;
+pub mod config;
+pub mod error_code;
+pub mod http;
+pub mod jobs;
+pub mod mesh;
+pub mod recon;
+pub mod storage;
+pub mod telemetry;
+pub mod volume;

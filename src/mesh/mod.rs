@@ -1,0 +1,1 @@
+//! Surface meshes: marching cubes, smoothing, decimation, measurements and binary STL.

@@ -1,0 +1,195 @@
+//! Typed parameters of the iterative algorithms, with documented defaults. JSON field names match.
+
+use serde::{Deserialize, Serialize};
+
+use crate::recon::error::ReconError;
+
+/// Most iterations any method accepts.
+pub const MAX_ITERATIONS: usize = 100_000;
+
+/// Where an iterative method starts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum InitialImage {
+    /// All zeros (all ones for MLEM, which cannot start from zero).
+    #[default]
+    Zero,
+    /// The FBP/FDK reconstruction (ram-lak) of the same data.
+    Fbp,
+}
+
+fn iterations_default() -> usize {
+    50
+}
+fn one() -> f64 {
+    1.0
+}
+
+/// ART (Kaczmarz): one ray at a time.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ArtParams {
+    /// Full sweeps over all rays (default 5).
+    #[serde(default = "art_iterations")]
+    pub iterations: usize,
+    /// Relaxation λ ∈ (0, 2) (default 0.5).
+    #[serde(default = "half")]
+    pub relaxation: f64,
+    /// Visit rays in a shuffled order (fixed seed) instead of sequentially (default true).
+    #[serde(default = "yes")]
+    pub shuffle: bool,
+    #[serde(default)]
+    pub nonnegative: bool,
+    #[serde(default)]
+    pub initial: InitialImage,
+}
+fn art_iterations() -> usize {
+    5
+}
+fn half() -> f64 {
+    0.5
+}
+fn yes() -> bool {
+    true
+}
+
+/// SART (one view per update) and OS-SART (`subsets` > 1 views per update).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SartParams {
+    /// Full sweeps over all views (default 10).
+    #[serde(default = "sart_iterations")]
+    pub iterations: usize,
+    /// Relaxation λ ∈ (0, 2) (default 1).
+    #[serde(default = "one")]
+    pub relaxation: f64,
+    /// Number of ordered subsets for OS-SART (default 10; SART uses one view per subset).
+    #[serde(default = "sart_subsets")]
+    pub subsets: usize,
+    #[serde(default)]
+    pub nonnegative: bool,
+    #[serde(default)]
+    pub initial: InitialImage,
+    /// Stop when the relative residual ‖Ax − b‖/‖b‖ drops below this (default: never).
+    #[serde(default)]
+    pub tolerance: Option<f64>,
+}
+fn sart_iterations() -> usize {
+    10
+}
+fn sart_subsets() -> usize {
+    10
+}
+
+/// SIRT: x ← x + λ C Aᵀ R (b − A x).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SirtParams {
+    /// Default 100.
+    #[serde(default = "sirt_iterations")]
+    pub iterations: usize,
+    /// Relaxation λ ∈ (0, 2) (default 1).
+    #[serde(default = "one")]
+    pub relaxation: f64,
+    #[serde(default)]
+    pub nonnegative: bool,
+    #[serde(default)]
+    pub initial: InitialImage,
+    #[serde(default)]
+    pub tolerance: Option<f64>,
+}
+fn sirt_iterations() -> usize {
+    100
+}
+
+/// CGLS on the normal equations.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CglsParams {
+    /// Default 50.
+    #[serde(default = "iterations_default")]
+    pub iterations: usize,
+    #[serde(default)]
+    pub initial: InitialImage,
+    #[serde(default)]
+    pub tolerance: Option<f64>,
+}
+
+/// MLEM, or OSEM when `subsets` > 1. Needs non-negative data.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MlemParams {
+    /// Default 50.
+    #[serde(default = "iterations_default")]
+    pub iterations: usize,
+    /// Ordered subsets (default 1 = MLEM).
+    #[serde(default = "one_usize")]
+    pub subsets: usize,
+    #[serde(default)]
+    pub tolerance: Option<f64>,
+}
+fn one_usize() -> usize {
+    1
+}
+
+/// Total-variation regularised reconstruction for sparse-view data.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TvParams {
+    /// Outer iterations (default 50).
+    #[serde(default = "iterations_default")]
+    pub iterations: usize,
+    /// TV weight (default 0.0 = chosen from the data by the method).
+    #[serde(default)]
+    pub tv_weight: f64,
+    /// Inner TV iterations per outer iteration (default 20).
+    #[serde(default = "tv_inner")]
+    pub tv_iterations: usize,
+    #[serde(default = "yes")]
+    pub nonnegative: bool,
+    #[serde(default)]
+    pub initial: InitialImage,
+}
+fn tv_inner() -> usize {
+    20
+}
+
+pub fn check_iterations(n: usize) -> Result<(), ReconError> {
+    if n == 0 || n > MAX_ITERATIONS {
+        return Err(ReconError::param(
+            "iterations",
+            format!("must be in 1..={MAX_ITERATIONS}, got {n}"),
+        ));
+    }
+    Ok(())
+}
+
+pub fn check_relaxation(l: f64) -> Result<(), ReconError> {
+    if !(l > 0.0 && l < 2.0) {
+        return Err(ReconError::param(
+            "relaxation",
+            format!("must be in (0, 2), got {l}"),
+        ));
+    }
+    Ok(())
+}
+
+pub fn check_subsets(s: usize, views: usize) -> Result<(), ReconError> {
+    if s == 0 || s > views {
+        return Err(ReconError::param(
+            "subsets",
+            format!("must be in 1..={views} (the number of views), got {s}"),
+        ));
+    }
+    Ok(())
+}
+
+pub fn check_tolerance(t: Option<f64>) -> Result<(), ReconError> {
+    match t {
+        Some(t) if !(t.is_finite() && t >= 0.0) => Err(ReconError::param(
+            "tolerance",
+            format!("must be finite and non-negative, got {t}"),
+        )),
+        _ => Ok(()),
+    }
+}

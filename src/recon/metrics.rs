@@ -1,0 +1,1 @@
+//! Image quality metrics against a reference: RMSE, PSNR, SSIM, optionally inside a mask.

@@ -1,0 +1,1 @@
+//! Ray-driven forward projectors and their exact adjoints, for every canonical geometry.

@@ -1,0 +1,1 @@
+//! Blob storage for uploaded datasets and results (local files; ids, never client strings, name paths).
