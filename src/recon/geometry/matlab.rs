@@ -138,7 +138,7 @@ impl MatlabFan {
             },
         };
         // MATLAB's centre pixel floor((n+1)/2) (1-based) relative to the grid centre (n−1)/2 (0-based).
-        let centre = |n: usize| ((n + 1) / 2) as f64 - 1.0 - (n as f64 - 1.0) / 2.0;
+        let centre = |n: usize| n.div_ceil(2) as f64 - 1.0 - (n as f64 - 1.0) / 2.0;
         Ok(FanBeam {
             angles: Angles::Uniform {
                 count: turns.round() as usize,

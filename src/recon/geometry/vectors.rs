@@ -13,34 +13,34 @@ use serde::{Deserialize, Serialize};
 pub type Vec2 = [f64; 2];
 pub type Vec3 = [f64; 3];
 
-pub(crate) fn add2(a: Vec2, b: Vec2) -> Vec2 {
+pub fn add2(a: Vec2, b: Vec2) -> Vec2 {
     [a[0] + b[0], a[1] + b[1]]
 }
-pub(crate) fn sub2(a: Vec2, b: Vec2) -> Vec2 {
+pub fn sub2(a: Vec2, b: Vec2) -> Vec2 {
     [a[0] - b[0], a[1] - b[1]]
 }
-pub(crate) fn scale2(a: Vec2, s: f64) -> Vec2 {
+pub fn scale2(a: Vec2, s: f64) -> Vec2 {
     [a[0] * s, a[1] * s]
 }
-pub(crate) fn dot2(a: Vec2, b: Vec2) -> f64 {
+pub fn dot2(a: Vec2, b: Vec2) -> f64 {
     a[0] * b[0] + a[1] * b[1]
 }
-pub(crate) fn norm2(a: Vec2) -> f64 {
+pub fn norm2(a: Vec2) -> f64 {
     a[0].hypot(a[1])
 }
-pub(crate) fn add3(a: Vec3, b: Vec3) -> Vec3 {
+pub fn add3(a: Vec3, b: Vec3) -> Vec3 {
     [a[0] + b[0], a[1] + b[1], a[2] + b[2]]
 }
-pub(crate) fn sub3(a: Vec3, b: Vec3) -> Vec3 {
+pub fn sub3(a: Vec3, b: Vec3) -> Vec3 {
     [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
 }
-pub(crate) fn scale3(a: Vec3, s: f64) -> Vec3 {
+pub fn scale3(a: Vec3, s: f64) -> Vec3 {
     [a[0] * s, a[1] * s, a[2] * s]
 }
-pub(crate) fn dot3(a: Vec3, b: Vec3) -> f64 {
+pub fn dot3(a: Vec3, b: Vec3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
-pub(crate) fn norm3(a: Vec3) -> f64 {
+pub fn norm3(a: Vec3) -> f64 {
     dot3(a, a).sqrt()
 }
 
