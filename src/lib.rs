@@ -4,19 +4,22 @@
 //! - [`recon`]: the pure reconstruction core (geometry, phantoms, projectors, filters, algorithms, metrics);
 //! - [`volume`]: pure image-domain operations (slices, MPR, MIP, window/level, PNG encoding);
 //! - [`mesh`]: pure surface extraction and STL;
+//! - [`series`]: pure assembly of image slices into a volume; [`dicom`]: DICOM reading and writing;
 //! - [`storage`]: blob store; [`jobs`]: job model, repository, queue and worker pool;
 //! - [`http`]: the axum service; [`cli`]: the `ctrecon` command line.
 //!
-//! The pure modules (`recon`, `volume`, `mesh`) import no async runtime, HTTP, database or DICOM crate and
+//! The pure modules (`recon`, `volume`, `mesh`, `series`) import no async runtime, HTTP, database or DICOM crate and
 //! read no clock, environment or path; `tests/purity.rs` enforces it.
 
 pub mod cli;
 pub mod config;
+pub mod dicom;
 pub mod error_code;
 pub mod http;
 pub mod jobs;
 pub mod mesh;
 pub mod recon;
+pub mod series;
 pub mod storage;
 pub mod telemetry;
 pub mod volume;

@@ -3,7 +3,7 @@
 
 use std::path::{Path, PathBuf};
 
-const PURE: &[&str] = &["src/recon", "src/volume", "src/mesh"];
+const PURE: &[&str] = &["src/recon", "src/volume", "src/mesh", "src/series"];
 const FORBIDDEN: &[&str] = &[
     "tokio", "axum", "tower", "sqlx", "hyper", "reqwest", "dicom", "std::env", "std::fs", "std::path",
     "std::net", "SystemTime", "Instant::now", "std::process",
