@@ -5,8 +5,20 @@ use std::path::{Path, PathBuf};
 
 const PURE: &[&str] = &["src/recon", "src/volume", "src/mesh", "src/series"];
 const FORBIDDEN: &[&str] = &[
-    "tokio", "axum", "tower", "sqlx", "hyper", "reqwest", "dicom", "std::env", "std::fs", "std::path",
-    "std::net", "SystemTime", "Instant::now", "std::process",
+    "tokio",
+    "axum",
+    "tower",
+    "sqlx",
+    "hyper",
+    "reqwest",
+    "dicom",
+    "std::env",
+    "std::fs",
+    "std::path",
+    "std::net",
+    "SystemTime",
+    "Instant::now",
+    "std::process",
 ];
 
 fn rust_files(dir: &Path, out: &mut Vec<PathBuf>) {
@@ -50,7 +62,10 @@ fn pure_modules_import_no_service_dicom_clock_env_or_filesystem() {
     for dir in PURE {
         rust_files(&root.join(dir), &mut files);
     }
-    assert!(files.len() >= 3, "expected the pure modules' sources, found {files:?}");
+    assert!(
+        files.len() >= 3,
+        "expected the pure modules' sources, found {files:?}"
+    );
     let mut bad = Vec::new();
     for file in files {
         let text = std::fs::read_to_string(&file).expect("read source");
@@ -58,7 +73,11 @@ fn pure_modules_import_no_service_dicom_clock_env_or_filesystem() {
             bad.push(format!("{}:{line}: `{word}`", file.display()));
         }
     }
-    assert!(bad.is_empty(), "forbidden imports in pure modules:\n{}", bad.join("\n"));
+    assert!(
+        bad.is_empty(),
+        "forbidden imports in pure modules:\n{}",
+        bad.join("\n")
+    );
 }
 
 #[test]
