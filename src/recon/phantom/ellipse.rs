@@ -122,7 +122,7 @@ impl Phantom2 {
         self.quadrics()
             .iter()
             .filter(|q| {
-                let u = q.to_unit(&[x_mm, y_mm]);
+                let u = q.unit_frame(&[x_mm, y_mm]);
                 u[0] * u[0] + u[1] * u[1] <= 1.0
             })
             .map(|q| q.value)

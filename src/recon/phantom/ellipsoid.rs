@@ -178,7 +178,7 @@ impl Phantom3 {
         self.quadrics()
             .iter()
             .filter(|q| {
-                let u = q.to_unit(&p_mm);
+                let u = q.unit_frame(&p_mm);
                 dot3(u, u) <= 1.0
             })
             .map(|q| q.value)
@@ -327,7 +327,7 @@ fn project_view(bodies: &[Quadric<3>], det: &Detector2, view: &View3, mut img: A
             Footprint::Miss => continue,
             Footprint::All => [0, nv - 1, 0, nu - 1],
         };
-        let q = body.to_unit(&s);
+        let q = body.unit_frame(&s);
         let a = mul(&body.m, &w0);
         let b = mul(&body.m, &view.det_u);
         let c = mul(&body.m, &view.det_v);

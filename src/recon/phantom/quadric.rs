@@ -65,7 +65,7 @@ pub(crate) fn mapped_interval<const N: usize>(q: &[f64; N], r: &[f64; N]) -> Opt
 impl<const N: usize> Quadric<N> {
     /// `M p − q0`: the point `p` (mm) in the unit-ball frame.
     #[inline(always)]
-    pub fn to_unit(&self, p: &[f64; N]) -> [f64; N] {
+    pub fn unit_frame(&self, p: &[f64; N]) -> [f64; N] {
         let mut q = mul(&self.m, p);
         for (qk, ck) in q.iter_mut().zip(&self.q0) {
             *qk -= ck;
@@ -76,7 +76,7 @@ impl<const N: usize> Quadric<N> {
     /// The λ interval `(λ1, λ2)` of the line `s + λ d` inside the body, if any.
     #[inline(always)]
     pub fn interval(&self, s: &[f64; N], d: &[f64; N]) -> Option<(f64, f64)> {
-        let q = self.to_unit(s);
+        let q = self.unit_frame(s);
         let r = mul(&self.m, d);
         mapped_interval(&q, &r).map(|(mid, half)| (mid - half, mid + half))
     }

@@ -110,7 +110,8 @@ fn a_centred_disc_projects_to_its_closed_form_chord_in_every_2d_geometry() {
     let ph = Phantom2::new(vec![disc(rho, 0.6)], 100.0).unwrap();
     let chord = |t: f64| 2.0 * rho * (r * r - t * t).max(0.0).sqrt();
     let tol = 1e-6 * 2.0 * rho * r;
-    let cases: [(&str, Views2, &dyn Fn(f64) -> f64); 3] = [
+    type Case<'a> = (&'a str, Views2, &'a dyn Fn(f64) -> f64);
+    let cases: [Case; 3] = [
         ("parallel", parallel(12, 41, 3.0, 0.7), &|u| u),
         ("fan arc", fan(true), &|g: f64| DSO * g.sin()),
         ("fan flat", fan(false), &|u: f64| DSO * u / DSD.hypot(u)),
