@@ -9,6 +9,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::recon::error::ReconError;
 use crate::recon::grid::{ImageGrid, VolumeGrid};
+mod run;
+pub use run::{check_grid, estimate_bytes, reconstruct};
+
 pub use crate::recon::iterative::params::{
     ArtParams, CglsParams, InitialImage, MlemParams, SartParams, SirtParams, TvParams,
 };
