@@ -7,6 +7,7 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve(args) => ctrecon::cli::serve::run(args),
+        Command::Phantom(args) => ctrecon::cli::phantom::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -14,6 +14,11 @@ pub struct Cli {
 pub enum Command {
     /// Run the HTTP service (SQLite and a local data directory by default).
     Serve(serve::ServeArgs),
+    /// Write an analytic phantom, or its exact projections for a geometry, as float32 `.npy`.
+    Phantom(phantom::PhantomArgs),
 }
 
+pub mod files;
+pub mod phantom;
+pub mod progress;
 pub mod serve;

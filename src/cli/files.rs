@@ -1,0 +1,51 @@
+//! File helpers of the command line: `.npy` arrays and geometry sidecars.
+
+use std::path::{Path, PathBuf};
+
+use ndarray::ArrayD;
+use ndarray_npy::{ReadNpyExt, WriteNpyExt};
+
+use crate::recon::geometry::Geometry;
+
+pub type CliResult<T> = Result<T, Box<dyn std::error::Error>>;
+
+/// The geometry sidecar of a data file: `sino.npy` → `sino.json`.
+pub fn sidecar(data: &Path) -> PathBuf {
+    data.with_extension("json")
+}
+
+pub fn read_geometry(path: &Path) -> CliResult<Geometry> {
+    let text =
+        std::fs::read_to_string(path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+    serde_json::from_str(&text).map_err(|e| format!("geometry {}: {e}", path.display()).into())
+}
+
+pub fn write_geometry(path: &Path, geometry: &Geometry) -> CliResult<()> {
+    let text = serde_json::to_string_pretty(geometry)?;
+    std::fs::write(path, text + "\n").map_err(|e| format!("writing {}: {e}", path.display()).into())
+}
+
+/// Read a float32 or float64 `.npy` as f32.
+pub fn read_npy(path: &Path) -> CliResult<ArrayD<f32>> {
+    let open = || std::fs::File::open(path).map_err(|e| format!("reading {}: {e}", path.display()));
+    match ArrayD::<f32>::read_npy(open()?) {
+        Ok(a) => Ok(a),
+        Err(_) => {
+            let a = ArrayD::<f64>::read_npy(open()?).map_err(|e| {
+                format!(
+                    "{}: expected a float32 or float64 .npy: {e}",
+                    path.display()
+                )
+            })?;
+            Ok(a.mapv(|v| v as f32))
+        }
+    }
+}
+
+pub fn write_npy(path: &Path, array: &ArrayD<f32>) -> CliResult<()> {
+    let file =
+        std::fs::File::create(path).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    array
+        .write_npy(std::io::BufWriter::new(file))
+        .map_err(|e| format!("writing {}: {e}", path.display()).into())
+}
