@@ -17,7 +17,7 @@ use super::backproject::{PAD, RowLine, fan_row, parallel_row};
 use super::filter::{Kernel, RowFilter};
 use super::orbit::{Frame, fan_frames};
 use super::progress::Ticker;
-use super::weights::{Redundancy, parallel_factor};
+use super::weights::{Redundancy, extension, parallel_factor};
 use crate::recon::algorithm::FbpParams;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
@@ -233,29 +233,41 @@ fn fan_fbp(
     let (gmin, gmax, element) = fan_extent(ends, det.spacing, flat.then_some(f0.dsd));
     let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
     let count = views.views.len();
+    // Offset detectors are filtered on a row extended with zeros on the short side.
+    let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.spacing);
+    let ne = n + lo + hi;
+    // Stored sample i (before PAD) is detector element i − lo.
+    let sample = |i: usize, row: ndarray::ArrayView1<'_, f32>| -> f64 {
+        if i >= lo && i < lo + n {
+            row[i - lo] as f64
+        } else {
+            0.0
+        }
+    };
+    let coord = |i: usize| det.coord(0) + (i as f64 - lo as f64) * det.spacing;
     if flat {
         let magnification = f0.dsd / f0.dso;
         let kernel = Kernel::Ramp {
             spacing: det.spacing / magnification,
         };
-        let filter = RowFilter::new(n, kernel, 0.5, params)?;
+        let filter = RowFilter::new(ne, kernel, 0.5, params)?;
         let filtered = filter_views(
             count,
             &filter,
-            n + 2 * PAD,
+            ne + 2 * PAD,
             ctl,
             |k, input| {
                 let f = &frames[k];
-                for (i, (o, v)) in input.iter_mut().zip(sino.row(k)).enumerate() {
-                    let u = det.coord(i) + f.u0;
+                for (i, o) in input.iter_mut().enumerate() {
+                    let u = coord(i) + f.u0;
                     let pre = f.dsd / f.dsd.hypot(u);
                     let w = redundancy.weight(f.angle_rad, (u / f.dsd).atan());
-                    *o = *v as f64 * pre * w;
+                    *o = sample(i, sino.row(k)) * pre * w;
                 }
             },
             |k, row, out| {
                 let w = steps[k] * frames[k].dso * frames[k].dso;
-                for (o, v) in out[PAD..PAD + n].iter_mut().zip(row) {
+                for (o, v) in out[PAD..PAD + ne].iter_mut().zip(row) {
                     *o = (v * w) as f32;
                 }
             },
@@ -263,7 +275,7 @@ fn fan_fbp(
         backproject_rows(grid, count, ctl, |j, k, acc| {
             let f = &frames[k];
             let a = f.dsd / det.spacing;
-            let b = (n as f64 - 1.0) / 2.0 + PAD as f64 - (f.u0 + det.offset) / det.spacing;
+            let b = (n as f64 - 1.0) / 2.0 + (PAD + lo) as f64 - (f.u0 + det.offset) / det.spacing;
             fan_row(
                 acc,
                 filtered.row(k),
@@ -276,11 +288,14 @@ fn fan_fbp(
         let kernel = Kernel::Equiangular {
             spacing: det.spacing,
         };
-        let filter = RowFilter::new(n, kernel, 1.0, params)?;
+        let filter = RowFilter::new(ne, kernel, 1.0, params)?;
         // The tan γ grid: one element beyond each end, ARC_OVERSAMPLING samples per element.
-        let (t_lo, t_hi) = ((ends.0 - det.spacing).tan(), (ends.1 + det.spacing).tan());
+        let (t_lo, t_hi) = (
+            (coord(0) + f0.u0 - det.spacing).tan(),
+            (coord(ne - 1) + f0.u0 + det.spacing).tan(),
+        );
         let fine = ((t_hi - t_lo) / det.spacing * ARC_OVERSAMPLING as f64).ceil() as usize;
-        let m = fine.min(MAX_ARC_STRETCH * ARC_OVERSAMPLING * n) + 1;
+        let m = fine.min(MAX_ARC_STRETCH * ARC_OVERSAMPLING * ne) + 1;
         let dt = (t_hi - t_lo) / (m - 1) as f64;
         let filtered = filter_views(
             count,
@@ -289,21 +304,24 @@ fn fan_fbp(
             ctl,
             |k, input| {
                 let f = &frames[k];
-                for (i, (o, v)) in input.iter_mut().zip(sino.row(k)).enumerate() {
-                    let g = det.coord(i) + f.u0;
-                    *o = *v as f64 * f.dso * g.cos() * redundancy.weight(f.angle_rad, g);
+                for (i, o) in input.iter_mut().enumerate() {
+                    let g = coord(i) + f.u0;
+                    *o = sample(i, sino.row(k))
+                        * f.dso
+                        * g.cos()
+                        * redundancy.weight(f.angle_rad, g);
                 }
             },
             |k, row, out| {
                 let f = &frames[k];
                 let at = |p: f64| -> f64 {
-                    if !(p > -1.0 && p < n as f64) {
+                    if !(p > -1.0 && p < ne as f64) {
                         return 0.0;
                     }
                     let i = p.floor();
                     let fr = p - i;
                     let get = |i: f64| {
-                        if i >= 0.0 && i < n as f64 {
+                        if i >= 0.0 && i < ne as f64 {
                             row[i as usize]
                         } else {
                             0.0
@@ -314,7 +332,7 @@ fn fan_fbp(
                 for (j, o) in out[PAD..PAD + m].iter_mut().enumerate() {
                     let t = t_lo + j as f64 * dt;
                     let g = t.atan() - f.u0;
-                    let p = (g - det.offset) / det.spacing + (n as f64 - 1.0) / 2.0;
+                    let p = (g - coord(0)) / det.spacing;
                     *o = (at(p) * steps[k] / (1.0 + t * t)) as f32;
                 }
             },
@@ -335,7 +353,8 @@ fn fan_fbp(
 
 /// Bytes a 2D FBP allocates: the image, the filtered views and per-thread filter buffers.
 pub fn estimate_bytes(views: &Views2, grid: &ImageGrid, params: &FbpParams) -> u64 {
-    let n = views.detector.count as u64;
+    // Offset detectors are extended up to twice their length before filtering.
+    let n = (views.detector.count as u64).saturating_mul(2);
     let width = match (views.detector.shape, views.views.first().map(|v| v.source)) {
         (DetectorShape::Arc, Some(Source2::Point { .. })) => {
             n.saturating_mul((ARC_OVERSAMPLING * MAX_ARC_STRETCH) as u64)
@@ -349,7 +368,7 @@ pub fn estimate_bytes(views: &Views2, grid: &ImageGrid, params: &FbpParams) -> u
     let image = (grid.nx as u64)
         .saturating_mul(grid.ny as u64)
         .saturating_mul(4);
-    let padded = super::filter::padded_len(n as usize, params.padded_len)
+    let padded = super::filter::padded_len(views.detector.count, params.padded_len)
         .map(|p| p as u64)
         .unwrap_or(0);
     let threads = rayon::current_num_threads() as u64;

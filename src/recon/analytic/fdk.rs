@@ -16,7 +16,7 @@ use super::fbp2d::fan_extent;
 use super::filter::{Kernel, RowFilter, padded_len};
 use super::orbit::{Frame, cone_frames};
 use super::progress::Ticker;
-use super::weights::Redundancy;
+use super::weights::{Redundancy, extension};
 use crate::recon::algorithm::FbpParams;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
@@ -52,11 +52,14 @@ pub fn fdk(
     let ends = (det.u(0) + f0.u0, det.u(nu - 1) + f0.u0);
     let (gmin, gmax, element) = fan_extent(ends, det.du_mm, Some(f0.dsd));
     let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
+    // Offset panels are filtered on rows extended with zeros on the short side.
+    let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.du_mm);
+    let ne = nu + lo + hi;
     let kernel = Kernel::Ramp {
         spacing: det.du_mm * f0.dso / f0.dsd,
     };
-    let filter = RowFilter::new(nu, kernel, 0.5, params)?;
-    let (width, rows) = (nu + 2 * PAD, nv + 2 * PAD);
+    let filter = RowFilter::new(ne, kernel, 0.5, params)?;
+    let (width, rows) = (ne + 2 * PAD, nv + 2 * PAD);
     let batch = rayon::current_num_threads().max(1);
     let mut volume = Array3::<f32>::zeros(grid.shape());
     let mut panels = vec![0.0f32; batch * width * rows];
@@ -75,21 +78,23 @@ pub fn fdk(
                     let post = steps[k] * f.dso * f.dso;
                     for r in 0..nv {
                         let v = det.v(r) + f.v0;
-                        let input = scratch.input(nu);
-                        for (c, (o, p)) in input
-                            .iter_mut()
-                            .zip(proj.slice(ndarray::s![k, r, ..]))
-                            .enumerate()
-                        {
-                            let u = det.u(c) + f.u0;
-                            let pre = f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt();
-                            *o = *p as f64
-                                * pre
-                                * redundancy.weight(f.angle_rad, (u / f.dsd).atan());
+                        let data = proj.slice(ndarray::s![k, r, ..]);
+                        let input = scratch.input(ne);
+                        for (i, o) in input.iter_mut().enumerate() {
+                            *o = if i >= lo && i < lo + nu {
+                                let u = det.u(0) + (i - lo) as f64 * det.du_mm + f.u0;
+                                let pre = f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt();
+                                data[i - lo] as f64
+                                    * pre
+                                    * redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                            } else {
+                                0.0
+                            };
                         }
                         filter.run(scratch);
-                        let out = &mut panel[(r + PAD) * width + PAD..(r + PAD) * width + PAD + nu];
-                        for (o, q) in out.iter_mut().zip(scratch.input(nu).iter()) {
+                        let start = (r + PAD) * width + PAD;
+                        let out = &mut panel[start..start + ne];
+                        for (o, q) in out.iter_mut().zip(scratch.input(ne).iter()) {
                             *o = (q * post) as f32;
                         }
                     }
@@ -113,7 +118,7 @@ pub fn fdk(
                             width,
                             rows,
                         };
-                        let (au, bu, av, bv) = panel_map(f, &det_map(&det));
+                        let (au, bu, av, bv) = panel_map(f, &det_map(&det, lo));
                         cone_row(&mut acc, panel, &volume_row(f, grid, y, z), au, bu, av, bv);
                     }
                     for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
@@ -126,14 +131,15 @@ pub fn fdk(
     Ok(volume)
 }
 
-/// Detector sampling as (du, dv, base_u, base_v): stored column = (u − offset_u)/du + (nu − 1)/2 + PAD.
-fn det_map(det: &crate::recon::geometry::Detector2) -> [f64; 6] {
+/// Detector sampling (du, dv, offset_u, offset_v, base_u, base_v): stored column =
+/// (u − offset_u)/du + (nu − 1)/2 + PAD + lo, with `lo` zero columns added on the left.
+fn det_map(det: &crate::recon::geometry::Detector2, lo: usize) -> [f64; 6] {
     [
         det.du_mm,
         det.dv_mm,
         det.offset_u_mm,
         det.offset_v_mm,
-        (det.nu as f64 - 1.0) / 2.0 + PAD as f64,
+        (det.nu as f64 - 1.0) / 2.0 + (PAD + lo) as f64,
         (det.nv as f64 - 1.0) / 2.0 + PAD as f64,
     ]
 }
@@ -165,7 +171,8 @@ fn volume_row(f: &Frame, grid: &VolumeGrid, y: usize, z: usize) -> RowLine {
 /// Bytes FDK allocates: the volume, one filtered projection per thread and per-thread filter buffers.
 pub fn estimate_bytes(views: &Views3, grid: &VolumeGrid, params: &FbpParams) -> u64 {
     let d = views.detector;
-    let panel = ((d.nu + 2 * PAD) as u64)
+    // Offset panels are extended up to twice their width before filtering.
+    let panel = ((2 * d.nu + 2 * PAD) as u64)
         .saturating_mul((d.nv + 2 * PAD) as u64)
         .saturating_mul(4);
     let padded = padded_len(d.nu, params.padded_len)

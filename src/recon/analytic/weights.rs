@@ -143,6 +143,19 @@ impl Redundancy {
     }
 }
 
+/// Zero elements to add below and above a detector row before filtering: an offset detector is extended
+/// on its short side to the reach of its long side, so that the filtered row (whose ramp-filter tails
+/// reach beyond the measured elements) is stored wherever the backprojection reads it.
+pub fn extension(redundancy: &Redundancy, asymmetry_elements: f64) -> (usize, usize) {
+    match *redundancy {
+        Redundancy::Offset { side, .. } => {
+            let k = asymmetry_elements.abs().ceil() as usize;
+            if side > 0.0 { (k, 0) } else { (0, k) }
+        }
+        _ => (0, 0),
+    }
+}
+
 /// The factor of a parallel-beam scan: 1 for a half turn, ½ for a full turn; anything else is refused.
 pub fn parallel_factor(angles: &[f64]) -> Result<f64, ReconError> {
     let coverage: f64 = angular_steps(angles).iter().sum();
