@@ -4,6 +4,12 @@
 //! [`Volume`] is the one 3D image type shared by reconstructions, DICOM series and meshes: samples
 //! `[z][y][x]` (slice, row, column) and a [`Frame`] that places every voxel in patient space (LPS, mm).
 
+mod display;
+mod error;
 mod frame;
+mod window;
 
+pub use display::{Axis, ProjectionKind, project, slice};
+pub use error::VolumeError;
 pub use frame::{Frame, Volume};
+pub use window::{BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_png, mu_to_hu};
