@@ -4,7 +4,7 @@
 //! there and every mesh bounds a solid. Vertices are placed by linear interpolation along cell edges and mapped
 //! to patient millimetres through the volume's [`Frame`].
 
-use ndarray::{ArrayView3, s};
+use ndarray::ArrayView3;
 use rayon::prelude::*;
 
 use super::Mesh;
@@ -28,20 +28,34 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
     if nz == 0 || ny == 0 || nx == 0 || !iso.is_finite() {
         return Mesh::default();
     }
-    // Pad by one sample of "outside" on every side.
+    // Pad by one sample of "outside" on every side (NaN counts as outside), as one contiguous buffer.
     let (pz, py, px) = (nz + 2, ny + 2, nx + 2);
     let outside = f32::NEG_INFINITY;
-    let mut padded = ndarray::Array3::from_elem((pz, py, px), outside);
-    padded.slice_mut(s![1..=nz, 1..=ny, 1..=nx]).assign(&vol);
-    // NaN counts as outside.
-    padded.mapv_inplace(|v| if v.is_nan() { outside } else { v });
-    let p = padded.view();
-
-    let value = |k: usize, j: usize, i: usize| p[[k, j, i]];
-    let cross = |a: f32, b: f32| (a > iso) != (b > iso);
+    let plane_len = px * py;
+    let mut p = vec![outside; pz * plane_len];
+    p.par_chunks_mut(plane_len)
+        .enumerate()
+        .filter(|(k, _)| (1..=nz).contains(k))
+        .for_each(|(k, plane)| {
+            for (j, src) in vol
+                .index_axis(ndarray::Axis(0), k - 1)
+                .rows()
+                .into_iter()
+                .enumerate()
+            {
+                let row = &mut plane[(j + 1) * px + 1..(j + 1) * px + 1 + nx];
+                for (d, &v) in row.iter_mut().zip(src.iter()) {
+                    *d = if v.is_nan() { outside } else { v };
+                }
+            }
+        });
+    let inside: Vec<bool> = p.par_iter().map(|&v| v > iso).collect();
+    let p = &p[..];
+    let inside = &inside[..];
+    let at = |k: usize, j: usize, i: usize| (k * py + j) * px + i;
+    // Border edges (one end in the padding) sit half-way, i.e. half a voxel outside the volume.
     let edge_point = |a: f32, b: f32| -> f32 {
-        // Border edges (one end in the padding) sit half-way, i.e. half a voxel outside the volume.
-        if a == f32::NEG_INFINITY || b == f32::NEG_INFINITY {
+        if a == outside || b == outside {
             0.5
         } else {
             ((iso - a) / (b - a)).clamp(0.0, 1.0)
@@ -52,35 +66,30 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
         .into_par_iter()
         .map(|k| {
             let mut index = [
-                vec![NONE; px * py],
-                vec![NONE; px * py],
-                vec![NONE; px * py],
+                vec![NONE; plane_len],
+                vec![NONE; plane_len],
+                vec![NONE; plane_len],
             ];
             let mut points = Vec::new();
             for j in 0..py {
                 for i in 0..px {
-                    let a = value(k, j, i);
-                    let here = j * px + i;
-                    if i + 1 < px {
-                        let b = value(k, j, i + 1);
-                        if cross(a, b) {
-                            index[0][here] = points.len() as u32;
-                            points.push([i as f32 + edge_point(a, b), j as f32, k as f32]);
-                        }
+                    let here = at(k, j, i);
+                    let a_in = inside[here];
+                    let local = j * px + i;
+                    if i + 1 < px && inside[here + 1] != a_in {
+                        index[0][local] = points.len() as u32;
+                        let t = edge_point(p[here], p[here + 1]);
+                        points.push([i as f32 + t, j as f32, k as f32]);
                     }
-                    if j + 1 < py {
-                        let b = value(k, j + 1, i);
-                        if cross(a, b) {
-                            index[1][here] = points.len() as u32;
-                            points.push([i as f32, j as f32 + edge_point(a, b), k as f32]);
-                        }
+                    if j + 1 < py && inside[here + px] != a_in {
+                        index[1][local] = points.len() as u32;
+                        let t = edge_point(p[here], p[here + px]);
+                        points.push([i as f32, j as f32 + t, k as f32]);
                     }
-                    if k + 1 < pz {
-                        let b = value(k + 1, j, i);
-                        if cross(a, b) {
-                            index[2][here] = points.len() as u32;
-                            points.push([i as f32, j as f32, k as f32 + edge_point(a, b)]);
-                        }
+                    if k + 1 < pz && inside[here + plane_len] != a_in {
+                        index[2][local] = points.len() as u32;
+                        let t = edge_point(p[here], p[here + plane_len]);
+                        points.push([i as f32, j as f32, k as f32 + t]);
                     }
                 }
             }
@@ -108,6 +117,9 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
         debug_assert!(local != NONE, "edge without vertex");
         plane.offset + local
     };
+    // Offsets of the 8 cell corners from the low corner, in corner order.
+    let corner_offset: [usize; 8] =
+        std::array::from_fn(|c| (c >> 2 & 1) * plane_len + (c >> 1 & 1) * px + (c & 1));
 
     let triangles: Vec<[u32; 3]> = (0..pz - 1)
         .into_par_iter()
@@ -115,12 +127,13 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
             let mut out = Vec::new();
             for j in 0..py - 1 {
                 for i in 0..px - 1 {
+                    let base = at(k, j, i);
                     let mut mask = 0usize;
-                    for c in 0..8 {
-                        let v = value(k + (c >> 2 & 1), j + (c >> 1 & 1), i + (c & 1));
-                        if v > iso {
-                            mask |= 1 << c;
-                        }
+                    for (c, &off) in corner_offset.iter().enumerate() {
+                        mask |= (inside[base + off] as usize) << c;
+                    }
+                    if mask == 0 || mask == 255 {
+                        continue;
                     }
                     for t in &CASES[mask] {
                         out.push(t.map(|e| vertex(k, j, i, e as usize)));
