@@ -4,6 +4,7 @@
 mod cases;
 mod decimate;
 mod marching;
+mod pipeline;
 mod smooth;
 mod stl;
 
@@ -11,6 +12,7 @@ use std::collections::HashMap;
 
 pub use decimate::decimate;
 pub use marching::marching_cubes;
+pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
 pub use smooth::taubin;
 pub use stl::{StlError, parse_stl_binary};
 
