@@ -1,1 +1,150 @@
-//! Surface meshes: marching cubes, smoothing, decimation, measurements and binary STL.
+//! Surface meshes: marching cubes, Taubin smoothing, decimation, measurements (area, enclosed volume, closedness),
+//! connected components and binary STL in patient millimetres (LPS).
+
+mod cases;
+mod decimate;
+mod marching;
+mod pipeline;
+mod smooth;
+mod stl;
+
+use std::collections::HashMap;
+
+pub use decimate::decimate;
+pub use marching::marching_cubes;
+pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
+pub use smooth::taubin;
+pub use stl::{StlError, parse_stl_binary};
+
+/// A triangle mesh with shared vertices (mm, patient LPS). Triangles wind counter-clockwise seen from outside.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct Mesh {
+    pub vertices: Vec<[f32; 3]>,
+    pub triangles: Vec<[u32; 3]>,
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+fn f64s(p: [f32; 3]) -> [f64; 3] {
+    p.map(f64::from)
+}
+
+impl Mesh {
+    pub fn triangle_count(&self) -> usize {
+        self.triangles.len()
+    }
+
+    fn corners(&self, t: &[u32; 3]) -> [[f64; 3]; 3] {
+        t.map(|v| f64s(self.vertices[v as usize]))
+    }
+
+    /// Unnormalised normal (twice the area vector) of a triangle.
+    fn area_vector(&self, t: &[u32; 3]) -> [f64; 3] {
+        let [a, b, c] = self.corners(t);
+        cross(sub(b, a), sub(c, a))
+    }
+
+    /// Total surface area (mm²).
+    pub fn area_mm2(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let n = self.area_vector(t);
+                (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt() / 2.0
+            })
+            .sum()
+    }
+
+    /// Enclosed volume (mm³) by the divergence theorem; positive for outward-facing closed meshes.
+    pub fn volume_mm3(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = self.corners(t);
+                let n = cross(b, c);
+                (a[0] * n[0] + a[1] * n[1] + a[2] * n[2]) / 6.0
+            })
+            .sum()
+    }
+
+    /// True when every edge is shared by exactly two triangles that traverse it in opposite directions (a closed,
+    /// consistently oriented surface).
+    pub fn is_closed(&self) -> bool {
+        let mut directed: HashMap<(u32, u32), i32> =
+            HashMap::with_capacity(self.triangles.len() * 3);
+        for t in &self.triangles {
+            for k in 0..3 {
+                *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
+            }
+        }
+        !self.triangles.is_empty()
+            && directed
+                .iter()
+                .all(|(&(a, b), &n)| n == 1 && directed.get(&(b, a)) == Some(&1))
+    }
+
+    /// The connected component (through shared vertices) with the most triangles; vertices re-indexed.
+    pub fn largest_component(&self) -> Mesh {
+        let n = self.vertices.len();
+        let mut parent: Vec<u32> = (0..n as u32).collect();
+        fn find(parent: &mut [u32], mut x: u32) -> u32 {
+            while parent[x as usize] != x {
+                let up = parent[parent[x as usize] as usize];
+                parent[x as usize] = up;
+                x = up;
+            }
+            x
+        }
+        for t in &self.triangles {
+            let r0 = find(&mut parent, t[0]);
+            for &v in &t[1..] {
+                let r = find(&mut parent, v);
+                if r != r0 {
+                    parent[r as usize] = r0;
+                }
+            }
+        }
+        let mut count: HashMap<u32, usize> = HashMap::new();
+        for t in &self.triangles {
+            *count.entry(find(&mut parent, t[0])).or_default() += 1;
+        }
+        let Some((&best, _)) = count
+            .iter()
+            .max_by_key(|&(&r, &c)| (c, std::cmp::Reverse(r)))
+        else {
+            return Mesh::default();
+        };
+        let mut remap = vec![u32::MAX; n];
+        let mut out = Mesh::default();
+        for t in &self.triangles {
+            if find(&mut parent, t[0]) != best {
+                continue;
+            }
+            out.triangles.push(t.map(|v| {
+                if remap[v as usize] == u32::MAX {
+                    remap[v as usize] = out.vertices.len() as u32;
+                    out.vertices.push(self.vertices[v as usize]);
+                }
+                remap[v as usize]
+            }));
+        }
+        out
+    }
+
+    /// Binary STL: an 80-byte header carrying `SPACE=LPS`, the triangle count, then 50 bytes per triangle with
+    /// its unit normal. Coordinates are millimetres.
+    pub fn to_stl_binary(&self) -> Vec<u8> {
+        stl::write(self)
+    }
+}
+
+#[cfg(test)]
+mod tests;

@@ -4,6 +4,20 @@
 //! [`Volume`] is the one 3D image type shared by reconstructions, DICOM series and meshes: samples
 //! `[z][y][x]` (slice, row, column) and a [`Frame`] that places every voxel in patient space (LPS, mm).
 
+mod display;
+mod error;
+mod filter;
 mod frame;
+mod mpr;
+mod resample;
+mod window;
 
+pub use display::{Axis, ProjectionKind, project, slice};
+pub use error::VolumeError;
+pub use filter::{gaussian, largest_component, median3, threshold};
 pub use frame::{Frame, Volume};
+pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, rotating_projection, slab_series};
+pub use resample::{resample_isotropic, trilinear};
+pub use window::{
+    BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_png, mu_to_hu,
+};
