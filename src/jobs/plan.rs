@@ -104,7 +104,8 @@ pub fn admit_job(req: &JobRequest, dataset: &Dataset, budget_bytes: u64) -> Resu
         .geometry
         .to_views()
         .map_err(|e| recon_problem(&e.into()))?;
-    check_grid(&views, &req.grid).map_err(|e| recon_problem(&e))?;
+    check_grid(&views, &req.grid)
+        .map_err(|e| Problem::new(ErrorCode::InvalidParameter, format!("grid: {e}")))?;
     dataset
         .geometry
         .check_fov(grid_radius_mm(&req.grid))
