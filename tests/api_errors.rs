@@ -536,13 +536,12 @@ fn declared_routes() -> Vec<(String, String)> {
     let src = include_str!("../src/http/mod.rs");
     let mut out = Vec::new();
     for line in src.lines() {
-        let line = line.trim();
-        let Some(rest) = line.strip_prefix(".route(\"") else {
+        let Some((_, rest)) = line.split_once(".route(\"") else {
             continue;
         };
         let path = rest.split('"').next().unwrap().to_string();
         for m in ["get", "post", "delete", "put", "patch"] {
-            if line.contains(&format!("{m}(")) {
+            if rest.contains(&format!("{m}(")) {
                 out.push((m.to_string(), path.clone()));
             }
         }
