@@ -64,7 +64,8 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
     assert!(rmse < 0.1, "RMSE {rmse}");
     assert!(m["ssim"].as_f64().unwrap() > 0.5, "{m}");
 
-    // The volume: float32 [64][64][64]; the centre is inside ellipsoids 1 and 2 (1.0 − 0.8 = 0.2).
+    // The volume: float32 [64][64][64]; the central 2×2×2 voxels lie inside ellipsoids 1 and 2 only
+    // (1.0 − 0.8 = 0.2).
     let (h, vol) = bytes_of(&app, &format!("/v1/jobs/{id}/result/volume.npy")).await;
     let (shape, values) = read_npy_f32(&vol);
     assert_eq!(shape, [64, 64, 64]);
@@ -74,8 +75,10 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
     let at = |z: usize, y: usize, x: usize| values[(z * 64 + y) * 64 + x];
     let mut centre = 0.0;
     for z in 31..33 {
-        for x in 31..33 {
-            centre += at(z, 28, x) / 4.0;
+        for y in 31..33 {
+            for x in 31..33 {
+                centre += at(z, y, x) / 8.0;
+            }
         }
     }
     assert!((centre - 0.2).abs() < 0.04, "centre value {centre}");
