@@ -239,6 +239,23 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         }
     }
 
+    // An RGB JPEG with neither an Adobe nor a JFIF marker nor R, G, B component ids is ambiguous: decoders
+    // disagree on whether to undo a YCbCr transform, so it is refused rather than guessed.
+    if spp == 3
+        && photometric == "RGB"
+        && matches!(
+            transfer_syntax.as_str(),
+            "1.2.840.10008.1.2.4.50" | "1.2.840.10008.1.2.4.51"
+        )
+        && let Some(frag) = pixel.fragments().and_then(|f| f.first())
+        && !jpeg_colour_declared(frag)
+    {
+        return Err(DicomError::Unsupported {
+            label: label_s,
+            what: "RGB JPEG without a colour-transform marker (Adobe APP14 or JFIF)".into(),
+        });
+    }
+
     // Decode (codec panics on hostile data become errors).
     let decode_err = |reason: String| DicomError::Decode {
         label: label_s.clone(),
@@ -269,6 +286,7 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             got: data.len(),
         });
     }
+    let big_endian = transfer_syntax == "1.2.840.10008.1.2.2" && !encapsulated;
     let decoded_bits = decoded.bits_allocated() as usize;
     if decoded_bits / 8 != bytes_per {
         return Err(decode_err(format!(
@@ -341,6 +359,11 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
                 .chunks_exact(2)
                 .map(|c| convert(u16::from_le_bytes([c[0], c[1]]) as u64))
                 .collect(),
+            // Big endian native data arrives as 16-bit words in host order: swap the words of 32-bit samples.
+            _ if big_endian => raw
+                .chunks_exact(4)
+                .map(|c| convert(u32::from_le_bytes([c[2], c[3], c[0], c[1]]) as u64))
+                .collect(),
             _ => raw
                 .chunks_exact(4)
                 .map(|c| convert(u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as u64))
@@ -392,4 +415,28 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         slices,
         warnings,
     })
+}
+
+/// Whether a JPEG stream says how its three components relate to RGB: an Adobe APP14 or JFIF APP0 marker, or
+/// component ids `R`, `G`, `B` in the frame header.
+fn jpeg_colour_declared(jpeg: &[u8]) -> bool {
+    let header = match jpeg.windows(2).position(|w| w == [0xFF, 0xDA]) {
+        Some(end) => &jpeg[..end],
+        None => jpeg,
+    };
+    let has = |needle: &[u8]| header.windows(needle.len()).any(|w| w == needle);
+    if has(b"Adobe") || has(b"JFIF") {
+        return true;
+    }
+    header
+        .windows(2)
+        .position(|w| w[0] == 0xFF && (0xC0..=0xC3).contains(&w[1]))
+        .and_then(|sof| {
+            let n = *header.get(sof + 9)? as usize;
+            let ids: Option<Vec<u8>> = (0..n)
+                .map(|c| header.get(sof + 10 + 3 * c).copied())
+                .collect();
+            ids
+        })
+        .is_some_and(|ids| ids == b"RGB")
 }
