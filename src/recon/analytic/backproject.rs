@@ -33,6 +33,20 @@ pub fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
     if q.len() < 2 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if simd::available(q.len()) {
+        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
+        unsafe { simd::parallel_row(acc, q, pos0, dpos) };
+        return;
+    }
+    parallel_row_scalar(acc, q, pos0, dpos);
+}
+
+/// The portable (reference) form of [`parallel_row`].
+pub fn parallel_row_scalar(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
+    if q.len() < 2 {
+        return;
+    }
     for (i, a) in acc.iter_mut().enumerate() {
         *a += lerp(q, pos0 + i as f32 * dpos);
     }
@@ -58,6 +72,20 @@ pub fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
     if q.len() < 2 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if simd::available(q.len()) {
+        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
+        unsafe { simd::fan_row(acc, q, line, a, b) };
+        return;
+    }
+    fan_row_scalar(acc, q, line, a, b);
+}
+
+/// The portable (reference) form of [`fan_row`].
+pub fn fan_row_scalar(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
+    if q.len() < 2 {
+        return;
+    }
     for (i, out) in acc.iter_mut().enumerate() {
         let x = i as f32;
         let lc = line.lc0 + x * line.dlc;
@@ -76,19 +104,28 @@ pub struct Panel<'a> {
 }
 
 /// Cone beam: `acc[i] += q(au·lat/lc + bu, av·latv/lc + bv) / lc²` (bilinear).
-pub fn cone_row(
-    acc: &mut [f32],
-    panel: Panel<'_>,
-    line: &RowLine,
-    au: f32,
-    bu: f32,
-    av: f32,
-    bv: f32,
-) {
+pub fn cone_row(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
     let Panel { q, width, rows } = panel;
     if width < 2 || rows < 2 || q.len() < width * rows {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if simd::available(width * rows) {
+        // SAFETY: AVX2 and FMA are present (checked at run time), q holds width·rows ≥ 4 values and
+        // width·rows fits an i32 index.
+        unsafe { simd::cone_row(acc, panel, line, map) };
+        return;
+    }
+    cone_row_scalar(acc, panel, line, map);
+}
+
+/// The portable (reference) form of [`cone_row`]; `map` is `[au, bu, av, bv]`.
+pub fn cone_row_scalar(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
+    let Panel { q, width, rows } = panel;
+    if width < 2 || rows < 2 || q.len() < width * rows {
+        return;
+    }
+    let [au, bu, av, bv] = map;
     let (hu, hv) = ((width - 2) as f32, (rows - 2) as f32);
     for (i, out) in acc.iter_mut().enumerate() {
         let x = i as f32;
@@ -110,6 +147,174 @@ pub fn cone_row(
         let top = q00 + fu * (q01 - q00);
         let bottom = q10 + fu * (q11 - q10);
         *out += inv * inv * (top + fv * (bottom - top));
+    }
+}
+
+/// AVX2 + FMA kernels, 8 pixels at a time with gathers; the scalar forms handle the tails.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use std::arch::x86_64::*;
+
+    use super::{MIN_DEPTH, Panel, RowLine};
+
+    /// True when the CPU has AVX2 and FMA and indices below `len` fit an i32.
+    pub fn available(len: usize) -> bool {
+        len < i32::MAX as usize
+            && std::arch::is_x86_feature_detected!("avx2")
+            && std::arch::is_x86_feature_detected!("fma")
+    }
+
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn lanes(i: usize) -> __m256 {
+        _mm256_add_ps(
+            _mm256_set1_ps(i as f32),
+            _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
+        )
+    }
+
+    /// Clamp to [0, hi] (NaN → 0) and split into index and fraction.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn split(p: __m256, hi: __m256) -> (__m256i, __m256) {
+        let p = _mm256_min_ps(_mm256_max_ps(p, _mm256_setzero_ps()), hi);
+        let i = _mm256_cvttps_epi32(p);
+        (i, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i)))
+    }
+
+    /// # Safety
+    /// AVX2 and FMA must be available; `2 ≤ q.len() < i32::MAX`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
+        let n = acc.len();
+        let hi = _mm256_set1_ps((q.len() - 2) as f32);
+        let (vp0, vd) = (_mm256_set1_ps(pos0), _mm256_set1_ps(dpos));
+        let base = q.as_ptr();
+        let mut i = 0;
+        while i + 8 <= n {
+            let (k, f) = split(_mm256_fmadd_ps(lanes(i), vd, vp0), hi);
+            // SAFETY: `split` clamps every index to [0, len − 2], so k and k + 1 are inside q.
+            let (a, b) = unsafe {
+                (
+                    _mm256_i32gather_ps::<4>(base, k),
+                    _mm256_i32gather_ps::<4>(base.add(1), k),
+                )
+            };
+            let v = _mm256_fmadd_ps(f, _mm256_sub_ps(b, a), a);
+            // SAFETY: i + 8 ≤ acc.len().
+            unsafe {
+                let out = acc.as_mut_ptr().add(i);
+                _mm256_storeu_ps(out, _mm256_add_ps(_mm256_loadu_ps(out), v));
+            }
+            i += 8;
+        }
+        super::parallel_row_scalar(&mut acc[i..], q, pos0 + i as f32 * dpos, dpos);
+    }
+
+    /// 1/lc where lc > MIN_DEPTH, else 0.
+    #[target_feature(enable = "avx2,fma")]
+    #[inline]
+    fn inverse_depth(lc: __m256) -> __m256 {
+        let min = _mm256_set1_ps(MIN_DEPTH);
+        let valid = _mm256_cmp_ps::<_CMP_GT_OQ>(lc, min);
+        let inv = _mm256_div_ps(_mm256_set1_ps(1.0), _mm256_max_ps(lc, min));
+        _mm256_and_ps(inv, valid)
+    }
+
+    /// # Safety
+    /// AVX2 and FMA must be available; `2 ≤ q.len() < i32::MAX`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
+        let n = acc.len();
+        let hi = _mm256_set1_ps((q.len() - 2) as f32);
+        let (va, vb) = (_mm256_set1_ps(a), _mm256_set1_ps(b));
+        let (lc0, dlc) = (_mm256_set1_ps(line.lc0), _mm256_set1_ps(line.dlc));
+        let (lat0, dlat) = (_mm256_set1_ps(line.lat0), _mm256_set1_ps(line.dlat));
+        let base = q.as_ptr();
+        let mut i = 0;
+        while i + 8 <= n {
+            let x = lanes(i);
+            let inv = inverse_depth(_mm256_fmadd_ps(x, dlc, lc0));
+            let lat = _mm256_fmadd_ps(x, dlat, lat0);
+            let (k, f) = split(_mm256_fmadd_ps(_mm256_mul_ps(lat, inv), va, vb), hi);
+            // SAFETY: indices clamped to [0, len − 2].
+            let (qa, qb) = unsafe {
+                (
+                    _mm256_i32gather_ps::<4>(base, k),
+                    _mm256_i32gather_ps::<4>(base.add(1), k),
+                )
+            };
+            let v = _mm256_fmadd_ps(f, _mm256_sub_ps(qb, qa), qa);
+            let w = _mm256_mul_ps(inv, inv);
+            // SAFETY: i + 8 ≤ acc.len().
+            unsafe {
+                let out = acc.as_mut_ptr().add(i);
+                _mm256_storeu_ps(out, _mm256_fmadd_ps(w, v, _mm256_loadu_ps(out)));
+            }
+            i += 8;
+        }
+        let mut rest = *line;
+        rest.lc0 += i as f32 * line.dlc;
+        rest.lat0 += i as f32 * line.dlat;
+        super::fan_row_scalar(&mut acc[i..], q, &rest, a, b);
+    }
+
+    /// # Safety
+    /// AVX2 and FMA must be available; `width, rows ≥ 2`, `q.len() ≥ width·rows`, `width·rows < i32::MAX`.
+    #[target_feature(enable = "avx2,fma")]
+    pub unsafe fn cone_row(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
+        let Panel { q, width, rows } = panel;
+        let n = acc.len();
+        let [au, bu, av, bv] = map;
+        let (hu, hv) = (
+            _mm256_set1_ps((width - 2) as f32),
+            _mm256_set1_ps((rows - 2) as f32),
+        );
+        let (vau, vbu, vav, vbv) = (
+            _mm256_set1_ps(au),
+            _mm256_set1_ps(bu),
+            _mm256_set1_ps(av),
+            _mm256_set1_ps(bv),
+        );
+        let (lc0, dlc) = (_mm256_set1_ps(line.lc0), _mm256_set1_ps(line.dlc));
+        let (lat0, dlat) = (_mm256_set1_ps(line.lat0), _mm256_set1_ps(line.dlat));
+        let (latv0, dlatv) = (_mm256_set1_ps(line.latv0), _mm256_set1_ps(line.dlatv));
+        let vw = _mm256_set1_epi32(width as i32);
+        let base = q.as_ptr();
+        let mut i = 0;
+        while i + 8 <= n {
+            let x = lanes(i);
+            let inv = inverse_depth(_mm256_fmadd_ps(x, dlc, lc0));
+            let lat = _mm256_fmadd_ps(x, dlat, lat0);
+            let latv = _mm256_fmadd_ps(x, dlatv, latv0);
+            let (iu, fu) = split(_mm256_fmadd_ps(_mm256_mul_ps(lat, inv), vau, vbu), hu);
+            let (iv, fv) = split(_mm256_fmadd_ps(_mm256_mul_ps(latv, inv), vav, vbv), hv);
+            let k = _mm256_add_epi32(_mm256_mullo_epi32(iv, vw), iu);
+            // SAFETY: iu ≤ width − 2 and iv ≤ rows − 2, so k + width + 1 ≤ rows·width − 1 < q.len().
+            let (q00, q01, q10, q11) = unsafe {
+                (
+                    _mm256_i32gather_ps::<4>(base, k),
+                    _mm256_i32gather_ps::<4>(base.add(1), k),
+                    _mm256_i32gather_ps::<4>(base.add(width), k),
+                    _mm256_i32gather_ps::<4>(base.add(width + 1), k),
+                )
+            };
+            let top = _mm256_fmadd_ps(fu, _mm256_sub_ps(q01, q00), q00);
+            let bottom = _mm256_fmadd_ps(fu, _mm256_sub_ps(q11, q10), q10);
+            let v = _mm256_fmadd_ps(fv, _mm256_sub_ps(bottom, top), top);
+            let w = _mm256_mul_ps(inv, inv);
+            // SAFETY: i + 8 ≤ acc.len().
+            unsafe {
+                let out = acc.as_mut_ptr().add(i);
+                _mm256_storeu_ps(out, _mm256_fmadd_ps(w, v, _mm256_loadu_ps(out)));
+            }
+            i += 8;
+        }
+        let mut rest = *line;
+        rest.lc0 += i as f32 * line.dlc;
+        rest.lat0 += i as f32 * line.dlat;
+        rest.latv0 += i as f32 * line.dlatv;
+        super::cone_row_scalar(&mut acc[i..], panel, &rest, map);
     }
 }
 
@@ -137,11 +342,13 @@ mod tests {
     #[test]
     fn parallel_kernel_matches_the_safe_reference_inside_and_outside_the_detector() {
         let q = padded_row(50, 7);
-        let mut acc = vec![0.5f32; 80];
-        parallel_row(&mut acc, &q, -12.3, 0.91);
-        for (i, a) in acc.iter().enumerate() {
-            let want = 0.5 + reference_at(&q, -12.3 + i as f64 * 0.91);
-            assert!((*a as f64 - want).abs() < 1e-5, "{i}: {a} vs {want}");
+        for kernel in [parallel_row, parallel_row_scalar] {
+            let mut acc = vec![0.5f32; 83];
+            kernel(&mut acc, &q, -12.3, 0.91);
+            for (i, a) in acc.iter().enumerate() {
+                let want = 0.5 + reference_at(&q, -12.3 + i as f64 * 0.91);
+                assert!((*a as f64 - want).abs() < 1e-5, "{i}: {a} vs {want}");
+            }
         }
     }
 
@@ -156,21 +363,23 @@ mod tests {
             latv0: 0.0,
             dlatv: 0.0,
         };
-        let mut acc = vec![0.0f32; 90];
-        fan_row(&mut acc, &q, &line, 40.0, 33.5);
-        for (i, a) in acc.iter().enumerate() {
-            let lc = 30.0 - 0.5 * i as f64;
-            let want = if lc > MIN_DEPTH as f64 {
-                let lat = -20.0 + 0.7 * i as f64;
-                reference_at(&q, 40.0 * lat / lc + 33.5) / (lc * lc)
-            } else {
-                0.0
-            };
-            assert!(
-                (*a as f64 - want).abs() < 1e-5 * (1.0 + want.abs()),
-                "{i}: {a} vs {want}"
-            );
-            assert!(a.is_finite());
+        for kernel in [fan_row, fan_row_scalar] {
+            let mut acc = vec![0.0f32; 90];
+            kernel(&mut acc, &q, &line, 40.0, 33.5);
+            for (i, a) in acc.iter().enumerate() {
+                let lc = 30.0 - 0.5 * i as f64;
+                let want = if lc > MIN_DEPTH as f64 {
+                    let lat = -20.0 + 0.7 * i as f64;
+                    reference_at(&q, 40.0 * lat / lc + 33.5) / (lc * lc)
+                } else {
+                    0.0
+                };
+                assert!(
+                    (*a as f64 - want).abs() < 1e-5 * (1.0 + want.abs()),
+                    "{i}: {a} vs {want}"
+                );
+                assert!(a.is_finite());
+            }
         }
     }
 
@@ -190,25 +399,27 @@ mod tests {
             latv0: 2.0,
             dlatv: -0.2,
         };
-        let mut acc = vec![0.0f32; 60];
-        let panel = Panel {
-            q: &q,
-            width: w,
-            rows: h,
-        };
-        cone_row(&mut acc, panel, &line, 15.0, 12.0, 9.0, 8.0);
-        for (i, a) in acc.iter().enumerate() {
-            let x = i as f64;
-            let lc = 10.0 + 0.1 * x;
-            let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
-            let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
-            let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
-            let (fu, fv) = (pu - iu as f64, pv - iv as f64);
-            let at = |r: usize, c: usize| q[r * w + c] as f64;
-            let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
-            let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
-            let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
-            assert!((*a as f64 - want).abs() < 1e-6, "{i}: {a} vs {want}");
+        for kernel in [cone_row, cone_row_scalar] {
+            let mut acc = vec![0.0f32; 61];
+            let panel = Panel {
+                q: &q,
+                width: w,
+                rows: h,
+            };
+            kernel(&mut acc, panel, &line, [15.0, 12.0, 9.0, 8.0]);
+            for (i, a) in acc.iter().enumerate() {
+                let x = i as f64;
+                let lc = 10.0 + 0.1 * x;
+                let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
+                let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
+                let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
+                let (fu, fv) = (pu - iu as f64, pv - iv as f64);
+                let at = |r: usize, c: usize| q[r * w + c] as f64;
+                let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
+                let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
+                let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
+                assert!((*a as f64 - want).abs() < 1e-6, "{i}: {a} vs {want}");
+            }
         }
     }
 }

@@ -118,8 +118,8 @@ pub fn fdk(
                             width,
                             rows,
                         };
-                        let (au, bu, av, bv) = panel_map(f, &det_map(&det, lo));
-                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), au, bu, av, bv);
+                        let map = panel_map(f, &det_map(&det, lo));
+                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), map);
                     }
                     for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
                         *o += *a;
@@ -144,15 +144,15 @@ fn det_map(det: &crate::recon::geometry::Detector2, lo: usize) -> [f64; 6] {
     ]
 }
 
-/// (au, bu, av, bv) with stored column = au·lat/lc + bu and stored row = av·latv/lc + bv.
-fn panel_map(f: &Frame, m: &[f64; 6]) -> (f32, f32, f32, f32) {
+/// [au, bu, av, bv] with stored column = au·lat/lc + bu and stored row = av·latv/lc + bv.
+fn panel_map(f: &Frame, m: &[f64; 6]) -> [f32; 4] {
     let [du, dv, ou, ov, cu, cv] = *m;
-    (
+    [
         (f.dsd / du) as f32,
         (cu - (f.u0 + ou) / du) as f32,
         (f.dsd / dv) as f32,
         (cv - (f.v0 + ov) / dv) as f32,
-    )
+    ]
 }
 
 fn volume_row(f: &Frame, grid: &VolumeGrid, y: usize, z: usize) -> RowLine {
