@@ -1,7 +1,7 @@
 //! Analytic reconstruction end to end (array in, array out, all cores): parallel FBP 512² from 720 views
 //! of 725 detectors, fan-beam FBP 512² from 720 views (arc and flat), FDK 128³ from 360 projections of
-//! 256². The larger FDK (256³ from 360 projections of 512²) is timed by `examples/fdk_large.rs`, which
-//! also reports its peak memory under `/usr/bin/time -v`.
+//! 256². The larger FDK (256³ from 360 projections of 512²) is timed by `examples/analytic_timing.rs`
+//! (`fdk256`), which also gives CPU time and, under `/usr/bin/time -v`, the peak memory.
 //!
 //! The data are smooth synthetic arrays: the cost of FBP and FDK does not depend on the values.
 

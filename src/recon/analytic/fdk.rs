@@ -54,6 +54,7 @@ pub fn fdk(
     let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
     // Offset panels are filtered on rows extended with zeros on the short side.
     let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.du_mm);
+    let full = redundancy.is_full();
     let ne = nu + lo + hi;
     let kernel = Kernel::Ramp {
         spacing: det.du_mm * f0.dso / f0.dsd,
@@ -84,9 +85,12 @@ pub fn fdk(
                             *o = if i >= lo && i < lo + nu {
                                 let u = det.u(0) + (i - lo) as f64 * det.du_mm + f.u0;
                                 let pre = f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt();
-                                data[i - lo] as f64
-                                    * pre
-                                    * redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                                let w = if full {
+                                    1.0
+                                } else {
+                                    redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                                };
+                                data[i - lo] as f64 * pre * w
                             } else {
                                 0.0
                             };
