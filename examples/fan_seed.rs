@@ -2,7 +2,7 @@
 //! axial slice 64 (MATLAB's 1-based index, 0-based 63), forward-projected as a pixel image with MATLAB
 //! `fanbeam` conventions (D = 250 px, arc sensors at 2°, 1° and 0.25°, 1° rotation steps over 360°) and
 //! reconstructed at 128² by fan-beam FBP. Prints the PSNR (true data range of the slice) and the RMSE for
-//! each sensor spacing.
+//! each sensor spacing, for the MATLAB-style projection and for ctrecon's Joseph projector.
 //!
 //! The pixel image is projected MATLAB-style: every pixel split into 2×2 sub-pixels, each projected from
 //! the source onto the arc and shared linearly between the two nearest sensors, divided by the width of
@@ -17,6 +17,7 @@ use ctrecon::recon::geometry::{MatlabFan, Source2, Views2};
 use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
 use ctrecon::recon::metrics::{psnr, rmse};
 use ctrecon::recon::phantom::{Phantom3, Table3, seed_grid};
+use ctrecon::recon::projector::forward_2d;
 use ndarray::{Array2, ArrayView2, Axis};
 
 /// The seed's slice: `phantom3d(128)(:, :, 64)` on 1 mm pixels (phantom scale 63.5 mm).
@@ -76,15 +77,33 @@ pub fn project_pixels(image: ArrayView2<'_, f32>, grid: &ImageGrid, views: &View
     sino
 }
 
-/// (PSNR in dB with the slice's data range, RMSE) of the fan-beam FBP at sensor spacing `spacing_deg`.
+/// How the slice image is forward-projected.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Projector {
+    /// MATLAB-style pixel-driven (2×2 sub-pixels, linear split between sensors), as the seed's `fanbeam`.
+    Pixels,
+    /// ctrecon's ray-driven Joseph projector (`projector::forward_2d`).
+    Joseph,
+}
+
+/// (PSNR in dB with the slice's data range, RMSE) of the fan-beam FBP at sensor spacing `spacing_deg`,
+/// with the MATLAB-style pixel-driven projection.
 pub fn seed_experiment(spacing_deg: f64) -> (f64, f64) {
+    seed_experiment_with(spacing_deg, Projector::Pixels)
+}
+
+/// As [`seed_experiment`] with a chosen projector.
+pub fn seed_experiment_with(spacing_deg: f64, projector: Projector) -> (f64, f64) {
     let (slice, grid) = seed_slice();
     let fan = MatlabFan::arc(128, 128, 250.0, spacing_deg, 1.0);
     let views = fan
         .to_fan()
         .and_then(|f| f.to_views())
         .expect("the seed geometry is valid");
-    let sino = project_pixels(slice.view(), &grid, &views);
+    let sino = match projector {
+        Projector::Pixels => project_pixels(slice.view(), &grid, &views),
+        Projector::Joseph => forward_2d(&views, slice.view(), &grid),
+    };
     let image = fbp_2d(
         &views,
         sino.view(),
@@ -104,8 +123,11 @@ pub fn seed_experiment(spacing_deg: f64) -> (f64, f64) {
 
 #[allow(dead_code)]
 fn main() {
-    for spacing in [2.0, 1.0, 0.25] {
-        let (p, e) = seed_experiment(spacing);
-        println!("sensor spacing {spacing:>4}°: PSNR {p:6.2} dB, RMSE {e:.4}");
+    for projector in [Projector::Pixels, Projector::Joseph] {
+        println!("{projector:?} forward projection of the slice:");
+        for spacing in [2.0, 1.0, 0.25] {
+            let (p, e) = seed_experiment_with(spacing, projector);
+            println!("  sensor spacing {spacing:>4}°: PSNR {p:6.2} dB, RMSE {e:.4}");
+        }
     }
 }

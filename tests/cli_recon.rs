@@ -29,13 +29,44 @@ fn phantom_then_recon_reproduces_the_shepp_logan_phantom_and_writes_a_png() {
     let png = dir.path().join("recon.png");
     let geometry = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/geometries/parallel.json");
     let s = |p: &Path| p.to_str().unwrap().to_string();
-    let run = ctrecon(&["phantom", "--geometry", geometry, "--fov-mm", "256", "--out", &s(&sino)]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
     let run = ctrecon(&[
-        "recon", "--input", &s(&sino), "--algorithm", "fbp", "--size", "256", "--pixel-mm", "1",
-        "--output", &s(&out), "--png", &s(&png), "--ww", "0.4", "--wl", "0.2",
+        "phantom",
+        "--geometry",
+        geometry,
+        "--fov-mm",
+        "256",
+        "--out",
+        &s(&sino),
     ]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let run = ctrecon(&[
+        "recon",
+        "--input",
+        &s(&sino),
+        "--algorithm",
+        "fbp",
+        "--size",
+        "256",
+        "--pixel-mm",
+        "1",
+        "--output",
+        &s(&out),
+        "--png",
+        &s(&png),
+        "--ww",
+        "0.4",
+        "--wl",
+        "0.2",
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let image = read(&out).into_dimensionality::<Ix2>().unwrap();
     let grid = ImageGrid::square(256, 1.0);
     let reference = Phantom2::from_table(Table2::ModifiedSheppLogan, 128.0).rasterize(&grid, 4);
@@ -66,14 +97,43 @@ fn recon_with_a_hann_filter_via_params_json_and_a_cone_volume_slice_png() {
     let png = dir.path().join("slice.png");
     let s = |p: &Path| p.to_str().unwrap().to_string();
     let run = ctrecon(&[
-        "phantom", "--geometry", &s(&geometry), "--fov-mm", "64", "--out", &s(&proj),
+        "phantom",
+        "--geometry",
+        &s(&geometry),
+        "--fov-mm",
+        "64",
+        "--out",
+        &s(&proj),
     ]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let run = ctrecon(&[
-        "recon", "--data", &s(&proj), "--algorithm", "fdk", "--params", r#"{"filter": "hann"}"#,
-        "--size", "32", "--pixel-mm", "2", "--out", &s(&out), "--png", &s(&png), "--slice", "10",
+        "recon",
+        "--data",
+        &s(&proj),
+        "--algorithm",
+        "fdk",
+        "--params",
+        r#"{"filter": "hann"}"#,
+        "--size",
+        "32",
+        "--pixel-mm",
+        "2",
+        "--out",
+        &s(&out),
+        "--png",
+        &s(&png),
+        "--slice",
+        "10",
     ]);
-    assert!(run.status.success(), "{}", String::from_utf8_lossy(&run.stderr));
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     assert_eq!(read(&out).shape(), &[32, 32, 32]);
     assert!(std::fs::metadata(&png).unwrap().len() > 50);
 }
@@ -84,14 +144,26 @@ fn bad_input_fails_with_a_message() {
     let missing = dir.path().join("nothing.npy");
     let out = dir.path().join("out.npy");
     let run = ctrecon(&[
-        "recon", "--input", missing.to_str().unwrap(), "--output", out.to_str().unwrap(),
+        "recon",
+        "--input",
+        missing.to_str().unwrap(),
+        "--output",
+        out.to_str().unwrap(),
     ]);
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("error"));
     let run = ctrecon(&[
-        "recon", "--input", missing.to_str().unwrap(), "--geometry",
+        "recon",
+        "--input",
+        missing.to_str().unwrap(),
+        "--geometry",
         concat!(env!("CARGO_MANIFEST_DIR"), "/docs/geometries/parallel.json"),
-        "--algorithm", "fbp", "--params", r#"{"cutof": 0.5}"#, "--output", out.to_str().unwrap(),
+        "--algorithm",
+        "fbp",
+        "--params",
+        r#"{"cutof": 0.5}"#,
+        "--output",
+        out.to_str().unwrap(),
     ]);
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("cutof"));

@@ -4,7 +4,8 @@
 //! zero rows above and below), so a detector position is clamped into the stored range and reads zeros
 //! outside the detector: no bounds checks are needed in the hot loop. Positions are in stored samples
 //! (detector index + [`PAD`]). The per-view constants (angular weight, distance weights) are folded into
-//! the stored values, so the kernels only interpolate and add.
+//! the stored values, so the kernels only interpolate and add. On x86-64 CPUs with AVX2 and FMA the
+//! public kernels run the vector forms of `super::simd`; the `*_scalar` forms are the portable reference.
 
 /// Zero samples stored on each side of a filtered detector row.
 pub const PAD: usize = 2;
@@ -33,6 +34,20 @@ pub fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
     if q.len() < 2 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if super::simd::available(q.len()) {
+        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
+        unsafe { super::simd::parallel_row(acc, q, pos0, dpos) };
+        return;
+    }
+    parallel_row_scalar(acc, q, pos0, dpos);
+}
+
+/// The portable (reference) form of [`parallel_row`].
+pub fn parallel_row_scalar(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
+    if q.len() < 2 {
+        return;
+    }
     for (i, a) in acc.iter_mut().enumerate() {
         *a += lerp(q, pos0 + i as f32 * dpos);
     }
@@ -58,6 +73,20 @@ pub fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
     if q.len() < 2 {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if super::simd::available(q.len()) {
+        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
+        unsafe { super::simd::fan_row(acc, q, line, a, b) };
+        return;
+    }
+    fan_row_scalar(acc, q, line, a, b);
+}
+
+/// The portable (reference) form of [`fan_row`].
+pub fn fan_row_scalar(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
+    if q.len() < 2 {
+        return;
+    }
     for (i, out) in acc.iter_mut().enumerate() {
         let x = i as f32;
         let lc = line.lc0 + x * line.dlc;
@@ -76,19 +105,28 @@ pub struct Panel<'a> {
 }
 
 /// Cone beam: `acc[i] += q(au·lat/lc + bu, av·latv/lc + bv) / lc²` (bilinear).
-pub fn cone_row(
-    acc: &mut [f32],
-    panel: Panel<'_>,
-    line: &RowLine,
-    au: f32,
-    bu: f32,
-    av: f32,
-    bv: f32,
-) {
+pub fn cone_row(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
     let Panel { q, width, rows } = panel;
     if width < 2 || rows < 2 || q.len() < width * rows {
         return;
     }
+    #[cfg(target_arch = "x86_64")]
+    if super::simd::available(width * rows) {
+        // SAFETY: AVX2 and FMA are present (checked at run time), q holds width·rows ≥ 4 values and
+        // width·rows fits an i32 index.
+        unsafe { super::simd::cone_row(acc, panel, line, map) };
+        return;
+    }
+    cone_row_scalar(acc, panel, line, map);
+}
+
+/// The portable (reference) form of [`cone_row`]; `map` is `[au, bu, av, bv]`.
+pub fn cone_row_scalar(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
+    let Panel { q, width, rows } = panel;
+    if width < 2 || rows < 2 || q.len() < width * rows {
+        return;
+    }
+    let [au, bu, av, bv] = map;
     let (hu, hv) = ((width - 2) as f32, (rows - 2) as f32);
     for (i, out) in acc.iter_mut().enumerate() {
         let x = i as f32;
@@ -137,11 +175,13 @@ mod tests {
     #[test]
     fn parallel_kernel_matches_the_safe_reference_inside_and_outside_the_detector() {
         let q = padded_row(50, 7);
-        let mut acc = vec![0.5f32; 80];
-        parallel_row(&mut acc, &q, -12.3, 0.91);
-        for (i, a) in acc.iter().enumerate() {
-            let want = 0.5 + reference_at(&q, -12.3 + i as f64 * 0.91);
-            assert!((*a as f64 - want).abs() < 1e-5, "{i}: {a} vs {want}");
+        for kernel in [parallel_row, parallel_row_scalar] {
+            let mut acc = vec![0.5f32; 83];
+            kernel(&mut acc, &q, -12.3, 0.91);
+            for (i, a) in acc.iter().enumerate() {
+                let want = 0.5 + reference_at(&q, -12.3 + i as f64 * 0.91);
+                assert!((*a as f64 - want).abs() < 1e-5, "{i}: {a} vs {want}");
+            }
         }
     }
 
@@ -156,21 +196,23 @@ mod tests {
             latv0: 0.0,
             dlatv: 0.0,
         };
-        let mut acc = vec![0.0f32; 90];
-        fan_row(&mut acc, &q, &line, 40.0, 33.5);
-        for (i, a) in acc.iter().enumerate() {
-            let lc = 30.0 - 0.5 * i as f64;
-            let want = if lc > MIN_DEPTH as f64 {
-                let lat = -20.0 + 0.7 * i as f64;
-                reference_at(&q, 40.0 * lat / lc + 33.5) / (lc * lc)
-            } else {
-                0.0
-            };
-            assert!(
-                (*a as f64 - want).abs() < 1e-5 * (1.0 + want.abs()),
-                "{i}: {a} vs {want}"
-            );
-            assert!(a.is_finite());
+        for kernel in [fan_row, fan_row_scalar] {
+            let mut acc = vec![0.0f32; 90];
+            kernel(&mut acc, &q, &line, 40.0, 33.5);
+            for (i, a) in acc.iter().enumerate() {
+                let lc = 30.0 - 0.5 * i as f64;
+                let want = if lc > MIN_DEPTH as f64 {
+                    let lat = -20.0 + 0.7 * i as f64;
+                    reference_at(&q, 40.0 * lat / lc + 33.5) / (lc * lc)
+                } else {
+                    0.0
+                };
+                assert!(
+                    (*a as f64 - want).abs() < 1e-5 * (1.0 + want.abs()),
+                    "{i}: {a} vs {want}"
+                );
+                assert!(a.is_finite());
+            }
         }
     }
 
@@ -190,25 +232,27 @@ mod tests {
             latv0: 2.0,
             dlatv: -0.2,
         };
-        let mut acc = vec![0.0f32; 60];
-        let panel = Panel {
-            q: &q,
-            width: w,
-            rows: h,
-        };
-        cone_row(&mut acc, panel, &line, 15.0, 12.0, 9.0, 8.0);
-        for (i, a) in acc.iter().enumerate() {
-            let x = i as f64;
-            let lc = 10.0 + 0.1 * x;
-            let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
-            let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
-            let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
-            let (fu, fv) = (pu - iu as f64, pv - iv as f64);
-            let at = |r: usize, c: usize| q[r * w + c] as f64;
-            let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
-            let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
-            let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
-            assert!((*a as f64 - want).abs() < 1e-6, "{i}: {a} vs {want}");
+        for kernel in [cone_row, cone_row_scalar] {
+            let mut acc = vec![0.0f32; 61];
+            let panel = Panel {
+                q: &q,
+                width: w,
+                rows: h,
+            };
+            kernel(&mut acc, panel, &line, [15.0, 12.0, 9.0, 8.0]);
+            for (i, a) in acc.iter().enumerate() {
+                let x = i as f64;
+                let lc = 10.0 + 0.1 * x;
+                let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
+                let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
+                let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
+                let (fu, fv) = (pu - iu as f64, pv - iv as f64);
+                let at = |r: usize, c: usize| q[r * w + c] as f64;
+                let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
+                let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
+                let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
+                assert!((*a as f64 - want).abs() < 1e-6, "{i}: {a} vs {want}");
+            }
         }
     }
 }

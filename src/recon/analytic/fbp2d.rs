@@ -10,7 +10,7 @@
 //! backproject Σ Δβ D²/lc² Q(u′).
 //! Redundancy weights ([`Redundancy`]) multiply the pre-weights before filtering.
 
-use ndarray::{Array2, ArrayView2, Axis};
+use ndarray::{Array2, ArrayView2};
 use rayon::prelude::*;
 
 use super::backproject::{PAD, RowLine, fan_row, parallel_row};
@@ -118,29 +118,33 @@ fn filter_views(
     Ok(Filtered { rows, width })
 }
 
-/// Backproject: `row_of(j, k, acc)` adds view `k` to image row `j`; rows run in parallel.
+/// Image rows backprojected together: each filtered view is read once per block from memory.
+const ROW_BLOCK: usize = 8;
+
+/// Backproject: `add_view(j, k, acc)` adds view `k` to image row `j`; blocks of rows run in parallel.
 fn backproject_rows(
     grid: &ImageGrid,
     count: usize,
     ctl: Control<'_>,
     add_view: impl Fn(usize, usize, &mut [f32]) + Sync,
 ) -> Result<Array2<f32>, ReconError> {
+    let nx = grid.nx;
     let mut image = Array2::<f32>::zeros(grid.shape());
     let ticker = Ticker::new(ctl, "backproject", grid.ny);
-    image
-        .axis_iter_mut(Axis(0))
-        .into_par_iter()
+    let Some(flat) = image.as_slice_mut() else {
+        return Err(ReconError::param("grid", "image is not contiguous"));
+    };
+    flat.par_chunks_mut(ROW_BLOCK * nx)
         .enumerate()
-        .try_for_each(|(j, mut row)| {
+        .try_for_each(|(block, rows)| {
             ctl.check()?;
-            let mut acc = vec![0.0f32; grid.nx];
+            let first = block * ROW_BLOCK;
             for k in 0..count {
-                add_view(j, k, &mut acc);
+                for (r, acc) in rows.chunks_mut(nx).enumerate() {
+                    add_view(first + r, k, acc);
+                }
             }
-            for (o, a) in row.iter_mut().zip(&acc) {
-                *o = *a;
-            }
-            ticker.tick();
+            ticker.add(rows.len() / nx);
             Ok::<(), ReconError>(())
         })?;
     Ok(image)
@@ -305,6 +309,18 @@ fn fan_fbp(
         let fine = ((t_hi - t_lo) / det.spacing * ARC_OVERSAMPLING as f64).ceil() as usize;
         let m = fine.min(MAX_ARC_STRETCH * ARC_OVERSAMPLING * ne) + 1;
         let dt = (t_hi - t_lo) / (m - 1) as f64;
+        // Element position of tan-grid sample j, and the factor 1/(1 + t²).
+        let position = |j: usize, u0: f64| {
+            let t = t_lo + j as f64 * dt;
+            (t.atan() - u0 - coord(0)) / det.spacing
+        };
+        let positions: Vec<f64> = (0..m).map(|j| position(j, f0.u0)).collect();
+        let stretch: Vec<f64> = (0..m)
+            .map(|j| {
+                let t = t_lo + j as f64 * dt;
+                1.0 / (1.0 + t * t)
+            })
+            .collect();
         let filtered = filter_views(
             count,
             &filter,
@@ -322,6 +338,7 @@ fn fan_fbp(
             },
             |k, row, out| {
                 let f = &frames[k];
+                let same = (f.u0 - f0.u0).abs() <= 1e-12;
                 // Catmull–Rom interpolation of the filtered row at element position p (zero outside).
                 let get = |i: i64| {
                     if i >= 0 && (i as usize) < nf {
@@ -345,10 +362,12 @@ fn fan_fbp(
                             + t * (2.0 * a - 5.0 * b + 4.0 * c - d + t * (3.0 * (b - c) + d - a)))
                 };
                 for (j, o) in out[PAD..PAD + m].iter_mut().enumerate() {
-                    let t = t_lo + j as f64 * dt;
-                    let g = t.atan() - f.u0;
-                    let p = (g - coord(0)) / det.spacing;
-                    *o = (at(p) * steps[k] / (1.0 + t * t)) as f32;
+                    let p = if same {
+                        positions[j]
+                    } else {
+                        position(j, f.u0)
+                    };
+                    *o = (at(p) * stretch[j] * steps[k]) as f32;
                 }
             },
         )?;

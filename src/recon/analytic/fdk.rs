@@ -54,6 +54,7 @@ pub fn fdk(
     let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
     // Offset panels are filtered on rows extended with zeros on the short side.
     let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.du_mm);
+    let full = redundancy.is_full();
     let ne = nu + lo + hi;
     let kernel = Kernel::Ramp {
         spacing: det.du_mm * f0.dso / f0.dsd,
@@ -84,9 +85,12 @@ pub fn fdk(
                             *o = if i >= lo && i < lo + nu {
                                 let u = det.u(0) + (i - lo) as f64 * det.du_mm + f.u0;
                                 let pre = f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt();
-                                data[i - lo] as f64
-                                    * pre
-                                    * redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                                let w = if full {
+                                    1.0
+                                } else {
+                                    redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                                };
+                                data[i - lo] as f64 * pre * w
                             } else {
                                 0.0
                             };
@@ -118,8 +122,8 @@ pub fn fdk(
                             width,
                             rows,
                         };
-                        let (au, bu, av, bv) = panel_map(f, &det_map(&det, lo));
-                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), au, bu, av, bv);
+                        let map = panel_map(f, &det_map(&det, lo));
+                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), map);
                     }
                     for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
                         *o += *a;
@@ -144,15 +148,15 @@ fn det_map(det: &crate::recon::geometry::Detector2, lo: usize) -> [f64; 6] {
     ]
 }
 
-/// (au, bu, av, bv) with stored column = au·lat/lc + bu and stored row = av·latv/lc + bv.
-fn panel_map(f: &Frame, m: &[f64; 6]) -> (f32, f32, f32, f32) {
+/// [au, bu, av, bv] with stored column = au·lat/lc + bu and stored row = av·latv/lc + bv.
+fn panel_map(f: &Frame, m: &[f64; 6]) -> [f32; 4] {
     let [du, dv, ou, ov, cu, cv] = *m;
-    (
+    [
         (f.dsd / du) as f32,
         (cu - (f.u0 + ou) / du) as f32,
         (f.dsd / dv) as f32,
         (cv - (f.v0 + ov) / dv) as f32,
-    )
+    ]
 }
 
 fn volume_row(f: &Frame, grid: &VolumeGrid, y: usize, z: usize) -> RowLine {

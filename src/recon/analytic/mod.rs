@@ -18,6 +18,8 @@ mod fdk;
 pub mod filter;
 mod orbit;
 mod progress;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 pub mod weights;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};

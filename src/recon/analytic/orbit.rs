@@ -61,7 +61,7 @@ fn centre_of(rays: &[(Vec3, Vec3)]) -> Result<[f64; 2], ReconError> {
     }
     let det = a[0][0] * a[1][1] - a[0][1] * a[1][0];
     let trace = a[0][0] + a[1][1];
-    if !(det.abs() > 1e-12 * trace * trace) {
+    if det.abs() <= 1e-12 * trace * trace || !det.is_finite() {
         return Err(unsupported(
             "a divergent beam needs views from at least two directions",
         ));
@@ -86,7 +86,7 @@ fn frames(
         let centre = [cx, cy, source[2]];
         let to_c = sub3(centre, source);
         let dso = norm3(to_c);
-        if !(dso > 0.0) {
+        if dso <= 0.0 || dso.is_nan() {
             return Err(unsupported("the source sits on the rotation centre"));
         }
         let dir = scale3(to_c, 1.0 / dso);
@@ -101,7 +101,7 @@ fn frames(
             DetectorShape::Flat => (along, dot3(r, e_u)),
             DetectorShape::Arc => (norm3(r), dot3(r, e_u).atan2(along)),
         };
-        if !(dsd > 0.0) {
+        if dsd <= 0.0 || dsd.is_nan() {
             return Err(unsupported("the detector lies behind the source"));
         }
         out.push(Frame {

@@ -128,6 +128,11 @@ impl Redundancy {
         })
     }
 
+    /// True for a plain full turn (every weight 1).
+    pub fn is_full(&self) -> bool {
+        matches!(self, Redundancy::Full)
+    }
+
     /// The weight of the ray at fan angle `gamma` (relative to the central ray, positive toward the
     /// detector u axis) in the view at `angle_rad`.
     pub fn weight(&self, angle_rad: f64, gamma: f64) -> f64 {

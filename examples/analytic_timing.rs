@@ -1,0 +1,129 @@
+//! Wall-clock and CPU time of the analytic benchmarks, for a machine shared with other work where
+//! criterion's wall-clock figures overstate the cost: CPU time (user + system of this process, from
+//! `/proc/self/stat`) divided by the thread count estimates the wall time on an idle machine.
+//!
+//! `cargo run --release --example analytic_timing -- [parallel|fan_arc|fan_flat|fdk128|fdk256] [runs]`;
+//! under `/usr/bin/time -v` the maximum resident set size is the peak memory.
+
+use std::time::Instant;
+
+use ctrecon::recon::algorithm::FbpParams;
+use ctrecon::recon::analytic::{fbp_2d, fdk};
+use ctrecon::recon::control::unattended;
+use ctrecon::recon::geometry::{
+    Angles, ConeBeam, FanBeam, FanDetector, Panel, ParallelBeam, Views2,
+};
+use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
+use ndarray::{Array2, Array3};
+
+/// CPU seconds (user + system) used by this process so far; 0 where /proc is missing.
+fn cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // Fields after the parenthesised command name; utime and stime are fields 14 and 15 (1-based).
+    let Some(rest) = stat.rsplit(')').next() else {
+        return 0.0;
+    };
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+fn fan(detector: FanDetector) -> Views2 {
+    FanBeam {
+        angles: Angles::uniform(720, 360.0),
+        dso_mm: 500.0,
+        dsd_mm: 950.0,
+        detector,
+        centre_mm: [0.0, 0.0],
+    }
+    .to_views()
+    .expect("valid fan geometry")
+}
+
+fn cone(n: usize) -> (ConeBeam, VolumeGrid) {
+    let g = ConeBeam {
+        angles: Angles::uniform(360, 360.0),
+        dso_mm: 1000.0,
+        dsd_mm: 1500.0,
+        detector: Panel {
+            nu: 2 * n,
+            nv: 2 * n,
+            du_mm: 1.6 * 128.0 / n as f64,
+            dv_mm: 1.6 * 128.0 / n as f64,
+            offset_u_mm: 0.0,
+            offset_v_mm: 0.0,
+        },
+    };
+    (g, VolumeGrid::cube(n, 256.0 / n as f64))
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args().collect();
+    let case = args.get(1).map(String::as_str).unwrap_or("parallel");
+    let runs: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
+    let params = FbpParams::default();
+    let threads = rayon::current_num_threads() as f64;
+    let grid = ImageGrid::square(512, 0.5);
+    let (updates, mut run): (f64, Box<dyn FnMut()>) = match case {
+        "parallel" | "fan_arc" | "fan_flat" => {
+            let views = match case {
+                "parallel" => ParallelBeam {
+                    angles: Angles::uniform(720, 180.0),
+                    det_count: 725,
+                    det_spacing_mm: 0.5,
+                    det_offset_mm: 0.0,
+                }
+                .to_views()
+                .expect("valid parallel geometry"),
+                "fan_arc" => fan(FanDetector::Arc {
+                    count: 800,
+                    spacing_deg: 0.06,
+                    offset_deg: 0.0,
+                }),
+                _ => fan(FanDetector::Flat {
+                    count: 800,
+                    spacing_mm: 1.06,
+                    offset_mm: 0.0,
+                }),
+            };
+            let sino = Array2::from_shape_fn(views.shape(), |(k, i)| {
+                ((i as f32 * 0.01 + k as f32 * 0.003).sin() + 1.0) * 10.0
+            });
+            let updates = 512.0 * 512.0 * views.views.len() as f64;
+            (
+                updates,
+                Box::new(move || {
+                    fbp_2d(&views, sino.view(), &grid, &params, unattended()).expect("FBP runs");
+                }),
+            )
+        }
+        _ => {
+            let n = if case == "fdk256" { 256 } else { 128 };
+            let (g, vol) = cone(n);
+            let views = g.to_views().expect("valid cone geometry");
+            let proj = Array3::from_shape_fn(views.shape(), |(k, r, i)| {
+                ((i as f32 * 0.01 + r as f32 * 0.02 + k as f32 * 0.003).sin() + 1.0) * 10.0
+            });
+            let updates = (n * n * n) as f64 * 360.0;
+            (
+                updates,
+                Box::new(move || {
+                    fdk(&views, proj.view(), &vol, &params, unattended()).expect("FDK runs");
+                }),
+            )
+        }
+    };
+    for _ in 0..runs {
+        let (wall0, cpu0) = (Instant::now(), cpu_seconds());
+        run();
+        let (wall, cpu) = (wall0.elapsed().as_secs_f64(), cpu_seconds() - cpu0);
+        println!(
+            "{case}: wall {wall:.3} s, CPU {cpu:.2} s ({threads} threads: ≈ {:.3} s on idle cores), \
+             {:.3e} voxel-updates per CPU-second",
+            cpu / threads,
+            updates / cpu.max(1e-9)
+        );
+    }
+}
