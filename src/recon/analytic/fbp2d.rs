@@ -3,8 +3,8 @@
 //!
 //! Parallel: f(x, y) = Σ_k Δθ_k Q_k(x cos θ_k + y sin θ_k), Q = τ·(p ⊛ h) (½ for a full turn).
 //! Fan, arc: pre-weight D cos γ, filter with the equiangular kernel g, backproject Σ Δβ Q(γ′)/L².
-//! The filtered arc views are resampled (linearly, 4 samples per element) onto a uniform grid in tan γ
-//! with the factor 1/(1 + tan²γ) folded in, so that the backprojection needs one division per pixel and
+//! The filtered arc views are resampled with Catmull–Rom cubic interpolation, 4 samples per element,
+//! onto a uniform grid in tan γ with the factor 1/(1 + tan²γ) folded in, so that the backprojection needs one division per pixel and
 //! no arctangent: L² = lc²(1 + tan²γ′) with lc the distance along the central ray.
 //! Fan, flat: detector moved to the isocentre (s = u·D/DSD), pre-weight D/√(D² + s²), filter with h/2,
 //! backproject Σ Δβ D²/lc² Q(u′).
@@ -26,6 +26,11 @@ use crate::recon::grid::ImageGrid;
 
 /// Samples per detector element of the tan γ grid an arc view is resampled onto.
 pub const ARC_OVERSAMPLING: usize = 4;
+
+/// Filtered arc rows are computed at this many samples per detector element before they are resampled
+/// (Catmull–Rom cubic) onto the tan γ grid. Parallel and flat fan beams interpolate linearly between
+/// elements.
+pub const ARC_UPSAMPLING: usize = 1;
 
 /// Cap on the length of the tan γ grid, in multiples of `ARC_OVERSAMPLING` × elements (wide fans
 /// stretch by 1/cos²γ; beyond ±69° the grid gets coarser than `ARC_OVERSAMPLING` per element at the edges).
@@ -105,7 +110,7 @@ fn filter_views(
             ctl.check()?;
             prepare(k, scratch.input(n));
             filter.run(scratch);
-            store(k, scratch.input(n), out);
+            store(k, scratch.output(n * filter.up()), out);
             ticker.tick();
             Ok::<(), ReconError>(())
         },
@@ -153,18 +158,15 @@ fn parallel_fbp(
     let factor = parallel_factor(&angles)?;
     let steps = angular_steps(&angles);
     let n = det.count;
-    let filter = RowFilter::new(
-        n,
-        Kernel::Ramp {
-            spacing: det.spacing,
-        },
-        1.0,
-        params,
-    )?;
+    let up = 1;
+    let kernel = Kernel::Ramp {
+        spacing: det.spacing,
+    };
+    let filter = RowFilter::upsampled(n, kernel, 1.0, params, up)?;
     let filtered = filter_views(
         views.views.len(),
         &filter,
-        n + 2 * PAD,
+        up * n + 2 * PAD,
         ctl,
         |k, input| {
             for (i, v) in input.iter_mut().zip(sino.row(k)) {
@@ -173,19 +175,20 @@ fn parallel_fbp(
         },
         |k, row, out| {
             let w = steps[k] * factor;
-            for (o, v) in out[PAD..PAD + n].iter_mut().zip(row) {
+            for (o, v) in out[PAD..PAD + up * n].iter_mut().zip(row) {
                 *o = (v * w) as f32;
             }
         },
     )?;
-    // Stored position of t: (t − offset)/spacing + (n − 1)/2 + PAD.
-    let base = (n as f64 - 1.0) / 2.0 + PAD as f64 - det.offset / det.spacing;
+    // Stored position of t: ((t − offset)/spacing + (n − 1)/2)·up + PAD.
+    let sp = det.spacing / up as f64;
+    let base = (n as f64 - 1.0) / 2.0 * up as f64 + PAD as f64 - det.offset / sp;
     let x0 = grid.x(0);
     backproject_rows(grid, views.views.len(), ctl, |j, k, acc| {
         let v = &views.views[k];
         let (cx, cy) = (x0 - v.det_centre[0], grid.y(j) - v.det_centre[1]);
-        let pos0 = (cx * v.det_u[0] + cy * v.det_u[1]) / det.spacing + base;
-        let dpos = grid.dx_mm * v.det_u[0] / det.spacing;
+        let pos0 = (cx * v.det_u[0] + cy * v.det_u[1]) / sp + base;
+        let dpos = grid.dx_mm * v.det_u[0] / sp;
         parallel_row(acc, filtered.row(k), pos0 as f32, dpos as f32);
     })
 }
@@ -250,11 +253,12 @@ fn fan_fbp(
         let kernel = Kernel::Ramp {
             spacing: det.spacing / magnification,
         };
-        let filter = RowFilter::new(ne, kernel, 0.5, params)?;
+        let up = 1;
+        let filter = RowFilter::upsampled(ne, kernel, 0.5, params, up)?;
         let filtered = filter_views(
             count,
             &filter,
-            ne + 2 * PAD,
+            up * ne + 2 * PAD,
             ctl,
             |k, input| {
                 let f = &frames[k];
@@ -267,15 +271,17 @@ fn fan_fbp(
             },
             |k, row, out| {
                 let w = steps[k] * frames[k].dso * frames[k].dso;
-                for (o, v) in out[PAD..PAD + ne].iter_mut().zip(row) {
+                for (o, v) in out[PAD..PAD + up * ne].iter_mut().zip(row) {
                     *o = (v * w) as f32;
                 }
             },
         )?;
         backproject_rows(grid, count, ctl, |j, k, acc| {
             let f = &frames[k];
-            let a = f.dsd / det.spacing;
-            let b = (n as f64 - 1.0) / 2.0 + (PAD + lo) as f64 - (f.u0 + det.offset) / det.spacing;
+            let sp = det.spacing / up as f64;
+            let a = f.dsd / sp;
+            let b = ((n as f64 - 1.0) / 2.0 + lo as f64) * up as f64 + PAD as f64
+                - (f.u0 + det.offset) / sp;
             fan_row(
                 acc,
                 filtered.row(k),
@@ -288,7 +294,9 @@ fn fan_fbp(
         let kernel = Kernel::Equiangular {
             spacing: det.spacing,
         };
-        let filter = RowFilter::new(ne, kernel, 1.0, params)?;
+        let up = ARC_UPSAMPLING;
+        let filter = RowFilter::upsampled(ne, kernel, 1.0, params, up)?;
+        let nf = up * ne;
         // The tan γ grid: one element beyond each end, ARC_OVERSAMPLING samples per element.
         let (t_lo, t_hi) = (
             (coord(0) + f0.u0 - det.spacing).tan(),
@@ -314,20 +322,27 @@ fn fan_fbp(
             },
             |k, row, out| {
                 let f = &frames[k];
+                // Catmull–Rom interpolation of the filtered row at element position p (zero outside).
+                let get = |i: i64| {
+                    if i >= 0 && (i as usize) < nf {
+                        row[i as usize]
+                    } else {
+                        0.0
+                    }
+                };
                 let at = |p: f64| -> f64 {
-                    if !(p > -1.0 && p < ne as f64) {
+                    let p = p * up as f64;
+                    if !(p > -2.0 && p < nf as f64 + 1.0) {
                         return 0.0;
                     }
                     let i = p.floor();
-                    let fr = p - i;
-                    let get = |i: f64| {
-                        if i >= 0.0 && i < ne as f64 {
-                            row[i as usize]
-                        } else {
-                            0.0
-                        }
-                    };
-                    get(i) * (1.0 - fr) + get(i + 1.0) * fr
+                    let t = p - i;
+                    let i = i as i64;
+                    let (a, b, c, d) = (get(i - 1), get(i), get(i + 1), get(i + 2));
+                    b + 0.5
+                        * t
+                        * (c - a
+                            + t * (2.0 * a - 5.0 * b + 4.0 * c - d + t * (3.0 * (b - c) + d - a)))
                 };
                 for (j, o) in out[PAD..PAD + m].iter_mut().enumerate() {
                     let t = t_lo + j as f64 * dt;
@@ -373,7 +388,7 @@ pub fn estimate_bytes(views: &Views2, grid: &ImageGrid, params: &FbpParams) -> u
         .unwrap_or(0);
     let threads = rayon::current_num_threads() as u64;
     let per_thread = padded
-        .saturating_mul(8 * 4)
+        .saturating_mul(8 * 4 * ARC_UPSAMPLING as u64)
         .saturating_add((grid.nx as u64) * 4);
     image
         .saturating_add(filtered)

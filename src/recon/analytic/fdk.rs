@@ -94,7 +94,7 @@ pub fn fdk(
                         filter.run(scratch);
                         let start = (r + PAD) * width + PAD;
                         let out = &mut panel[start..start + ne];
-                        for (o, q) in out.iter_mut().zip(scratch.input(ne).iter()) {
+                        for (o, q) in out.iter_mut().zip(scratch.output(ne).iter()) {
                             *o = (q * post) as f32;
                         }
                     }

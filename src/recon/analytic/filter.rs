@@ -107,10 +107,13 @@ pub fn padded_len(n: usize, requested: Option<usize>) -> Result<usize, ReconErro
     }
 }
 
-/// A row filter: convolution with a windowed ramp kernel, times the sample spacing and a constant.
+/// A row filter: convolution with a windowed ramp kernel, times the sample spacing and a constant,
+/// optionally returned at `up` samples per input sample (band-limited interpolation by zero-padding the
+/// spectrum, so a later linear interpolation loses less resolution).
 pub struct RowFilter {
     n: usize,
     padded: usize,
+    up: usize,
     /// Real transfer function for bins 0..=padded/2, including spacing, scale and 1/padded.
     response: Vec<f64>,
     r2c: Arc<dyn RealToComplex<f64>>,
@@ -121,6 +124,8 @@ pub struct RowFilter {
 pub struct FilterScratch {
     time: Vec<f64>,
     freq: Vec<Complex<f64>>,
+    fine_freq: Vec<Complex<f64>>,
+    fine: Vec<f64>,
     work: Vec<Complex<f64>>,
 }
 
@@ -128,6 +133,10 @@ impl FilterScratch {
     /// The input row (length N) to fill before [`RowFilter::run`]; padding is zeroed by `run`.
     pub fn input(&mut self, n: usize) -> &mut [f64] {
         &mut self.time[..n]
+    }
+    /// The filtered row after [`RowFilter::run`]: `up·N` samples, sample `m` at input position `m/up`.
+    pub fn output(&self, len: usize) -> &[f64] {
+        &self.fine[..len]
     }
 }
 
@@ -139,11 +148,23 @@ impl RowFilter {
         scale: f64,
         params: &FbpParams,
     ) -> Result<Self, ReconError> {
+        Self::upsampled(n, kernel, scale, params, 1)
+    }
+
+    /// As [`RowFilter::new`], returning `up` output samples per input sample.
+    pub fn upsampled(
+        n: usize,
+        kernel: Kernel,
+        scale: f64,
+        params: &FbpParams,
+        up: usize,
+    ) -> Result<Self, ReconError> {
         params.validate()?;
         let padded = padded_len(n, params.padded_len)?;
+        let up = up.max(1);
         let mut planner = RealFftPlanner::<f64>::new();
         let r2c = planner.plan_fft_forward(padded);
-        let c2r = planner.plan_fft_inverse(padded);
+        let c2r = planner.plan_fft_inverse(padded * up);
         let mut k = r2c.make_input_vec();
         for (j, v) in k.iter_mut().enumerate() {
             let lag = if j <= padded / 2 {
@@ -157,7 +178,7 @@ impl RowFilter {
         r2c.process(&mut k, &mut spec)
             .map_err(|e| ReconError::param("padded_len", e.to_string()))?;
         let factor = scale * kernel.spacing() / padded as f64;
-        let response = spec
+        let mut response: Vec<f64> = spec
             .iter()
             .enumerate()
             .map(|(j, c)| {
@@ -165,9 +186,17 @@ impl RowFilter {
                 c.re * window(params.filter, w, params.cutoff) * factor
             })
             .collect();
+        // Upsampled, the Nyquist bin of an even length stands for ± the Nyquist frequency: halve it.
+        if up > 1
+            && padded % 2 == 0
+            && let Some(last) = response.last_mut()
+        {
+            *last *= 0.5;
+        }
         Ok(Self {
             n,
             padded,
+            up,
             response,
             r2c,
             c2r,
@@ -184,6 +213,11 @@ impl RowFilter {
         self.n == 0
     }
 
+    /// Output samples per input sample.
+    pub fn up(&self) -> usize {
+        self.up
+    }
+
     /// Padded length used for the FFT.
     pub fn padded_len(&self) -> usize {
         self.padded
@@ -195,30 +229,31 @@ impl RowFilter {
         FilterScratch {
             time: self.r2c.make_input_vec(),
             freq: self.r2c.make_output_vec(),
+            fine_freq: self.c2r.make_input_vec(),
+            fine: self.c2r.make_output_vec(),
             work: vec![Complex::new(0.0, 0.0); scratch_len],
         }
     }
 
-    /// Filter the row in `scratch.input(n)`; the result (n samples) is left in `scratch.input(n)` too.
+    /// Filter the row in `scratch.input(n)`; the result is in `scratch.output(up·n)`.
     pub fn run(&self, s: &mut FilterScratch) {
         s.time[self.n..].fill(0.0);
-        // Lengths match the plan by construction, so the FFTs cannot fail.
+        // Lengths match the plans by construction, so the FFTs cannot fail.
         let _ = self
             .r2c
             .process_with_scratch(&mut s.time, &mut s.freq, &mut s.work);
-        for (f, h) in s.freq.iter_mut().zip(&self.response) {
-            *f *= *h;
+        s.fine_freq.fill(Complex::new(0.0, 0.0));
+        for ((o, f), h) in s.fine_freq.iter_mut().zip(&s.freq).zip(&self.response) {
+            *o = *f * *h;
         }
         // The imaginary parts of the DC and Nyquist bins are zero for a real input times a real response.
-        s.freq[0].im = 0.0;
-        if self.padded % 2 == 0
-            && let Some(last) = s.freq.last_mut()
-        {
-            last.im = 0.0;
+        s.fine_freq[0].im = 0.0;
+        if self.padded % 2 == 0 {
+            s.fine_freq[self.padded / 2].im = 0.0;
         }
         let _ = self
             .c2r
-            .process_with_scratch(&mut s.freq, &mut s.time, &mut s.work);
+            .process_with_scratch(&mut s.fine_freq, &mut s.fine, &mut s.work);
     }
 }
 
@@ -251,9 +286,33 @@ mod tests {
             f.run(&mut s);
             let want = direct(&row, kernel);
             let scale = want.iter().fold(0.0f64, |a, v| a.max(v.abs()));
-            for (a, b) in s.input(row.len()).iter().zip(&want) {
+            for (a, b) in s.output(row.len()).iter().zip(&want) {
                 assert!((a - b).abs() < 1e-12 * scale, "{a} vs {b}");
             }
+        }
+    }
+
+    #[test]
+    fn upsampled_output_keeps_the_original_samples_and_interpolates_between_them() {
+        let kernel = Kernel::Ramp { spacing: 1.0 };
+        let row: Vec<f64> = (0..40)
+            .map(|i| (-((i as f64 - 20.0) / 4.0).powi(2)).exp())
+            .collect();
+        let plain = RowFilter::new(40, kernel, 1.0, &FbpParams::default()).unwrap();
+        let fine = RowFilter::upsampled(40, kernel, 1.0, &FbpParams::default(), 2).unwrap();
+        let (mut a, mut b) = (plain.scratch(), fine.scratch());
+        a.input(40).copy_from_slice(&row);
+        b.input(40).copy_from_slice(&row);
+        plain.run(&mut a);
+        fine.run(&mut b);
+        let (coarse, up) = (a.output(40), b.output(80));
+        for i in 0..40 {
+            assert!((up[2 * i] - coarse[i]).abs() < 1e-12, "{i}");
+        }
+        // A smooth row: the half-way samples lie near the mean of their neighbours.
+        for i in 10..30 {
+            let mid = (coarse[i] + coarse[i + 1]) / 2.0;
+            assert!((up[2 * i + 1] - mid).abs() < 0.02, "{i}");
         }
     }
 
