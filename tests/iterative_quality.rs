@@ -3,6 +3,7 @@
 //! - sparse views (256², 45 views over 180°): TV's RMSE is at least 30 % below FBP's and SIRT's at the
 //!   same iteration budget;
 //! - Poisson noise at 1e4 incident photons per ray (256², 180 views; MLEM and OSEM stopped early as usual for noisy data): MLEM, OSEM and TV beat FBP.
+//!
 //! RMSE is taken over the disk inscribed in the image against the phantom averaged over 4×4 sub-samples.
 
 use ctrecon::recon::algorithm::{
