@@ -78,6 +78,7 @@ fn primal(
     });
 }
 
+#[allow(clippy::needless_range_loop)] // j indexes several component blocks at once
 /// The proximal map of w·TV at `v` (with u ≥ 0 when `nonneg`), `iterations` FGP steps.
 pub fn prox_tv(v: &[f32], shape: Shape3, w: f32, iterations: usize, nonneg: bool) -> Vec<f32> {
     let n = shape.len();
