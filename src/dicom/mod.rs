@@ -1,1 +1,30 @@
 //! DICOM: the only module that imports dicom-rs — reading CT series and writing derived results.
+//!
+//! - [`read_bytes`] / [`read_path`]: one Part 10 file into an [`Instance`] whose frames are
+//!   [`series::Slice`]s (stored values plus placement and rescale); native, deflated and the compressed transfer
+//!   syntaxes dicom-pixeldata decodes (JPEG baseline/lossless, RLE, JPEG 2000), implicit VR and big endian,
+//!   multi-frame Enhanced CT with functional groups, signed/unsigned pixels and pixel padding.
+//! - [`unpack`]: an upload body (a single file or a ZIP, with bomb limits; names inside the ZIP are labels,
+//!   never paths) into named byte buffers; [`read_upload`] decodes them in parallel and splits them by
+//!   SeriesInstanceUID into [`SeriesGroup`]s, each with a [`SeriesReport`] and [`SeriesGroup::assemble`].
+//! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
+//!   file), [`write_secondary_capture`] (a 2D image), [`write_encapsulated_stl`] and [`write_zip`].
+//!
+//! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
+
+mod error;
+mod read;
+mod upload;
+mod write;
+
+pub use error::DicomError;
+pub use read::{Instance, ReadLimits, read_bytes, read_path};
+pub use upload::{
+    Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
+};
+pub use write::{
+    DerivedSeries, SeriesMeta, new_uid, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
+    write_secondary_capture, write_zip,
+};
+
+pub use crate::series;

@@ -594,8 +594,11 @@ mod tests {
             Err(NpyError::UnsupportedDtype(d)) if d == "<i8"
         ));
         let f = npy("<f4", "(2,)", &[0; 8]);
+        let at = f
+            .windows(5)
+            .position(|w| w == b"False")
+            .expect("the header names fortran_order");
         let mut fortran = f.clone();
-        let at = f.windows(5).position(|w| w == b"False").unwrap();
         fortran[at..at + 5].copy_from_slice(b"True ");
         assert_eq!(
             parse_header(&fortran),

@@ -1,0 +1,442 @@
+//! One DICOM file into an [`Instance`]: attributes and decoded frames as [`Slice`]s.
+
+use std::panic::{AssertUnwindSafe, catch_unwind};
+use std::path::Path;
+
+use dicom_core::Tag;
+use dicom_dictionary_std::tags;
+use dicom_object::file::ReadPreamble;
+use dicom_object::{InMemDicomObject, OpenFileOptions};
+use dicom_pixeldata::PixelDecoder;
+
+use super::error::DicomError;
+use crate::series::{Slice, Warning};
+
+/// Limits checked from the header, before any pixel buffer is allocated.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReadLimits {
+    /// Largest number of rows or columns.
+    pub max_side: u32,
+    pub max_frames: u32,
+    /// Largest decoded pixel data (bytes) of one file.
+    pub max_pixel_bytes: usize,
+}
+
+impl Default for ReadLimits {
+    fn default() -> Self {
+        Self {
+            max_side: 8192,
+            max_frames: 4096,
+            max_pixel_bytes: 1 << 30,
+        }
+    }
+}
+
+/// A decoded DICOM image file.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Instance {
+    /// Name given by the uploader (file or ZIP entry name): for messages only, never a path.
+    pub label: String,
+    pub size_bytes: usize,
+    pub sop_class_uid: String,
+    pub sop_instance_uid: String,
+    pub series_uid: String,
+    pub study_uid: Option<String>,
+    pub frame_of_reference_uid: Option<String>,
+    pub modality: Option<String>,
+    pub transfer_syntax: String,
+    pub photometric: String,
+    pub samples_per_pixel: u16,
+    pub bits_stored: u16,
+    pub signed: bool,
+    pub patient_name: Option<String>,
+    pub patient_id: Option<String>,
+    pub series_description: Option<String>,
+    pub instance_number: Option<i64>,
+    /// One slice per frame (stored values; colour images keep all samples interleaved).
+    pub slices: Vec<Slice>,
+    pub warnings: Vec<Warning>,
+}
+
+fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
+    let e = obj.element_opt(tag).ok()??;
+    let s = e.to_str().ok()?;
+    let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
+    (!s.is_empty()).then(|| s.to_string())
+}
+
+fn floats(obj: &InMemDicomObject, tag: Tag) -> Option<Vec<f64>> {
+    obj.element_opt(tag).ok()??.to_multi_float64().ok()
+}
+
+fn float(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
+    floats(obj, tag)?.first().copied().filter(|v| v.is_finite())
+}
+
+fn int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
+    obj.element_opt(tag).ok()??.to_int::<i64>().ok()
+}
+
+fn items(obj: &InMemDicomObject, tag: Tag) -> Option<&[InMemDicomObject]> {
+    obj.element_opt(tag).ok()??.items()
+}
+
+/// The first item of sequence `seq` in `group`, falling back to `shared`.
+fn group_item<'a>(
+    group: Option<&'a InMemDicomObject>,
+    shared: Option<&'a InMemDicomObject>,
+    seq: Tag,
+) -> Option<&'a InMemDicomObject> {
+    group
+        .and_then(|g| items(g, seq))
+        .and_then(|i| i.first())
+        .or_else(|| shared.and_then(|g| items(g, seq)).and_then(|i| i.first()))
+}
+
+fn arr<const N: usize>(v: Option<Vec<f64>>) -> Option<[f64; N]> {
+    let v = v?;
+    (v.len() >= N && v[..N].iter().all(|x| x.is_finite())).then(|| {
+        let mut a = [0.0; N];
+        a.copy_from_slice(&v[..N]);
+        a
+    })
+}
+
+/// Read one DICOM file from a path (the label is the file name).
+pub fn read_path(path: &Path, limits: &ReadLimits) -> Result<Instance, DicomError> {
+    let label = path
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "file".into());
+    let bytes = std::fs::read(path).map_err(|e| DicomError::Parse {
+        label: label.clone(),
+        reason: e.to_string(),
+    })?;
+    read_bytes(&label, &bytes, limits)
+}
+
+/// Read one DICOM Part 10 file held in memory. `label` names it in messages.
+pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Instance, DicomError> {
+    let label_s = label.to_string();
+    let (preamble, body) = if bytes.len() >= 132 && &bytes[128..132] == b"DICM" {
+        (ReadPreamble::Always, bytes)
+    } else if bytes.len() >= 4 && &bytes[..4] == b"DICM" {
+        (ReadPreamble::Never, bytes)
+    } else {
+        return Err(DicomError::NotDicom { label: label_s });
+    };
+    let parse = || {
+        OpenFileOptions::new()
+            .read_preamble(preamble)
+            .from_reader(body)
+    };
+    let obj = match catch_unwind(AssertUnwindSafe(parse)) {
+        Ok(Ok(o)) => o,
+        Ok(Err(e)) => {
+            return Err(DicomError::Parse {
+                label: label_s,
+                reason: e.to_string(),
+            });
+        }
+        Err(_) => {
+            return Err(DicomError::Parse {
+                label: label_s,
+                reason: "malformed data set".into(),
+            });
+        }
+    };
+    let transfer_syntax = obj
+        .meta()
+        .transfer_syntax()
+        .trim_end_matches('\0')
+        .to_string();
+    let missing = |what| DicomError::MissingAttribute {
+        label: label_s.clone(),
+        what,
+    };
+    let sop_class_uid = text(&obj, tags::SOP_CLASS_UID)
+        .unwrap_or_else(|| obj.meta().media_storage_sop_class_uid().to_string());
+    let sop_instance_uid = text(&obj, tags::SOP_INSTANCE_UID)
+        .unwrap_or_else(|| obj.meta().media_storage_sop_instance_uid().to_string());
+    let series_uid = text(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default();
+
+    // Header checks before any pixel buffer exists.
+    let pixel = obj
+        .element_opt(tags::PIXEL_DATA)
+        .ok()
+        .flatten()
+        .ok_or_else(|| DicomError::NoPixelData {
+            label: label_s.clone(),
+        })?;
+    let rows = int(&obj, tags::ROWS).ok_or_else(|| missing("Rows (0028,0010)"))?;
+    let columns = int(&obj, tags::COLUMNS).ok_or_else(|| missing("Columns (0028,0011)"))?;
+    let frames = match int(&obj, tags::NUMBER_OF_FRAMES) {
+        None => 1,
+        Some(f) if f >= 1 => f,
+        Some(_) => return Err(missing("Number of Frames (0028,0008)")),
+    };
+    let spp = int(&obj, tags::SAMPLES_PER_PIXEL).unwrap_or(1);
+    let bits_allocated =
+        int(&obj, tags::BITS_ALLOCATED).ok_or_else(|| missing("Bits Allocated (0028,0100)"))?;
+    let bits_stored = int(&obj, tags::BITS_STORED).unwrap_or(bits_allocated);
+    let signed = int(&obj, tags::PIXEL_REPRESENTATION).unwrap_or(0) == 1;
+    let photometric =
+        text(&obj, tags::PHOTOMETRIC_INTERPRETATION).unwrap_or_else(|| "MONOCHROME2".into());
+    if rows < 1 || columns < 1 {
+        return Err(missing("Rows/Columns (non-zero)"));
+    }
+    let too_large = |detail: String, limit: String| DicomError::TooLarge {
+        label: label_s.clone(),
+        detail,
+        limit,
+    };
+    if rows > limits.max_side as i64 || columns > limits.max_side as i64 {
+        return Err(too_large(
+            format!("{rows}×{columns} pixels"),
+            format!("{} pixels a side", limits.max_side),
+        ));
+    }
+    if frames > limits.max_frames as i64 {
+        return Err(too_large(
+            format!("{frames} frames"),
+            format!("{} frames", limits.max_frames),
+        ));
+    }
+    if !matches!(bits_allocated, 8 | 16 | 32) || bits_stored < 1 || bits_stored > bits_allocated {
+        return Err(DicomError::Unsupported {
+            label: label_s.clone(),
+            what: format!("pixel layout: {bits_allocated} bits allocated, {bits_stored} stored"),
+        });
+    }
+    if !(1..=4).contains(&spp) {
+        return Err(DicomError::Unsupported {
+            label: label_s.clone(),
+            what: format!("{spp} samples per pixel"),
+        });
+    }
+    let (rows, columns, frames, spp) = (
+        rows as usize,
+        columns as usize,
+        frames as usize,
+        spp as usize,
+    );
+    let expected = rows * columns * frames * spp * (bits_allocated as usize / 8);
+    if expected > limits.max_pixel_bytes {
+        return Err(too_large(
+            format!("{expected} bytes of pixels"),
+            format!("{} bytes", limits.max_pixel_bytes),
+        ));
+    }
+    let encapsulated = pixel.fragments().is_some();
+    if !encapsulated {
+        let got = pixel.to_bytes().map(|b| b.len()).unwrap_or(0);
+        if got < expected {
+            return Err(DicomError::PixelDataShort {
+                label: label_s,
+                expected,
+                got,
+            });
+        }
+    }
+
+    // An RGB JPEG with neither an Adobe nor a JFIF marker nor R, G, B component ids is ambiguous: decoders
+    // disagree on whether to undo a YCbCr transform, so it is refused rather than guessed.
+    if spp == 3
+        && photometric == "RGB"
+        && matches!(
+            transfer_syntax.as_str(),
+            "1.2.840.10008.1.2.4.50" | "1.2.840.10008.1.2.4.51"
+        )
+        && let Some(frag) = pixel.fragments().and_then(|f| f.first())
+        && !jpeg_colour_declared(frag)
+    {
+        return Err(DicomError::Unsupported {
+            label: label_s,
+            what: "RGB JPEG without a colour-transform marker (Adobe APP14 or JFIF)".into(),
+        });
+    }
+
+    // Decode (codec panics on hostile data become errors).
+    let decode_err = |reason: String| DicomError::Decode {
+        label: label_s.clone(),
+        transfer_syntax: transfer_syntax.clone(),
+        reason,
+    };
+    let decoded = match catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data())) {
+        Ok(Ok(d)) => d,
+        Ok(Err(e)) => return Err(decode_err(e.to_string())),
+        Err(_) => return Err(decode_err("the codec failed on malformed data".into())),
+    };
+    if decoded.rows() as usize != rows
+        || decoded.columns() as usize != columns
+        || (decoded.number_of_frames() as usize) < frames
+    {
+        return Err(decode_err("decoded size differs from the header".into()));
+    }
+    let bytes_per = bits_allocated as usize / 8;
+    let frame_len = rows * columns * spp;
+    let data = decoded.data();
+    // Colour images decoded from JPEG may be RGB regardless of the declared photometric interpretation.
+    let decoded_spp = decoded.samples_per_pixel() as usize;
+    let frame_bytes = frame_len * bytes_per / spp * decoded_spp;
+    if data.len() < frame_bytes * frames {
+        return Err(DicomError::PixelDataShort {
+            label: label_s,
+            expected: frame_bytes * frames,
+            got: data.len(),
+        });
+    }
+    let big_endian = transfer_syntax == "1.2.840.10008.1.2.2" && !encapsulated;
+    let decoded_bits = decoded.bits_allocated() as usize;
+    if decoded_bits / 8 != bytes_per {
+        return Err(decode_err(format!(
+            "decoder returned {decoded_bits}-bit samples for {bits_allocated}-bit data"
+        )));
+    }
+    let bs = bits_stored as u32;
+    let mask: u64 = if bs >= 64 { u64::MAX } else { (1u64 << bs) - 1 };
+    let convert = |raw: u64| -> f32 {
+        let v = raw & mask;
+        if signed && bs < 64 && (v >> (bs - 1)) & 1 == 1 {
+            (v as i64 - (1i64 << bs)) as f32
+        } else {
+            v as f32
+        }
+    };
+
+    // Placement: classic attributes or Enhanced functional groups.
+    let shared = items(&obj, tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE).and_then(|i| i.first());
+    let per_frame = items(&obj, tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE);
+    if per_frame.is_some_and(|p| p.len() < frames) {
+        return Err(missing(
+            "Per-frame Functional Groups Sequence (one item per frame)",
+        ));
+    }
+    let padding = float(&obj, tags::PIXEL_PADDING_VALUE)
+        .map(|p| (p, float(&obj, tags::PIXEL_PADDING_RANGE_LIMIT).unwrap_or(p)));
+    let mut slices = Vec::with_capacity(frames);
+    for f in 0..frames {
+        let g = per_frame.and_then(|p| p.get(f));
+        let from_group =
+            |seq: Tag, tag: Tag| group_item(g, shared, seq).and_then(|item| floats(item, tag));
+        let position = arr::<3>(
+            from_group(tags::PLANE_POSITION_SEQUENCE, tags::IMAGE_POSITION_PATIENT)
+                .or_else(|| floats(&obj, tags::IMAGE_POSITION_PATIENT)),
+        );
+        let orientation = arr::<6>(
+            from_group(
+                tags::PLANE_ORIENTATION_SEQUENCE,
+                tags::IMAGE_ORIENTATION_PATIENT,
+            )
+            .or_else(|| floats(&obj, tags::IMAGE_ORIENTATION_PATIENT)),
+        );
+        let spacing = arr::<2>(
+            from_group(tags::PIXEL_MEASURES_SEQUENCE, tags::PIXEL_SPACING)
+                .or_else(|| floats(&obj, tags::PIXEL_SPACING)),
+        )
+        .filter(|s| s.iter().all(|v| *v > 0.0));
+        let thickness = from_group(tags::PIXEL_MEASURES_SEQUENCE, tags::SLICE_THICKNESS)
+            .and_then(|v| v.first().copied())
+            .or_else(|| float(&obj, tags::SLICE_THICKNESS));
+        let slope = from_group(
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_SLOPE,
+        )
+        .and_then(|v| v.first().copied())
+        .or_else(|| float(&obj, tags::RESCALE_SLOPE))
+        .unwrap_or(1.0);
+        let intercept = from_group(
+            tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
+            tags::RESCALE_INTERCEPT,
+        )
+        .and_then(|v| v.first().copied())
+        .or_else(|| float(&obj, tags::RESCALE_INTERCEPT))
+        .unwrap_or(0.0);
+        let raw = &data[f * frame_bytes..(f + 1) * frame_bytes];
+        let stored: Vec<f32> = match bytes_per {
+            1 => raw.iter().map(|&b| convert(b as u64)).collect(),
+            2 => raw
+                .chunks_exact(2)
+                .map(|c| convert(u16::from_le_bytes([c[0], c[1]]) as u64))
+                .collect(),
+            // Big endian native data arrives as 16-bit words in host order: swap the words of 32-bit samples.
+            _ if big_endian => raw
+                .chunks_exact(4)
+                .map(|c| convert(u32::from_le_bytes([c[2], c[3], c[0], c[1]]) as u64))
+                .collect(),
+            _ => raw
+                .chunks_exact(4)
+                .map(|c| convert(u32::from_le_bytes([c[0], c[1], c[2], c[3]]) as u64))
+                .collect(),
+        };
+        slices.push(Slice {
+            rows,
+            columns,
+            stored,
+            rescale_slope: slope,
+            rescale_intercept: intercept,
+            position_mm: position,
+            orientation,
+            pixel_spacing_mm: spacing,
+            slice_thickness_mm: thickness,
+            padding,
+            label: if frames > 1 {
+                format!("{label} frame {}", f + 1)
+            } else {
+                label.to_string()
+            },
+        });
+    }
+    let mut warnings = Vec::new();
+    if photometric == "MONOCHROME1" {
+        warnings.push(Warning {
+            code: "monochrome1",
+            message: format!("{label}: MONOCHROME1 (inverted display); HU values are unaffected"),
+        });
+    }
+    Ok(Instance {
+        label: label.to_string(),
+        size_bytes: bytes.len(),
+        sop_class_uid,
+        sop_instance_uid,
+        series_uid,
+        study_uid: text(&obj, tags::STUDY_INSTANCE_UID),
+        frame_of_reference_uid: text(&obj, tags::FRAME_OF_REFERENCE_UID),
+        modality: text(&obj, tags::MODALITY),
+        transfer_syntax,
+        photometric,
+        samples_per_pixel: decoded_spp as u16,
+        bits_stored: bits_stored as u16,
+        signed,
+        patient_name: text(&obj, tags::PATIENT_NAME),
+        patient_id: text(&obj, tags::PATIENT_ID),
+        series_description: text(&obj, tags::SERIES_DESCRIPTION),
+        instance_number: int(&obj, tags::INSTANCE_NUMBER),
+        slices,
+        warnings,
+    })
+}
+
+/// Whether a JPEG stream says how its three components relate to RGB: an Adobe APP14 or JFIF APP0 marker, or
+/// component ids `R`, `G`, `B` in the frame header.
+fn jpeg_colour_declared(jpeg: &[u8]) -> bool {
+    let header = match jpeg.windows(2).position(|w| w == [0xFF, 0xDA]) {
+        Some(end) => &jpeg[..end],
+        None => jpeg,
+    };
+    let has = |needle: &[u8]| header.windows(needle.len()).any(|w| w == needle);
+    if has(b"Adobe") || has(b"JFIF") {
+        return true;
+    }
+    header
+        .windows(2)
+        .position(|w| w[0] == 0xFF && (0xC0..=0xC3).contains(&w[1]))
+        .and_then(|sof| {
+            let n = *header.get(sof + 9)? as usize;
+            let ids: Option<Vec<u8>> = (0..n)
+                .map(|c| header.get(sof + 10 + 3 * c).copied())
+                .collect();
+            ids
+        })
+        .is_some_and(|ids| ids == b"RGB")
+}
