@@ -52,7 +52,7 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
     assert!(done["started_at"].is_string() && done["finished_at"].is_string());
 
     // Metrics against the rasterised phantom: FDK of exact data with a Hann window on 1 mm voxels. The
-    // modified Shepp–Logan values span 0..1; an RMSE below 0.1 (10 % of the range) and an SSIM above 0.5
+    // modified Shepp–Logan values span 0..1; an RMSE below 0.06 (6 % of the range) and an SSIM above 0.75
     // fail for a misplaced, flipped or mis-scaled reconstruction.
     let m: Value = app
         .get(&format!("/v1/jobs/{id}/result/metrics"))
@@ -61,11 +61,11 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
         .await
         .unwrap();
     let rmse = m["rmse"].as_f64().unwrap();
-    assert!(rmse < 0.1, "RMSE {rmse}");
-    assert!(m["ssim"].as_f64().unwrap() > 0.5, "{m}");
+    assert!(rmse < 0.06, "RMSE {rmse}");
+    assert!(m["ssim"].as_f64().unwrap() > 0.75, "{m}");
 
-    // The volume: float32 [64][64][64]; the central 2×2×2 voxels lie inside ellipsoids 1 and 2 only
-    // (1.0 − 0.8 = 0.2).
+    // The volume: float32 [64][64][64]. A 2 × 2 × 2 block at the centre of the field matches the phantom
+    // there (rasterised at voxel centres) within 0.03 (3 % of the phantom's range).
     let (h, vol) = bytes_of(&app, &format!("/v1/jobs/{id}/result/volume.npy")).await;
     let (shape, values) = read_npy_f32(&vol);
     assert_eq!(shape, [64, 64, 64]);
@@ -73,15 +73,23 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
     assert_eq!(h["etag"].to_str().unwrap(), format!("\"{sha}\""));
     assert!(h["cache-control"].to_str().unwrap().contains("immutable"));
     let at = |z: usize, y: usize, x: usize| values[(z * 64 + y) * 64 + x];
-    let mut centre = 0.0;
+    let grid = ctrecon::recon::VolumeGrid::cube(64, 1.0);
+    let truth = ctrecon::recon::phantom::Phantom3::from_table(
+        ctrecon::recon::phantom::Table3::ModifiedSheppLogan,
+        28.0,
+    )
+    .rasterize(&grid, 1);
+    let (mut got, mut want) = (0.0, 0.0);
     for z in 31..33 {
         for y in 31..33 {
             for x in 31..33 {
-                centre += at(z, y, x) / 8.0;
+                got += at(z, y, x) / 8.0;
+                want += truth[[z, y, x]] / 8.0;
             }
         }
     }
-    assert!((centre - 0.2).abs() < 0.04, "centre value {centre}");
+    assert!((got - want).abs() < 0.03, "centre {got}, phantom {want}");
+    eprintln!("FDK 64³ vs phantom: {m}; centre {got} vs {want}");
 
     // Conditional and range requests.
     let url = app.url(&format!("/v1/jobs/{id}/result/volume.npy"));
@@ -169,6 +177,45 @@ async fn the_curl_flow_simulates_reconstructs_and_serves_slices_projections_mesh
     assert_eq!(r.status(), 204);
     assert_eq!(app.get(&format!("/v1/jobs/{id}")).await.status(), 404);
     assert!(!app.dir.path().join("results").join(&id).exists());
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn analytic_and_iterative_jobs_on_a_2d_scan_reconstruct_the_phantom() {
+    let app = spawn_app().await;
+    // 180 parallel views, 128 detector elements of 0.5 mm (±32 mm) around a phantom of scale 28 mm.
+    let input = app
+        .simulate(common::parallel_geometry(180, 128, 0.5), 28.0)
+        .await;
+    let grid = json!({"nx": 64, "ny": 64, "dx_mm": 1.0, "dy_mm": 1.0});
+    let mut ids = Vec::new();
+    for (alg, bound) in [
+        (json!({"name": "fbp", "filter": "hann"}), 0.04),
+        (
+            json!({"name": "sirt", "iterations": 200, "nonnegative": true}),
+            0.04,
+        ),
+        (json!({"name": "cgls", "iterations": 30}), 0.08),
+    ] {
+        let j = app
+            .submit(&json!({"input": input, "algorithm": alg, "grid": grid,
+                            "outputs": ["volume", "metrics"]}))
+            .await;
+        ids.push((
+            alg["name"].clone(),
+            j["id"].as_str().unwrap().to_string(),
+            bound,
+        ));
+    }
+    for (name, id, bound) in ids {
+        let done = app.finish(&id).await;
+        assert_eq!(done["status"], "succeeded", "{done}");
+        assert_eq!(done["result"]["shape"], json!([1, 64, 64]));
+        let m = &done["result"]["metrics"];
+        eprintln!("{name} 64² vs phantom: {m}");
+        // The phantom spans 0..1. Measured RMSE on exact data: FBP (Hann) 0.027, SIRT (200 iterations,
+        // non-negative) 0.024, CGLS (30 iterations, unregularised, noisier) 0.058; bounds leave ~40 %.
+        assert!(m["rmse"].as_f64().unwrap() < bound, "{name}: {m}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -421,7 +468,11 @@ async fn server_sent_events_deliver_progress_and_the_final_state() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "a measurement, not a check: prints the load figure"]
 async fn load_figure_for_job_status_under_busy_workers() {
-    let app = spawn_app_with(|s| s.max_concurrent_jobs = 2).await;
+    let app = spawn_app_with(|s| {
+        s.max_concurrent_jobs = 2;
+        s.progress_interval_ms = 500;
+    })
+    .await;
     let input = app.simulate(cone_geometry(360, 128), 40.0).await;
     let a = app.submit(&fdk_job(&input, 224, &["volume"])).await;
     let _b = app.submit(&fdk_job(&input, 224, &["volume"])).await;

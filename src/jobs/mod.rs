@@ -1,6 +1,7 @@
 //! Jobs: model and state machine, SQL repository, admission, the rayon worker engine, the work itself
 //! (simulation, reconstruction) and the views derived from results.
 
+pub mod cache;
 pub mod engine;
 pub mod model;
 pub mod plan;

@@ -119,8 +119,8 @@ pub struct FileInfo {
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 pub struct Quality {
     pub rmse: f64,
-    /// dB, peak = the truth's max − min.
-    pub psnr_db: f64,
+    /// dB, data range = the truth's max − min; `None` (JSON null) when the images are identical.
+    pub psnr_db: Option<f64>,
     pub ssim: f64,
     /// Supersampling of the rasterised truth (per axis).
     pub truth_supersample: usize,

@@ -12,6 +12,7 @@ use sqlx::sqlite::{
 };
 use sqlx::{AssertSqlSafe, Row};
 
+use super::cache::JobCache;
 use super::model::{Dataset, DatasetKind, Job, JobResult, JobStatus, now_us};
 use crate::error_code::Problem;
 use crate::storage::{DatasetId, JobId};
@@ -61,6 +62,7 @@ pub struct JobFilter {
 #[derive(Clone, Debug)]
 pub struct Db {
     pool: SqlitePool,
+    cache: std::sync::Arc<JobCache>,
 }
 
 fn corrupt(table: &'static str, reason: impl ToString) -> DbError {
@@ -156,7 +158,10 @@ impl Db {
             .connect_with(options)
             .await?;
         sqlx::migrate!("./migrations").run(&pool).await?;
-        Ok(Self { pool })
+        Ok(Self {
+            pool,
+            cache: Default::default(),
+        })
     }
 
     /// The database answers a trivial query.
@@ -287,11 +292,19 @@ impl Db {
     }
 
     pub async fn get_job(&self, id: JobId) -> Result<Option<Job>, DbError> {
+        if let Some(job) = self.cache.get(id) {
+            return Ok(Some(job));
+        }
+        let generation = self.cache.generation();
         let row = sqlx::query("SELECT * FROM jobs WHERE id = ?")
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
-        row.as_ref().map(job_from_row).transpose()
+        let job = row.as_ref().map(job_from_row).transpose()?;
+        if let Some(j) = &job {
+            self.cache.fill(j, generation);
+        }
+        Ok(job)
     }
 
     /// Jobs matching `f`, newest first, at most `f.limit`.
@@ -367,6 +380,7 @@ impl Db {
         .bind(id.to_string())
         .execute(&self.pool)
         .await?;
+        self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
     }
 
@@ -378,6 +392,7 @@ impl Db {
             .bind(id.to_string())
             .execute(&self.pool)
             .await?;
+        self.cache.invalidate(id);
         Ok(())
     }
 
@@ -408,6 +423,7 @@ impl Db {
         .bind(id.to_string())
         .execute(&self.pool)
         .await?;
+        self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
     }
 
@@ -421,6 +437,7 @@ impl Db {
         .bind(id.to_string())
         .execute(&self.pool)
         .await?;
+        self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
     }
 
@@ -430,6 +447,7 @@ impl Db {
             .bind(id.to_string())
             .execute(&self.pool)
             .await?;
+        self.cache.invalidate(id);
         Ok(())
     }
 
@@ -476,6 +494,7 @@ impl Db {
         .bind(id.to_string())
         .execute(&self.pool)
         .await?;
+        self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
     }
 

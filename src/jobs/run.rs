@@ -140,7 +140,7 @@ pub fn execute(
             ctl.step("metrics", 0.9);
             let s = if vol.len_of(Axis(0)) == 1 { 4 } else { 2 };
             let t = truth(phantom, &req.grid, s)?;
-            Some(quality(vol.view(), t.view(), s))
+            Some(quality(vol.view(), t.view(), s)?)
         }
         _ => None,
     };
@@ -179,13 +179,15 @@ fn write_volume(
         .write_atomic(&store.result_path(job.id, &ResultName::Volume), &encoded)
         .map_err(|e| io_failure("writing the volume", e))?;
     let (nz, ny, nx) = vol.dim();
+    // JSON has no NaN or infinity: a statistic that is not finite is reported as 0.
+    let finite = |v: f64| if v.is_finite() { v } else { 0.0 };
     Ok(JobResult {
         shape: [nz, ny, nx],
         grid: volume_grid(grid),
         volume: info,
-        min,
-        max,
-        mean: sum / vol.len().max(1) as f64,
+        min: finite(min as f64) as f32,
+        max: finite(max as f64) as f32,
+        mean: finite(sum / vol.len().max(1) as f64),
         metrics,
     })
 }

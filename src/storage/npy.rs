@@ -600,10 +600,7 @@ mod tests {
             .expect("the header names fortran_order");
         let mut fortran = f.clone();
         fortran[at..at + 5].copy_from_slice(b"True ");
-        assert_eq!(
-            parse_header(&fortran),
-            Err(NpyError::FortranOrder)
-        );
+        assert_eq!(parse_header(&fortran), Err(NpyError::FortranOrder));
         assert!(matches!(
             parse_header(&npy("<f4", "(2, -1)", &[])),
             Err(NpyError::Malformed(_))
