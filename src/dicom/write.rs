@@ -8,6 +8,7 @@ use dicom_core::{DataElement, Tag, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
 use ndarray::ArrayView2;
+use rayon::prelude::*;
 
 use super::error::DicomError;
 use crate::volume::{Volume, Window};
@@ -237,7 +238,8 @@ fn plane_bytes(vol: &Volume, k: usize, slope: f64, intercept: f64) -> Vec<u8> {
 
 /// Write a volume in HU (`[z][y][x]`, convert μ first with `volume::mu_to_hu`) as a derived CT series: one
 /// file per slice, new Series/SOP Instance UIDs, study and frame of reference kept when `meta` has them,
-/// position/orientation/spacing from the volume's frame, int16 with a rescale to HU.
+/// position/orientation/spacing from the volume's frame, int16 with a rescale to HU. Slices are encoded in
+/// parallel.
 pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries, DicomError> {
     let (nz, ny, nx) = check_volume(vol)?;
     let (slope, intercept) = quantisation(vol)?;
@@ -254,48 +256,50 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
         f.direction[1][2],
     ];
     let thickness = normal_spacing(vol);
-    let mut files = Vec::with_capacity(nz);
-    for k in 0..nz {
-        let mut b = Builder::new();
-        b.identity(
-            uids::CT_IMAGE_STORAGE,
-            &new_uid(),
-            "CT",
-            &study_uid,
-            &series_uid,
-            meta,
-            k + 1,
-        )
-        .strs(
-            tags::IMAGE_TYPE,
-            VR::CS,
-            &["DERIVED".into(), "SECONDARY".into(), "AXIAL".into()],
-        )
-        .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
-        .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
-        .str(tags::KVP, VR::DS, "")
-        .str(tags::ACQUISITION_NUMBER, VR::IS, "")
-        .dss(
-            tags::IMAGE_POSITION_PATIENT,
-            &f.position(k as f64, 0.0, 0.0),
-        )
-        .dss(tags::IMAGE_ORIENTATION_PATIENT, &orientation)
-        .dss(tags::SLICE_THICKNESS, &[thickness])
-        .dss(tags::SPACING_BETWEEN_SLICES, &[thickness])
-        .dss(tags::PIXEL_SPACING, &[f.spacing_mm[1], f.spacing_mm[0]])
-        .dss(tags::RESCALE_INTERCEPT, &[intercept])
-        .dss(tags::RESCALE_SLOPE, &[slope])
-        .str(tags::RESCALE_TYPE, VR::LO, "HU")
-        .dss(tags::WINDOW_CENTER, &[40.0])
-        .dss(tags::WINDOW_WIDTH, &[400.0]);
-        image_pixel(&mut b, ny, nx);
-        b.bytes(
-            tags::PIXEL_DATA,
-            VR::OW,
-            plane_bytes(vol, k, slope, intercept),
-        );
-        files.push((format!("IM{:05}.dcm", k + 1), b.finish()?));
-    }
+    let files = (0..nz)
+        .into_par_iter()
+        .map(|k| {
+            let mut b = Builder::new();
+            b.identity(
+                uids::CT_IMAGE_STORAGE,
+                &new_uid(),
+                "CT",
+                &study_uid,
+                &series_uid,
+                meta,
+                k + 1,
+            )
+            .strs(
+                tags::IMAGE_TYPE,
+                VR::CS,
+                &["DERIVED".into(), "SECONDARY".into(), "AXIAL".into()],
+            )
+            .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
+            .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
+            .str(tags::KVP, VR::DS, "")
+            .str(tags::ACQUISITION_NUMBER, VR::IS, "")
+            .dss(
+                tags::IMAGE_POSITION_PATIENT,
+                &f.position(k as f64, 0.0, 0.0),
+            )
+            .dss(tags::IMAGE_ORIENTATION_PATIENT, &orientation)
+            .dss(tags::SLICE_THICKNESS, &[thickness])
+            .dss(tags::SPACING_BETWEEN_SLICES, &[thickness])
+            .dss(tags::PIXEL_SPACING, &[f.spacing_mm[1], f.spacing_mm[0]])
+            .dss(tags::RESCALE_INTERCEPT, &[intercept])
+            .dss(tags::RESCALE_SLOPE, &[slope])
+            .str(tags::RESCALE_TYPE, VR::LO, "HU")
+            .dss(tags::WINDOW_CENTER, &[40.0])
+            .dss(tags::WINDOW_WIDTH, &[400.0]);
+            image_pixel(&mut b, ny, nx);
+            b.bytes(
+                tags::PIXEL_DATA,
+                VR::OW,
+                plane_bytes(vol, k, slope, intercept),
+            );
+            Ok((format!("IM{:05}.dcm", k + 1), b.finish()?))
+        })
+        .collect::<Result<Vec<_>, DicomError>>()?;
     Ok(DerivedSeries {
         study_uid,
         series_uid,
