@@ -296,10 +296,24 @@ fn hostile_files_are_refused_with_typed_errors() {
     // Declared 49 rows with pixel data for 48: shorter than declared.
     let mut short = good.clone();
     short[pos + 8..pos + 10].copy_from_slice(&49u16.to_le_bytes());
-    let e = dicom::read_bytes("short.dcm", &short, &lim).unwrap_err();
-    assert_eq!(e.code(), "dicom_pixel_data_short", "{e}");
+    let e_short = dicom::read_bytes("short.dcm", &short, &lim).unwrap_err();
+    assert_eq!(e_short.code(), "dicom_pixel_data_short", "{e_short}");
+    // A pixel data element declaring 4 GB in a small file is refused before anything is allocated for it.
+    let px = good
+        .windows(6)
+        .rposition(|w| w == [0xE0, 0x7F, 0x10, 0x00, b'O', b'W'])
+        .unwrap();
+    let mut huge = good.clone();
+    huge[px + 8..px + 12].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+    let e = dicom::read_bytes("huge.dcm", &huge, &lim).unwrap_err();
+    assert_eq!(e.code(), "dicom_parse_error");
+    assert!(
+        e.to_string()
+            .contains("(7FE0,0010) declares 4294967280 bytes"),
+        "{e}"
+    );
     assert!(matches!(
-        e,
+        e_short,
         DicomError::PixelDataShort {
             expected: 3920,
             got: 3840,

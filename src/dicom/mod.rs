@@ -14,6 +14,7 @@
 
 mod error;
 mod read;
+mod scan;
 mod upload;
 mod write;
 

@@ -72,6 +72,16 @@ fn ds_value(v: f64) -> f64 {
 
 struct Builder(InMemDicomObject);
 
+/// UIDs, modality and number of one instance.
+struct Identity<'a> {
+    sop_class: &'a str,
+    sop_instance: &'a str,
+    modality: &'a str,
+    study_uid: &'a str,
+    series_uid: &'a str,
+    instance_number: usize,
+}
+
 impl Builder {
     fn new() -> Self {
         Self(InMemDicomObject::new_empty())
@@ -115,16 +125,15 @@ impl Builder {
         self
     }
     /// Patient, study, series and instance identity shared by all writers.
-    fn identity(
-        &mut self,
-        sop_class: &str,
-        sop_instance: &str,
-        modality: &str,
-        study_uid: &str,
-        series_uid: &str,
-        meta: &SeriesMeta,
-        instance_number: usize,
-    ) -> &mut Self {
+    fn identity(&mut self, id: Identity<'_>, meta: &SeriesMeta) -> &mut Self {
+        let Identity {
+            sop_class,
+            sop_instance,
+            modality,
+            study_uid,
+            series_uid,
+            instance_number,
+        } = id;
         self.str(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 192")
             .str(tags::SOP_CLASS_UID, VR::UI, sop_class)
             .str(tags::SOP_INSTANCE_UID, VR::UI, sop_instance)
@@ -261,13 +270,15 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
         .map(|k| {
             let mut b = Builder::new();
             b.identity(
-                uids::CT_IMAGE_STORAGE,
-                &new_uid(),
-                "CT",
-                &study_uid,
-                &series_uid,
+                Identity {
+                    sop_class: uids::CT_IMAGE_STORAGE,
+                    sop_instance: &new_uid(),
+                    modality: "CT",
+                    study_uid: &study_uid,
+                    series_uid: &series_uid,
+                    instance_number: k + 1,
+                },
                 meta,
-                k + 1,
             )
             .strs(
                 tags::IMAGE_TYPE,
@@ -375,13 +386,15 @@ pub fn write_enhanced_ct(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSerie
         .collect();
     let mut b = Builder::new();
     b.identity(
-        uids::ENHANCED_CT_IMAGE_STORAGE,
-        &new_uid(),
-        "CT",
-        &study_uid,
-        &series_uid,
+        Identity {
+            sop_class: uids::ENHANCED_CT_IMAGE_STORAGE,
+            sop_instance: &new_uid(),
+            modality: "CT",
+            study_uid: &study_uid,
+            series_uid: &series_uid,
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .strs(
         tags::IMAGE_TYPE,
@@ -433,13 +446,15 @@ pub fn write_secondary_capture(
     let sop = new_uid();
     let mut b = Builder::new();
     b.identity(
-        uids::SECONDARY_CAPTURE_IMAGE_STORAGE,
-        &sop,
-        "OT",
-        &study_uid,
-        &series_uid,
+        Identity {
+            sop_class: uids::SECONDARY_CAPTURE_IMAGE_STORAGE,
+            sop_instance: &sop,
+            modality: "OT",
+            study_uid: &study_uid,
+            series_uid: &series_uid,
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .strs(
         tags::IMAGE_TYPE,
@@ -483,13 +498,15 @@ pub fn write_encapsulated_stl(
         .str(tags::CODE_MEANING, VR::LO, "mm");
     let mut b = Builder::new();
     b.identity(
-        uids::ENCAPSULATED_STL_STORAGE,
-        &sop,
-        "M3D",
-        &study_uid,
-        &new_uid(),
+        Identity {
+            sop_class: uids::ENCAPSULATED_STL_STORAGE,
+            sop_instance: &sop,
+            modality: "M3D",
+            study_uid: &study_uid,
+            series_uid: &new_uid(),
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
     .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
