@@ -1,1 +1,261 @@
-//! Service configuration: file plus `CTRECON_*` environment variables.
+//! Service configuration: defaults, then a JSON file, then `CTRECON_*` environment variables, then the
+//! command line (each overrides the one before).
+//!
+//! | field | env | default |
+//! |---|---|---|
+//! | `bind` | `CTRECON_BIND` | `127.0.0.1:8080` |
+//! | `data_dir` | `CTRECON_DATA_DIR` | `./data` |
+//! | `worker_threads` | `CTRECON_WORKER_THREADS` | 0 = one per CPU |
+//! | `max_concurrent_jobs` | `CTRECON_MAX_CONCURRENT_JOBS` | 2 |
+//! | `memory_budget_bytes` | `CTRECON_MEMORY_BUDGET_BYTES` | 4 GiB, shared by all running jobs |
+//! | `max_upload_bytes` | `CTRECON_MAX_UPLOAD_BYTES` | 2 GiB per uploaded `.npy` |
+//! | `max_json_bytes` | `CTRECON_MAX_JSON_BYTES` | 1 MiB per JSON body |
+//! | `api_tokens` | `CTRECON_API_TOKENS` (comma-separated) | none; hashed at load, never stored in clear |
+//! | `api_token_sha256` | `CTRECON_API_TOKEN_SHA256` (comma-separated hex) | none |
+//! | `cors_origins` | `CTRECON_CORS_ORIGINS` (comma-separated) | none (no CORS headers) |
+//! | `allow_insecure` | `CTRECON_ALLOW_INSECURE` | false: without tokens only loopback binds |
+//! | `max_attempts` | `CTRECON_MAX_ATTEMPTS` | 3 starts per job before it fails |
+//! | `mu_water_per_mm` | `CTRECON_MU_WATER_PER_MM` | 0.0192 (HU conversion of presets) |
+//! | `request_timeout_secs` | `CTRECON_REQUEST_TIMEOUT_SECS` | 30 (uploads: `upload_timeout_secs`, 600) |
+//! | `progress_interval_ms` | `CTRECON_PROGRESS_INTERVAL_MS` | 500: most one progress write per job per interval |
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use serde::Deserialize;
+
+/// Everything `ctrecon serve` can be told.
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Settings {
+    pub bind: SocketAddr,
+    pub data_dir: PathBuf,
+    pub worker_threads: usize,
+    pub max_concurrent_jobs: usize,
+    pub memory_budget_bytes: u64,
+    pub max_upload_bytes: u64,
+    pub max_json_bytes: usize,
+    pub api_tokens: Vec<String>,
+    pub api_token_sha256: Vec<String>,
+    pub cors_origins: Vec<String>,
+    pub allow_insecure: bool,
+    pub max_attempts: u32,
+    pub mu_water_per_mm: f64,
+    pub request_timeout_secs: u64,
+    pub upload_timeout_secs: u64,
+    pub progress_interval_ms: u64,
+}
+
+impl Default for Settings {
+    fn default() -> Self {
+        Self {
+            bind: SocketAddr::from(([127, 0, 0, 1], 8080)),
+            data_dir: PathBuf::from("data"),
+            worker_threads: 0,
+            max_concurrent_jobs: 2,
+            memory_budget_bytes: 4 << 30,
+            max_upload_bytes: 2 << 30,
+            max_json_bytes: 1 << 20,
+            api_tokens: Vec::new(),
+            api_token_sha256: Vec::new(),
+            cors_origins: Vec::new(),
+            allow_insecure: false,
+            max_attempts: 3,
+            mu_water_per_mm: 0.0192,
+            request_timeout_secs: 30,
+            upload_timeout_secs: 600,
+            progress_interval_ms: 500,
+        }
+    }
+}
+
+/// A configuration that cannot be used.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("reading {path}: {source}")]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("config file {path}: {source}")]
+    Parse {
+        path: PathBuf,
+        source: serde_json::Error,
+    },
+    #[error("environment variable {name}: {reason}")]
+    Env { name: String, reason: String },
+    #[error("invalid setting `{name}`: {reason}")]
+    Invalid { name: &'static str, reason: String },
+}
+
+fn list(value: &str) -> Vec<String> {
+    value
+        .split(',')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(String::from)
+        .collect()
+}
+
+fn parsed<T: std::str::FromStr>(name: &str, value: &str) -> Result<T, ConfigError>
+where
+    T::Err: std::fmt::Display,
+{
+    value.trim().parse().map_err(|e: T::Err| ConfigError::Env {
+        name: name.to_string(),
+        reason: e.to_string(),
+    })
+}
+
+impl Settings {
+    /// Defaults, overridden by the JSON file at `path` (if any), then by `CTRECON_*` variables in `env`.
+    pub fn load(
+        path: Option<&Path>,
+        env: impl IntoIterator<Item = (String, String)>,
+    ) -> Result<Self, ConfigError> {
+        let mut s = match path {
+            Some(p) => {
+                let text = std::fs::read_to_string(p).map_err(|source| ConfigError::Read {
+                    path: p.to_path_buf(),
+                    source,
+                })?;
+                serde_json::from_str(&text).map_err(|source| ConfigError::Parse {
+                    path: p.to_path_buf(),
+                    source,
+                })?
+            }
+            None => Settings::default(),
+        };
+        for (name, value) in env {
+            s.apply_env(&name, &value)?;
+        }
+        Ok(s)
+    }
+
+    fn apply_env(&mut self, name: &str, v: &str) -> Result<(), ConfigError> {
+        match name {
+            "CTRECON_BIND" => self.bind = parsed(name, v)?,
+            "CTRECON_DATA_DIR" => self.data_dir = PathBuf::from(v),
+            "CTRECON_WORKER_THREADS" => self.worker_threads = parsed(name, v)?,
+            "CTRECON_MAX_CONCURRENT_JOBS" => self.max_concurrent_jobs = parsed(name, v)?,
+            "CTRECON_MEMORY_BUDGET_BYTES" => self.memory_budget_bytes = parsed(name, v)?,
+            "CTRECON_MAX_UPLOAD_BYTES" => self.max_upload_bytes = parsed(name, v)?,
+            "CTRECON_MAX_JSON_BYTES" => self.max_json_bytes = parsed(name, v)?,
+            "CTRECON_API_TOKENS" => self.api_tokens = list(v),
+            "CTRECON_API_TOKEN_SHA256" => self.api_token_sha256 = list(v),
+            "CTRECON_CORS_ORIGINS" => self.cors_origins = list(v),
+            "CTRECON_ALLOW_INSECURE" => self.allow_insecure = parsed(name, v)?,
+            "CTRECON_MAX_ATTEMPTS" => self.max_attempts = parsed(name, v)?,
+            "CTRECON_MU_WATER_PER_MM" => self.mu_water_per_mm = parsed(name, v)?,
+            "CTRECON_REQUEST_TIMEOUT_SECS" => self.request_timeout_secs = parsed(name, v)?,
+            "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
+            "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
+            // Read by the logger, not a setting.
+            "CTRECON_LOG_FORMAT" => {}
+            other if other.starts_with("CTRECON_") => {
+                return Err(ConfigError::Env {
+                    name: other.to_string(),
+                    reason: "unknown setting".into(),
+                });
+            }
+            _ => {}
+        }
+        Ok(())
+    }
+
+    /// Check ranges and the security rule: without API tokens the service binds only to a loopback
+    /// address, unless `allow_insecure` is set.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let invalid = |name, reason: &str| {
+            Err(ConfigError::Invalid {
+                name,
+                reason: reason.to_string(),
+            })
+        };
+        if self.max_concurrent_jobs == 0 {
+            return invalid("max_concurrent_jobs", "must be at least 1");
+        }
+        if self.memory_budget_bytes == 0 || self.max_upload_bytes == 0 || self.max_json_bytes == 0 {
+            return invalid("limits", "memory and size limits must be positive");
+        }
+        if self.max_attempts == 0 {
+            return invalid("max_attempts", "must be at least 1");
+        }
+        if !(self.mu_water_per_mm.is_finite() && self.mu_water_per_mm > 0.0) {
+            return invalid("mu_water_per_mm", "must be positive and finite");
+        }
+        if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
+            return invalid("timeouts", "must be positive");
+        }
+        for h in &self.api_token_sha256 {
+            if h.len() != 64 || !h.bytes().all(|b| b.is_ascii_hexdigit()) {
+                return invalid("api_token_sha256", "each entry is 64 hexadecimal digits");
+            }
+        }
+        if self.api_tokens.iter().any(|t| t.len() < 16) {
+            return invalid("api_tokens", "each token needs at least 16 characters");
+        }
+        let authenticated = !self.api_tokens.is_empty() || !self.api_token_sha256.is_empty();
+        if !authenticated && !self.bind.ip().is_loopback() && !self.allow_insecure {
+            return invalid(
+                "bind",
+                "refusing to listen on a non-loopback address without API tokens \
+                 (configure api_tokens, or pass --allow-insecure)",
+            );
+        }
+        Ok(())
+    }
+
+    /// Worker threads of the reconstruction pool (0 resolves to the number of CPUs).
+    pub fn resolved_worker_threads(&self) -> usize {
+        if self.worker_threads > 0 {
+            self.worker_threads
+        } else {
+            std::thread::available_parallelism().map_or(1, |n| n.get())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn env(pairs: &[(&str, &str)]) -> Vec<(String, String)> {
+        pairs
+            .iter()
+            .map(|(a, b)| (a.to_string(), b.to_string()))
+            .collect()
+    }
+
+    #[test]
+    fn environment_overrides_defaults_and_unknown_variables_are_refused() {
+        let s = Settings::load(
+            None,
+            env(&[
+                ("CTRECON_MAX_CONCURRENT_JOBS", "5"),
+                ("CTRECON_CORS_ORIGINS", "http://a.test, http://b.test"),
+                ("PATH", "/bin"),
+            ]),
+        )
+        .unwrap();
+        assert_eq!(s.max_concurrent_jobs, 5);
+        assert_eq!(s.cors_origins, ["http://a.test", "http://b.test"]);
+        assert!(Settings::load(None, env(&[("CTRECON_NOPE", "1")])).is_err());
+        assert!(Settings::load(None, env(&[("CTRECON_MAX_ATTEMPTS", "x")])).is_err());
+    }
+
+    #[test]
+    fn a_public_bind_needs_tokens_or_the_insecure_flag() {
+        let mut s = Settings {
+            bind: "0.0.0.0:8080".parse().unwrap(),
+            ..Settings::default()
+        };
+        assert!(s.validate().is_err());
+        s.api_tokens = vec!["a-long-enough-secret".into()];
+        assert!(s.validate().is_ok());
+        s.api_tokens.clear();
+        s.allow_insecure = true;
+        assert!(s.validate().is_ok());
+        assert!(Settings::default().validate().is_ok());
+    }
+}

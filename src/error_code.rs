@@ -1,1 +1,193 @@
 //! The one catalogue of stable API error codes.
+//!
+//! Every error the service returns, as an RFC 9457 `application/problem+json` body or as the `error` of a
+//! failed job, carries one of these snake_case codes. Codes never change meaning once published; the HTTP
+//! status and title live here too, so that nothing else decides them. `openapi.yaml` lists every code
+//! (a test checks it).
+
+macro_rules! catalogue {
+    ($($variant:ident = ($code:literal, $status:literal, $title:literal)),* $(,)?) => {
+        /// A stable API error code.
+        #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+        pub enum ErrorCode {
+            $($variant),*
+        }
+
+        impl ErrorCode {
+            /// Every code, in catalogue order.
+            pub const ALL: &'static [ErrorCode] = &[$(ErrorCode::$variant),*];
+
+            /// The stable snake_case code.
+            pub fn code(self) -> &'static str {
+                match self {
+                    $(ErrorCode::$variant => $code),*
+                }
+            }
+
+            /// The HTTP status answered with this code.
+            pub fn status(self) -> u16 {
+                match self {
+                    $(ErrorCode::$variant => $status),*
+                }
+            }
+
+            /// A short, fixed, human-readable summary.
+            pub fn title(self) -> &'static str {
+                match self {
+                    $(ErrorCode::$variant => $title),*
+                }
+            }
+        }
+    };
+}
+
+catalogue! {
+    // The request itself.
+    MalformedJson = ("malformed_json", 400, "The body is not valid JSON"),
+    InvalidRequest = ("invalid_request", 422, "The request does not match its schema"),
+    InvalidParameter = ("invalid_parameter", 422, "A parameter is out of range"),
+    InvalidGeometry = ("invalid_geometry", 422, "The geometry cannot describe a scanner"),
+    InvalidQuery = ("invalid_query", 400, "A query parameter is malformed"),
+    InvalidId = ("invalid_id", 400, "The id is malformed"),
+    InvalidMultipart = ("invalid_multipart", 400, "The multipart body is malformed or lacks a part"),
+    UnsupportedMediaType = ("unsupported_media_type", 415, "The content type is not accepted here"),
+    BodyTooLarge = ("body_too_large", 413, "The body exceeds the size limit"),
+    // Uploaded arrays.
+    MalformedNpy = ("malformed_npy", 400, "The .npy header is malformed"),
+    UnsupportedDtype = ("unsupported_dtype", 422, "The array's dtype or layout is not supported"),
+    ShapeMismatch = ("shape_mismatch", 422, "The array's shape does not match the geometry"),
+    ArrayTooLarge = ("array_too_large", 413, "The declared array exceeds the size limit"),
+    TruncatedUpload = ("truncated_upload", 400, "The upload ended before the declared data"),
+    NonFiniteData = ("non_finite_data", 422, "The data contain NaN or infinite values"),
+    // Resources and their states.
+    NotFound = ("not_found", 404, "No such route"),
+    MethodNotAllowed = ("method_not_allowed", 405, "The method is not allowed on this route"),
+    DatasetNotFound = ("dataset_not_found", 404, "No such dataset"),
+    JobNotFound = ("job_not_found", 404, "No such job"),
+    JobNotSucceeded = ("job_not_succeeded", 409, "The job has no results: it has not succeeded"),
+    JobAlreadyFinished = ("job_already_finished", 409, "The job has already finished"),
+    JobActive = ("job_active", 409, "The job is queued or running"),
+    ResultUnavailable = ("result_unavailable", 404, "The job did not produce this result"),
+    JobTooLarge = ("job_too_large", 422, "The job can never fit the memory budget"),
+    RangeNotSatisfiable = ("range_not_satisfiable", 416, "The requested range is outside the file"),
+    // Result views (the codes of `VolumeError`).
+    SliceOutOfRange = ("slice_out_of_range", 422, "The slice index is outside the volume"),
+    InvalidSlab = ("invalid_slab", 422, "The slab is empty or outside the volume"),
+    InvalidWindow = ("invalid_window", 422, "The window width or level is invalid"),
+    EmptyImage = ("empty_image", 422, "The image is empty"),
+    EncodingFailed = ("encoding_failed", 500, "The image could not be encoded"),
+    // Protocol.
+    IdempotencyKeyReused = ("idempotency_key_reused", 422, "The Idempotency-Key was used with another request"),
+    InvalidIdempotencyKey = ("invalid_idempotency_key", 400, "The Idempotency-Key header is malformed"),
+    Unauthorized = ("unauthorized", 401, "A valid bearer token is required"),
+    RequestTimeout = ("request_timeout", 408, "The request took too long"),
+    // Failed jobs.
+    ReconstructionFailed = ("reconstruction_failed", 422, "The reconstruction refused its input"),
+    AttemptsExhausted = ("attempts_exhausted", 500, "The job was interrupted too many times"),
+    // The server.
+    Internal = ("internal", 500, "Internal server error"),
+    Unavailable = ("unavailable", 503, "The service is not ready"),
+}
+
+impl ErrorCode {
+    /// The code with this snake_case name.
+    pub fn from_code(code: &str) -> Option<Self> {
+        Self::ALL.iter().copied().find(|c| c.code() == code)
+    }
+
+    /// The problem `type` URI of this code (RFC 9457 §3.1.1): a stable URN naming the code.
+    pub fn type_uri(self) -> String {
+        format!("urn:ctrecon:problem:{}", self.code())
+    }
+}
+
+/// An RFC 9457 problem: a catalogue code plus a detail for this occurrence. Serialises as the
+/// `application/problem+json` body (`type`, `title`, `status`, `detail`, `code`). A 5xx problem's detail is
+/// replaced by its title, so server errors never leak internals.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Problem {
+    pub code: ErrorCode,
+    pub detail: String,
+}
+
+impl Problem {
+    pub fn new(code: ErrorCode, detail: impl Into<String>) -> Self {
+        Self {
+            code,
+            detail: detail.into(),
+        }
+    }
+    /// A server error: the detail is logged by the caller, never sent.
+    pub fn internal() -> Self {
+        Self::new(ErrorCode::Internal, "")
+    }
+    /// The detail a client may see.
+    pub fn public_detail(&self) -> &str {
+        if self.code.status() >= 500 || self.detail.is_empty() {
+            self.code.title()
+        } else {
+            &self.detail
+        }
+    }
+}
+
+impl std::fmt::Display for Problem {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.code.code(), self.detail)
+    }
+}
+
+impl std::error::Error for Problem {}
+
+#[derive(serde::Serialize, serde::Deserialize)]
+struct ProblemBody {
+    #[serde(rename = "type")]
+    type_uri: String,
+    title: String,
+    status: u16,
+    detail: String,
+    code: String,
+}
+
+impl serde::Serialize for Problem {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        ProblemBody {
+            type_uri: self.code.type_uri(),
+            title: self.code.title().to_string(),
+            status: self.code.status(),
+            detail: self.public_detail().to_string(),
+            code: self.code.code().to_string(),
+        }
+        .serialize(s)
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Problem {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let body = ProblemBody::deserialize(d)?;
+        let code = ErrorCode::from_code(&body.code)
+            .ok_or_else(|| serde::de::Error::custom(format!("unknown code {}", body.code)))?;
+        Ok(Problem::new(code, body.detail))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn codes_are_unique_snake_case_and_their_statuses_are_errors() {
+        let mut seen = std::collections::HashSet::new();
+        for c in ErrorCode::ALL {
+            assert!(seen.insert(c.code()), "duplicate code {}", c.code());
+            assert!(
+                c.code()
+                    .chars()
+                    .all(|ch| ch.is_ascii_lowercase() || ch == '_'),
+                "{}",
+                c.code()
+            );
+            assert!((400..600).contains(&c.status()), "{}", c.code());
+        }
+    }
+}

@@ -8,6 +8,7 @@ fn main() -> std::process::ExitCode {
     let result = match cli.command {
         Command::Serve(args) => ctrecon::cli::serve::run(args),
         Command::Phantom(args) => ctrecon::cli::phantom::run(args),
+        Command::Recon(args) => ctrecon::cli::recon::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

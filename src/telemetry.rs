@@ -1,1 +1,47 @@
-//! Logging and tracing set-up.
+//! Logging, tracing and the Prometheus metrics recorder.
+//!
+//! Logs are structured `tracing` events (JSON with `CTRECON_LOG_FORMAT=json`, human-readable otherwise),
+//! filtered by `RUST_LOG` (default `info`). HTTP requests log in a span carrying the request id, jobs in
+//! a span carrying the job id.
+
+use std::sync::OnceLock;
+
+use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
+use tracing_subscriber::EnvFilter;
+
+/// Install the global tracing subscriber once; later calls (tests) do nothing.
+pub fn init_logging(json: bool) {
+    let filter = EnvFilter::try_from_default_env().unwrap_or_else(|_| EnvFilter::new("info"));
+    let builder = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    let _ = if json {
+        builder.json().flatten_event(true).try_init()
+    } else {
+        builder.try_init()
+    };
+}
+
+/// The process-wide Prometheus recorder, installed on first use.
+pub fn metrics_handle() -> PrometheusHandle {
+    static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
+    HANDLE
+        .get_or_init(|| {
+            let recorder = PrometheusBuilder::new().build_recorder();
+            let handle = recorder.handle();
+            // Fails only if another recorder was installed first; the handle then renders nothing.
+            let _ = metrics::set_global_recorder(recorder);
+            handle
+        })
+        .clone()
+}
+
+/// Names of the metrics the service records.
+pub mod names {
+    pub const HTTP_REQUESTS: &str = "ctrecon_http_requests_total";
+    pub const HTTP_DURATION: &str = "ctrecon_http_request_duration_seconds";
+    pub const JOBS: &str = "ctrecon_jobs";
+    pub const QUEUE_DEPTH: &str = "ctrecon_queue_depth";
+    pub const JOBS_FINISHED: &str = "ctrecon_jobs_finished_total";
+    pub const JOB_DURATION: &str = "ctrecon_job_duration_seconds";
+}

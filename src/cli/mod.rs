@@ -16,9 +16,12 @@ pub enum Command {
     Serve(serve::ServeArgs),
     /// Write an analytic phantom, or its exact projections for a geometry, as float32 `.npy`.
     Phantom(phantom::PhantomArgs),
+    /// Reconstruct a `.npy` sinogram or projection stack (FBP, FDK or an iterative method).
+    Recon(recon::ReconArgs),
 }
 
 pub mod files;
 pub mod phantom;
 pub mod progress;
+pub mod recon;
 pub mod serve;

@@ -1,1 +1,305 @@
 //! The HTTP layer: the only module that imports axum (router, extractors, errors, routes).
+//!
+//! [`Application::build`] opens the data directory and the database, recovers jobs, starts the engine and
+//! binds the listener (port 0 picks a free port: tests run the real server); [`Application::run_until`]
+//! serves until the shutdown signal, then lets open requests finish.
+
+pub mod auth;
+pub mod extract;
+pub mod files;
+pub mod problem;
+pub mod routes;
+pub mod upload;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::ops::Deref;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::error_handling::HandleErrorLayer;
+use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
+use axum::http::{HeaderName, HeaderValue, Method, header};
+use axum::middleware::{self, Next};
+use axum::response::Response;
+use axum::routing::{get, post};
+use axum::{BoxError, Router};
+use metrics_exporter_prometheus::PrometheusHandle;
+use tokio::sync::watch;
+use tower::ServiceBuilder;
+use tower_http::catch_panic::CatchPanicLayer;
+use tower_http::cors::{AllowOrigin, CorsLayer};
+use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
+use tower_http::trace::TraceLayer;
+
+use crate::config::{ConfigError, Settings};
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
+use crate::storage::BlobStore;
+use crate::telemetry::{metrics_handle, names};
+use problem::{ApiError, api_error, problem_response};
+use routes::{datasets, events, health, jobs, results};
+
+/// What every handler can reach.
+pub struct Shared {
+    pub db: Db,
+    pub store: BlobStore,
+    pub engine: Engine,
+    pub settings: Settings,
+    pub metrics: PrometheusHandle,
+    /// Turns true when the server shuts down (ends event streams).
+    pub shutdown: watch::Receiver<bool>,
+}
+
+/// Handler state; cheap to clone.
+#[derive(Clone)]
+pub struct AppState(Arc<Shared>);
+
+impl Deref for AppState {
+    type Target = Shared;
+    fn deref(&self) -> &Shared {
+        &self.0
+    }
+}
+
+/// Why the service could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum BuildError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("data directory: {0}")]
+    DataDir(std::io::Error),
+    #[error("database: {0}")]
+    Db(#[from] DbError),
+    #[error("engine: {0}")]
+    Engine(#[from] StartError),
+    #[error("binding {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+}
+
+/// A built service, bound and ready to serve.
+pub struct Application {
+    listener: tokio::net::TcpListener,
+    router: Router,
+    shutdown: watch::Sender<bool>,
+    addr: SocketAddr,
+}
+
+async fn not_found() -> ApiError {
+    api_error(ErrorCode::NotFound, "no such route; see /openapi.yaml")
+}
+
+async fn method_not_allowed() -> ApiError {
+    api_error(
+        ErrorCode::MethodNotAllowed,
+        "this method is not allowed here; see /openapi.yaml",
+    )
+}
+
+async fn timed_out(_: BoxError) -> ApiError {
+    api_error(ErrorCode::RequestTimeout, "the request took too long")
+}
+
+/// Count requests by route and status, and time them.
+async fn track(req: Request, next: Next) -> Response {
+    let route = req
+        .extensions()
+        .get::<MatchedPath>()
+        .map(|m| m.as_str().to_owned())
+        .unwrap_or_else(|| "unmatched".into());
+    let method = req.method().to_string();
+    let start = Instant::now();
+    let resp = next.run(req).await;
+    let status = resp.status().as_u16().to_string();
+    metrics::counter!(names::HTTP_REQUESTS, "method" => method, "route" => route.clone(), "status" => status)
+        .increment(1);
+    metrics::histogram!(names::HTTP_DURATION, "route" => route)
+        .record(start.elapsed().as_secs_f64());
+    resp
+}
+
+fn cors(origins: &[String]) -> Option<CorsLayer> {
+    if origins.is_empty() {
+        return None;
+    }
+    let list: Vec<HeaderValue> = origins.iter().filter_map(|o| o.parse().ok()).collect();
+    Some(
+        CorsLayer::new()
+            .allow_origin(AllowOrigin::list(list))
+            .allow_methods([Method::GET, Method::POST, Method::DELETE])
+            .allow_headers([
+                header::AUTHORIZATION,
+                header::CONTENT_TYPE,
+                header::RANGE,
+                header::IF_NONE_MATCH,
+                HeaderName::from_static("idempotency-key"),
+                HeaderName::from_static("x-ctrecon-geometry"),
+            ])
+            .expose_headers([
+                header::LOCATION,
+                header::ETAG,
+                header::CONTENT_RANGE,
+                HeaderName::from_static("x-request-id"),
+            ]),
+    )
+}
+
+/// The router with every route and layer.
+pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
+    let s = &state.settings;
+    let request_timeout = Duration::from_secs(s.request_timeout_secs);
+    let upload_timeout = Duration::from_secs(s.upload_timeout_secs);
+    let timeout = |d: Duration| {
+        ServiceBuilder::new()
+            .layer(HandleErrorLayer::new(timed_out))
+            .layer(tower::timeout::TimeoutLayer::new(d))
+    };
+    let api = Router::new()
+        .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
+        .route("/metrics", get(health::metrics))
+        .route("/openapi.yaml", get(health::openapi))
+        .route("/v1/datasets/{id}", get(datasets::get_dataset))
+        .route("/v1/jobs", post(jobs::post_job).get(jobs::list_jobs))
+        .route("/v1/jobs/{id}", get(jobs::get_job).delete(jobs::delete_job))
+        .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))
+        .route("/v1/jobs/{id}/result/volume.npy", get(results::volume))
+        .route("/v1/jobs/{id}/result/slice", get(results::slice))
+        .route("/v1/jobs/{id}/result/projection", get(results::projection))
+        .route("/v1/jobs/{id}/result/mesh.stl", get(results::mesh))
+        .route("/v1/jobs/{id}/result/metrics", get(results::metrics))
+        .layer(DefaultBodyLimit::max(s.max_json_bytes))
+        .layer(timeout(request_timeout));
+    let simulations = Router::new()
+        .route("/v1/simulations", post(datasets::post_simulation))
+        .layer(DefaultBodyLimit::max(s.max_json_bytes))
+        .layer(timeout(upload_timeout));
+    let uploads = Router::new()
+        .route("/v1/sinograms", post(datasets::post_sinogram))
+        .layer(DefaultBodyLimit::disable())
+        .layer(timeout(upload_timeout));
+    let streams = Router::new().route("/v1/jobs/{id}/events", get(events::job_events));
+    let cors = cors(&s.cors_origins);
+    let app = api
+        .merge(simulations)
+        .merge(uploads)
+        .merge(streams)
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .with_state(state)
+        .layer(middleware::from_fn(track))
+        .layer(middleware::from_fn_with_state(tokens, auth::require_token))
+        .layer(CatchPanicLayer::custom(|_| {
+            tracing::error!("a request handler panicked");
+            problem_response(&Problem::internal())
+        }))
+        .layer(
+            TraceLayer::new_for_http().make_span_with(|req: &Request| {
+                let id = req
+                    .headers()
+                    .get("x-request-id")
+                    .and_then(|v| v.to_str().ok())
+                    .unwrap_or("");
+                tracing::info_span!("request", method = %req.method(), path = %req.uri().path(), request_id = %id)
+            }),
+        )
+        .layer(PropagateRequestIdLayer::x_request_id())
+        .layer(SetRequestIdLayer::x_request_id(MakeRequestUuid));
+    match cors {
+        Some(c) => app.layer(c),
+        None => app,
+    }
+}
+
+impl Application {
+    /// Validate the settings, open storage and database, recover jobs, start the engine, bind.
+    pub async fn build(settings: Settings) -> Result<Self, BuildError> {
+        settings.validate()?;
+        std::fs::create_dir_all(&settings.data_dir).map_err(BuildError::DataDir)?;
+        let store = BlobStore::open(&settings.data_dir).map_err(BuildError::DataDir)?;
+        let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let engine = Engine::start(
+            db.clone(),
+            store.clone(),
+            EngineConfig {
+                worker_threads: settings.resolved_worker_threads(),
+                max_concurrent_jobs: settings.max_concurrent_jobs,
+                memory_budget_bytes: settings.memory_budget_bytes,
+                max_attempts: settings.max_attempts,
+                progress_interval: Duration::from_millis(settings.progress_interval_ms.max(10)),
+            },
+        )
+        .await?;
+        let listener = tokio::net::TcpListener::bind(settings.bind)
+            .await
+            .map_err(|source| BuildError::Bind {
+                addr: settings.bind,
+                source,
+            })?;
+        let addr = listener.local_addr().map_err(|source| BuildError::Bind {
+            addr: settings.bind,
+            source,
+        })?;
+        let (shutdown, shutdown_rx) = watch::channel(false);
+        let tokens = auth::Tokens::from_settings(&settings);
+        let state = AppState(Arc::new(Shared {
+            db,
+            store,
+            engine,
+            settings,
+            metrics: metrics_handle(),
+            shutdown: shutdown_rx,
+        }));
+        Ok(Self {
+            listener,
+            router: router(state, tokens),
+            shutdown,
+            addr,
+        })
+    }
+
+    /// The bound address (with the real port when the settings asked for port 0).
+    pub fn local_addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// Serve until `signal` completes, then stop accepting, end event streams and let requests finish.
+    pub async fn run_until(
+        self,
+        signal: impl Future<Output = ()> + Send + 'static,
+    ) -> std::io::Result<()> {
+        let shutdown = self.shutdown;
+        axum::serve(self.listener, self.router)
+            .with_graceful_shutdown(async move {
+                signal.await;
+                tracing::info!("shutting down");
+                let _ = shutdown.send(true);
+            })
+            .await
+    }
+}
+
+/// Completes on Ctrl-C or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        let _ = tokio::signal::ctrl_c().await;
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(_) => std::future::pending::<()>().await,
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        _ = ctrl_c => {}
+        _ = term => {}
+    }
+}

@@ -1,14 +1,18 @@
-//! Surface meshes: marching cubes, Taubin smoothing, measurements (area, enclosed volume, closedness),
+//! Surface meshes: marching cubes, Taubin smoothing, decimation, measurements (area, enclosed volume, closedness),
 //! connected components and binary STL in patient millimetres (LPS).
 
 mod cases;
+mod decimate;
 mod marching;
+mod pipeline;
 mod smooth;
 mod stl;
 
 use std::collections::HashMap;
 
+pub use decimate::decimate;
 pub use marching::marching_cubes;
+pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
 pub use smooth::taubin;
 pub use stl::{StlError, parse_stl_binary};
 

@@ -161,3 +161,30 @@ fn binary_stl_has_the_lps_header_and_round_trips() {
         Err(StlError::SizeMismatch { .. })
     ));
 }
+
+#[test]
+fn decimation_to_a_quarter_keeps_a_sphere_closed_and_its_measures_within_3_percent() {
+    let r = 12.0;
+    let (vol, frame) = field(32, [1.0; 3], |x, y, z| r - (x * x + y * y + z * z).sqrt());
+    let mesh = marching_cubes(vol.view(), &frame, 0.0);
+    let target = mesh.triangle_count() / 4;
+    let small = decimate(&mesh, target);
+    assert!(
+        small.triangle_count() <= target,
+        "{} > {target}",
+        small.triangle_count()
+    );
+    assert!(small.triangle_count() > target / 2);
+    assert!(small.is_closed());
+    assert!(
+        rel(small.area_mm2(), 4.0 * PI * r * r) < 0.03,
+        "{}",
+        small.area_mm2()
+    );
+    assert!(
+        rel(small.volume_mm3(), 4.0 / 3.0 * PI * r.powi(3)) < 0.03,
+        "{}",
+        small.volume_mm3()
+    );
+    assert_eq!(decimate(&mesh, usize::MAX), mesh);
+}

@@ -1,1 +1,176 @@
 //! Blob storage for uploaded datasets and results (local files; ids, never client strings, name paths).
+//!
+//! Layout under the data directory:
+//! - `datasets/<dataset id>.npy`: uploaded or simulated projections, exactly as accepted;
+//! - `results/<job id>/<name>`: a job's results (`volume.npy`, `metrics.json`, and cached derived files
+//!   named by the SHA-256 of their parameters);
+//! - `tmp/`: uploads and results being written. Every write goes to a temporary file, is flushed to disk
+//!   and then renamed into place, so a file under `datasets/` or `results/` is always complete.
+//!   `tmp/` is emptied at start.
+
+pub mod ids;
+pub mod npy;
+
+use std::fs;
+use std::io::{self, Write};
+use std::path::{Path, PathBuf};
+
+pub use ids::{BadId, DatasetId, JobId};
+
+/// Names of the files a job's result directory holds.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum ResultName {
+    /// The reconstructed volume, float32 `[z][y][x]`.
+    Volume,
+    /// Quality metrics against the phantom, JSON.
+    Metrics,
+    /// A derived file (slice, projection, mesh) keyed by the hex SHA-256 of its parameters.
+    Derived { key_hex: String, ext: &'static str },
+}
+
+impl ResultName {
+    fn file_name(&self) -> String {
+        match self {
+            ResultName::Volume => "volume.npy".into(),
+            ResultName::Metrics => "metrics.json".into(),
+            ResultName::Derived { key_hex, ext } => format!("derived-{key_hex}.{ext}"),
+        }
+    }
+}
+
+/// The local blob store rooted at the data directory.
+#[derive(Debug, Clone)]
+pub struct BlobStore {
+    root: PathBuf,
+}
+
+/// A file being written under `tmp/`; removed on drop unless committed.
+#[derive(Debug)]
+pub struct TempBlob {
+    path: PathBuf,
+    committed: bool,
+}
+
+impl TempBlob {
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for TempBlob {
+    fn drop(&mut self) {
+        if !self.committed {
+            let _ = fs::remove_file(&self.path);
+        }
+    }
+}
+
+fn sync_dir(dir: &Path) {
+    // Best effort: makes the rename durable on file systems that support syncing directories.
+    if let Ok(d) = fs::File::open(dir) {
+        let _ = d.sync_all();
+    }
+}
+
+impl BlobStore {
+    /// Create the layout under `root` and empty `tmp/`.
+    pub fn open(root: &Path) -> io::Result<Self> {
+        for sub in ["datasets", "results", "tmp"] {
+            fs::create_dir_all(root.join(sub))?;
+        }
+        for entry in fs::read_dir(root.join("tmp"))? {
+            let entry = entry?;
+            if entry.file_type()?.is_file() {
+                fs::remove_file(entry.path())?;
+            }
+        }
+        Ok(Self {
+            root: root.to_path_buf(),
+        })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    pub fn dataset_path(&self, id: DatasetId) -> PathBuf {
+        self.root.join("datasets").join(format!("{id}.npy"))
+    }
+
+    pub fn result_dir(&self, id: JobId) -> PathBuf {
+        self.root.join("results").join(id.to_string())
+    }
+
+    pub fn result_path(&self, id: JobId, name: &ResultName) -> PathBuf {
+        self.result_dir(id).join(name.file_name())
+    }
+
+    /// A fresh temporary file name under `tmp/` (the file is not created).
+    pub fn temp(&self) -> TempBlob {
+        TempBlob {
+            path: self
+                .root
+                .join("tmp")
+                .join(format!("{}.part", uuid::Uuid::new_v4())),
+            committed: false,
+        }
+    }
+
+    /// Move a fully written and synced temporary file to `dest` (atomic on one file system).
+    pub fn commit(&self, mut temp: TempBlob, dest: &Path) -> io::Result<()> {
+        if let Some(parent) = dest.parent() {
+            fs::create_dir_all(parent)?;
+        }
+        fs::rename(&temp.path, dest)?;
+        temp.committed = true;
+        if let Some(parent) = dest.parent() {
+            sync_dir(parent);
+        }
+        Ok(())
+    }
+
+    /// Write `bytes` to `dest` atomically: temporary file, fsync, rename.
+    pub fn write_atomic(&self, dest: &Path, bytes: &[u8]) -> io::Result<()> {
+        let temp = self.temp();
+        let mut f = fs::File::create(temp.path())?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        drop(f);
+        self.commit(temp, dest)
+    }
+
+    /// Remove a job's results (missing is fine).
+    pub fn remove_results(&self, id: JobId) -> io::Result<()> {
+        match fs::remove_dir_all(self.result_dir(id)) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+            _ => Ok(()),
+        }
+    }
+
+    /// The store is usable: a probe file can be written, read back and removed.
+    pub fn probe(&self) -> bool {
+        let temp = self.temp();
+        fs::write(temp.path(), b"ok").is_ok() && fs::read(temp.path()).is_ok_and(|b| b == b"ok")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn atomic_writes_leave_no_temporary_files_and_paths_come_from_ids() {
+        let dir = tempfile::tempdir().unwrap();
+        let store = BlobStore::open(dir.path()).unwrap();
+        let job = JobId::generate();
+        let dest = store.result_path(job, &ResultName::Volume);
+        assert!(dest.starts_with(dir.path().join("results")));
+        store.write_atomic(&dest, b"abc").unwrap();
+        assert_eq!(fs::read(&dest).unwrap(), b"abc");
+        assert_eq!(fs::read_dir(dir.path().join("tmp")).unwrap().count(), 0);
+        assert!(store.probe());
+        store.remove_results(job).unwrap();
+        assert!(!dest.exists());
+        store.remove_results(job).unwrap();
+    }
+}

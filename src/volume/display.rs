@@ -108,6 +108,25 @@ pub fn project(
     }
     let ax = NdAxis(axis.array_axis());
     let part = vol.slice_axis(ax, ndarray::Slice::from(slab.clone()));
+    if axis == Axis::Sagittal {
+        // Rays run along contiguous rows: reduce each row, one z plane per task.
+        let n = (slab.end - slab.start) as f32;
+        let mut acc = Array2::<f32>::zeros((part.dim().0, part.dim().1));
+        Zip::from(acc.rows_mut())
+            .and(part.outer_iter())
+            .par_for_each(|mut out, plane| {
+                for (o, row) in out.iter_mut().zip(plane.rows()) {
+                    *o = match kind {
+                        ProjectionKind::Max => {
+                            row.iter().copied().fold(f32::NEG_INFINITY, f32::max)
+                        }
+                        ProjectionKind::Min => row.iter().copied().fold(f32::INFINITY, f32::min),
+                        ProjectionKind::Mean => row.sum() / n,
+                    };
+                }
+            });
+        return Ok(orient(axis, acc.view()));
+    }
     let first = part.index_axis(ax, 0);
     let mut acc = first.to_owned();
     for plane in part.axis_iter(ax).skip(1) {

@@ -47,6 +47,56 @@ impl Frame {
     }
 }
 
+impl Frame {
+    /// Fractional index `[k, j, i]` of patient position `p_mm`, the inverse of [`Frame::position`]; `None` when the
+    /// direction vectors are degenerate.
+    pub fn index_of(&self, p_mm: [f64; 3]) -> Option<[f64; 3]> {
+        // Columns of M are the scaled index axes: p − origin = M · (i, j, k).
+        let m: [[f64; 3]; 3] = std::array::from_fn(|r| {
+            std::array::from_fn(|c| self.direction[c][r] * self.spacing_mm[c])
+        });
+        let det = m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1])
+            - m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0])
+            + m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+        if det.abs() < 1e-12 || !det.is_finite() {
+            return None;
+        }
+        let d = [
+            p_mm[0] - self.origin_mm[0],
+            p_mm[1] - self.origin_mm[1],
+            p_mm[2] - self.origin_mm[2],
+        ];
+        // Cramer's rule.
+        let solve = |col: usize| {
+            let mut a = m;
+            for r in 0..3 {
+                a[r][col] = d[r];
+            }
+            (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
+                - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
+                + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
+                / det
+        };
+        Some([solve(2), solve(1), solve(0)])
+    }
+
+    /// Unit normal of the slice planes (column axis × row axis).
+    pub fn slice_normal(&self) -> [f64; 3] {
+        let [a, b, _] = self.direction;
+        let n = [
+            a[1] * b[2] - a[2] * b[1],
+            a[2] * b[0] - a[0] * b[2],
+            a[0] * b[1] - a[1] * b[0],
+        ];
+        let len = (n[0] * n[0] + n[1] * n[1] + n[2] * n[2]).sqrt();
+        if len > 0.0 {
+            n.map(|c| c / len)
+        } else {
+            [0.0, 0.0, 1.0]
+        }
+    }
+}
+
 /// A scalar volume (`[z][y][x]`, f32: μ in 1/mm for reconstructions, HU for CT series) and its frame.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Volume {
@@ -79,6 +129,20 @@ mod tests {
                     want[c]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn index_of_inverts_position_for_a_sheared_frame() {
+        let f = Frame {
+            spacing_mm: [0.7, 0.7, 2.5],
+            origin_mm: [-100.0, 50.0, 10.0],
+            direction: [[1.0, 0.0, 0.0], [0.0, 0.96, -0.28], [0.0, 0.28, 0.96]],
+        };
+        let p = f.position(3.0, 17.5, 250.25);
+        let idx = f.index_of(p).unwrap();
+        for (got, want) in idx.iter().zip([3.0, 17.5, 250.25]) {
+            assert!((got - want).abs() < 1e-9, "{idx:?}");
         }
     }
 

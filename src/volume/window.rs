@@ -145,6 +145,52 @@ pub fn encode_png(
     Ok(out)
 }
 
+/// Encode equally sized `frames` as an 8-bit greyscale animated PNG (APNG), `delay_ms` per frame, looping.
+pub fn encode_apng(
+    frames: &[ndarray::Array2<f32>],
+    window: Window,
+    delay_ms: u16,
+) -> Result<Vec<u8>, VolumeError> {
+    let first = frames.first().ok_or(VolumeError::Empty)?;
+    let (h, w) = first.dim();
+    if h == 0 || w == 0 {
+        return Err(VolumeError::Empty);
+    }
+    if frames.iter().any(|f| f.dim() != (h, w)) {
+        return Err(VolumeError::InvalidParameter {
+            name: "frames",
+            reason: "all frames must have the same size".into(),
+        });
+    }
+    let window = Window::new(window.width, window.level)?;
+    let enc_err = |e: png::EncodingError| VolumeError::Encode(e.to_string());
+    let too_big = |_| VolumeError::InvalidParameter {
+        name: "image",
+        reason: "dimensions exceed the PNG limit".into(),
+    };
+    let n = u32::try_from(frames.len()).map_err(too_big)?;
+    let mut out = Vec::new();
+    let mut enc = png::Encoder::new(
+        &mut out,
+        u32::try_from(w).map_err(too_big)?,
+        u32::try_from(h).map_err(too_big)?,
+    );
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Eight);
+    enc.set_animated(n, 0).map_err(enc_err)?;
+    enc.set_frame_delay(delay_ms, 1000).map_err(enc_err)?;
+    let mut writer = enc.write_header().map_err(enc_err)?;
+    for f in frames {
+        let pixels: Vec<u8> = f
+            .iter()
+            .map(|&v| (window.unit(v) * 255.0).round() as u8)
+            .collect();
+        writer.write_image_data(&pixels).map_err(enc_err)?;
+    }
+    writer.finish().map_err(enc_err)?;
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -173,6 +219,26 @@ mod tests {
         let w = Window::auto(img.view());
         assert!((w.level - 499.5).abs() < 5.0, "{w:?}");
         assert!((w.width - 990.0).abs() < 10.0, "{w:?}");
+    }
+
+    #[test]
+    fn an_animated_png_carries_every_frame() {
+        let frames: Vec<_> = (0..3)
+            .map(|k| ndarray::Array2::from_elem((4, 5), k as f32))
+            .collect();
+        let bytes = encode_apng(&frames, Window::new(2.0, 1.0).unwrap(), 100).unwrap();
+        let mut r = png::Decoder::new(std::io::Cursor::new(bytes))
+            .read_info()
+            .unwrap();
+        assert_eq!(r.info().animation_control().map(|a| a.num_frames), Some(3));
+        let mut buf = vec![0; r.output_buffer_size().unwrap()];
+        let mut firsts = Vec::new();
+        for _ in 0..3 {
+            r.next_frame(&mut buf).unwrap();
+            firsts.push(buf[0]);
+        }
+        assert_eq!(firsts, vec![0, 128, 255]);
+        assert!(encode_apng(&[], Window::new(1.0, 0.0).unwrap(), 100).is_err());
     }
 
     #[test]

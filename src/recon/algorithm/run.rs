@@ -49,14 +49,8 @@ fn data_elements(views: &Views) -> u64 {
 /// Bytes a reconstruction allocates besides its input: the output, working copies and per-thread buffers.
 pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> u64 {
     let out = Limits::f32_bytes(grid_elements(grid));
-    if spec.is_analytic() {
-        // Output plus one filtered projection (padded, complex spectrum) per thread.
-        let row = views.data_shape().last().copied().unwrap_or(1) as u64;
-        let per_view =
-            Limits::f32_bytes(data_elements(views) / views.data_shape()[0].max(1) as u64);
-        out.saturating_add(
-            rayon::current_num_threads() as u64 * (per_view.saturating_mul(2) + row * 32),
-        )
+    if let AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) = spec {
+        analytic::estimate_bytes(views, grid, p)
     } else {
         iterative::estimate_bytes(spec, views, grid).max(
             out.saturating_mul(3)

@@ -1,32 +1,70 @@
 //! Analytic reconstruction: ramp filters and windows, parallel and fan-beam FBP (with Parker short-scan
-//! weights) and FDK (Parker and Wang weights), with voxel-driven backprojectors.
+//! and Wang offset-detector weights) and FDK (Parker and Wang weights), with voxel-driven backprojectors.
+//!
+//! - [`filter`]: Kak–Slaney spatial ramp kernels (flat and equiangular), windows, cut-off, zero padding.
+//! - [`weights`]: which redundancy weighting a scan needs, Parker and Wang weights.
+//! - `fbp2d` / `fdk`: the algorithms ([`fbp_2d`], [`fdk`]); `backproject`: the hot kernels.
+//!
+//! Every algorithm reads only the canonical per-view geometry; divergent beams must come from a planar
+//! circular orbit with a detector facing the rotation centre (every parametric geometry of ctrecon
+//! does). Unsupported combinations (parallel beams over less than 180°, short scans with an offset
+//! detector, more than one turn, a detector that misses the central ray) are typed errors, never a silently
+//! wrong image. Filtering runs in f64, backprojection in f32. Cancel is checked once per view while
+//! filtering and once per image row / view batch while backprojecting; progress is reported per view.
+
+mod backproject;
+mod fbp2d;
+mod fdk;
+pub mod filter;
+mod orbit;
+mod progress;
+pub mod weights;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
 
 use crate::recon::algorithm::FbpParams;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
-use crate::recon::geometry::{Views2, Views3};
+use crate::recon::geometry::{Views, Views2, Views3};
 use crate::recon::grid::{ImageGrid, VolumeGrid};
 
-/// Filtered backprojection of a 2D sinogram `[view][u]` (parallel or fan beam) onto `grid`.
+pub use fbp2d::ARC_OVERSAMPLING;
+
+/// Filtered backprojection of a 2D sinogram `[view][u]` (parallel or fan beam) onto `grid`; the result is
+/// `[y][x]` in the units of the data per mm (μ in 1/mm for line integrals in mm·(1/mm)).
 pub fn fbp_2d(
-    _views: &Views2,
-    _sinogram: ArrayView2<'_, f32>,
-    _grid: &ImageGrid,
-    _params: &FbpParams,
-    _ctl: Control<'_>,
+    views: &Views2,
+    sinogram: ArrayView2<'_, f32>,
+    grid: &ImageGrid,
+    params: &FbpParams,
+    ctl: Control<'_>,
 ) -> Result<Array2<f32>, ReconError> {
-    Err(ReconError::param("algorithm", "FBP is not implemented yet"))
+    fbp2d::fbp_2d(views, sinogram, grid, params, ctl)
 }
 
-/// FDK reconstruction of a cone-beam projection stack `[view][v][u]` onto `grid`.
+/// FDK reconstruction of a cone-beam projection stack `[view][v][u]` onto `grid` (`[z][y][x]`).
 pub fn fdk(
-    _views: &Views3,
-    _projections: ArrayView3<'_, f32>,
-    _grid: &VolumeGrid,
-    _params: &FbpParams,
-    _ctl: Control<'_>,
+    views: &Views3,
+    projections: ArrayView3<'_, f32>,
+    grid: &VolumeGrid,
+    params: &FbpParams,
+    ctl: Control<'_>,
 ) -> Result<Array3<f32>, ReconError> {
-    Err(ReconError::param("algorithm", "FDK is not implemented yet"))
+    fdk::fdk(views, projections, grid, params, ctl)
+}
+
+/// Bytes FBP or FDK allocates besides its input: the output, the filtered views (2D) or one filtered
+/// projection per thread (FDK), and per-thread filter buffers. Grids of the wrong dimensionality count
+/// zero (the dispatcher refuses them).
+pub fn estimate_bytes(
+    views: &Views,
+    grid: &crate::recon::algorithm::OutputGrid,
+    params: &FbpParams,
+) -> u64 {
+    use crate::recon::algorithm::OutputGrid;
+    match (views, grid) {
+        (Views::D2(v), OutputGrid::Image(g)) => fbp2d::estimate_bytes(v, g, params),
+        (Views::D3(v), OutputGrid::Volume(g)) => fdk::estimate_bytes(v, g, params),
+        _ => 0,
+    }
 }

@@ -132,6 +132,9 @@ fn one_usize() -> usize {
     1
 }
 
+/// Most inner TV iterations per outer iteration.
+pub const MAX_TV_ITERATIONS: usize = 10_000;
+
 /// Total-variation regularised reconstruction for sparse-view data.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -145,6 +148,10 @@ pub struct TvParams {
     /// Inner TV iterations per outer iteration (default 20).
     #[serde(default = "tv_inner")]
     pub tv_iterations: usize,
+    /// Ordered subsets of the OS-SART data pass of each outer iteration (default 10; lowered to the
+    /// number of views when larger).
+    #[serde(default = "sart_subsets")]
+    pub subsets: usize,
     #[serde(default = "yes")]
     pub nonnegative: bool,
     #[serde(default)]
@@ -191,5 +198,83 @@ pub fn check_tolerance(t: Option<f64>) -> Result<(), ReconError> {
             format!("must be finite and non-negative, got {t}"),
         )),
         _ => Ok(()),
+    }
+}
+
+macro_rules! defaults_from_json {
+    ($($t:ty),*) => {$(
+        impl Default for $t {
+            /// The documented defaults (those of an empty JSON object).
+            fn default() -> Self {
+                serde_json::from_str("{}").expect("every field has a default")
+            }
+        }
+    )*};
+}
+defaults_from_json!(
+    ArtParams, SartParams, SirtParams, CglsParams, MlemParams, TvParams
+);
+
+impl ArtParams {
+    pub fn validate(&self) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_relaxation(self.relaxation)
+    }
+}
+
+impl SartParams {
+    /// `views`: number of views of the geometry (bounds `subsets`).
+    pub fn validate(&self, views: usize) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_relaxation(self.relaxation)?;
+        check_subsets(self.subsets, views)?;
+        check_tolerance(self.tolerance)
+    }
+}
+
+impl SirtParams {
+    pub fn validate(&self) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_relaxation(self.relaxation)?;
+        check_tolerance(self.tolerance)
+    }
+}
+
+impl CglsParams {
+    pub fn validate(&self) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_tolerance(self.tolerance)
+    }
+}
+
+impl MlemParams {
+    pub fn validate(&self, views: usize) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_subsets(self.subsets, views)?;
+        check_tolerance(self.tolerance)
+    }
+}
+
+impl TvParams {
+    /// `views` bounds `subsets` (a default above the number of views is lowered to it).
+    pub fn validate(&self, views: usize) -> Result<(), ReconError> {
+        check_iterations(self.iterations)?;
+        check_subsets(self.subsets.min(views), views)?;
+        if !(self.tv_weight.is_finite() && self.tv_weight >= 0.0) {
+            return Err(ReconError::param(
+                "tv_weight",
+                format!("must be finite and non-negative, got {}", self.tv_weight),
+            ));
+        }
+        if self.tv_iterations == 0 || self.tv_iterations > MAX_TV_ITERATIONS {
+            return Err(ReconError::param(
+                "tv_iterations",
+                format!(
+                    "must be in 1..={MAX_TV_ITERATIONS}, got {}",
+                    self.tv_iterations
+                ),
+            ));
+        }
+        Ok(())
     }
 }

@@ -1,0 +1,219 @@
+//! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, write the
+//! result as float32 `.npy` and optionally a PNG of one slice with window/level.
+
+use std::path::{Path, PathBuf};
+
+use clap::ValueEnum;
+use ndarray::{ArrayView2, Axis, Ix2};
+use serde_json::{Map, Value};
+
+use super::files::{CliResult, read_geometry, read_npy, sidecar, write_npy};
+use super::progress::Bar;
+use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window, reconstruct};
+use crate::recon::control::{Cancel, Control};
+use crate::recon::geometry::Views;
+use crate::recon::grid::{ImageGrid, Limits, VolumeGrid};
+
+/// Ramp-filter windows (FBP and FDK).
+#[derive(Debug, Clone, Copy, ValueEnum)]
+pub enum Filter {
+    RamLak,
+    SheppLogan,
+    Cosine,
+    Hamming,
+    Hann,
+}
+
+impl From<Filter> for Window {
+    fn from(f: Filter) -> Self {
+        match f {
+            Filter::RamLak => Window::RamLak,
+            Filter::SheppLogan => Window::SheppLogan,
+            Filter::Cosine => Window::Cosine,
+            Filter::Hamming => Window::Hamming,
+            Filter::Hann => Window::Hann,
+        }
+    }
+}
+
+/// Options of `ctrecon recon`.
+#[derive(Debug, clap::Args)]
+pub struct ReconArgs {
+    /// Sinogram `[view][u]` or projections `[view][v][u]` (float32 or float64 `.npy`, line integrals).
+    #[arg(long, visible_alias = "data")]
+    pub input: PathBuf,
+    /// Geometry JSON (default: the sidecar `<input>.json` written by `ctrecon phantom`).
+    #[arg(long)]
+    pub geometry: Option<PathBuf>,
+    /// `fbp` (2D parallel/fan) or `fdk` (cone); iterative: art, sart, os_sart, sirt, cgls, mlem, tv.
+    #[arg(long, default_value = "fbp")]
+    pub algorithm: String,
+    /// Ramp-filter window (FBP/FDK).
+    #[arg(long, value_enum)]
+    pub filter: Option<Filter>,
+    /// Frequency cut-off in (0, 1] as a fraction of Nyquist (FBP/FDK).
+    #[arg(long)]
+    pub cutoff: Option<f64>,
+    /// More algorithm parameters as JSON, e.g. `{"iterations": 20}` or `{"filter": "hann"}`.
+    #[arg(long)]
+    pub params: Option<String>,
+    /// Pixels (voxels) per side of the output grid.
+    #[arg(long, default_value_t = 256)]
+    pub size: usize,
+    /// Pixel (voxel) size in mm.
+    #[arg(long, default_value_t = 1.0)]
+    pub pixel_mm: f64,
+    /// An output grid JSON (`{"nx", "ny", "dx_mm", "dy_mm"}` or `{"nx", "ny", "nz", "spacing_mm"}`)
+    /// instead of --size/--pixel-mm.
+    #[arg(long, conflicts_with_all = ["size", "pixel_mm"])]
+    pub grid: Option<PathBuf>,
+    /// Most bytes the reconstruction may allocate.
+    #[arg(long, default_value_t = 8 << 30)]
+    pub max_bytes: u64,
+    /// Output `.npy` (float32, `[y][x]` or `[z][y][x]`).
+    #[arg(long, visible_alias = "out")]
+    pub output: PathBuf,
+    /// Also write an 8-bit grey PNG of one slice.
+    #[arg(long)]
+    pub png: Option<PathBuf>,
+    /// Axial slice of a volume for the PNG (default: the middle one).
+    #[arg(long)]
+    pub slice: Option<usize>,
+    /// Window width in the image's units (default: the slice's min..max).
+    #[arg(long)]
+    pub ww: Option<f64>,
+    /// Window level (centre) in the image's units.
+    #[arg(long)]
+    pub wl: Option<f64>,
+}
+
+/// The algorithm spec from `--algorithm`, `--params`, `--filter` and `--cutoff`.
+pub fn algorithm_spec(args: &ReconArgs) -> CliResult<AlgorithmSpec> {
+    let mut fields = match &args.params {
+        Some(text) => {
+            match serde_json::from_str::<Value>(text).map_err(|e| format!("--params: {e}"))? {
+                Value::Object(m) => m,
+                _ => return Err("--params must be a JSON object".into()),
+            }
+        }
+        None => Map::new(),
+    };
+    fields.insert("name".into(), Value::String(args.algorithm.clone()));
+    if let Some(f) = args.filter {
+        fields.insert("filter".into(), serde_json::to_value(Window::from(f))?);
+    }
+    if let Some(c) = args.cutoff {
+        fields.insert("cutoff".into(), serde_json::to_value(c)?);
+    }
+    serde_json::from_value(Value::Object(fields))
+        .map_err(|e| format!("algorithm `{}`: {e}", args.algorithm).into())
+}
+
+fn output_grid(args: &ReconArgs, views: &Views) -> CliResult<OutputGrid> {
+    if let Some(path) = &args.grid {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| format!("reading {}: {e}", path.display()))?;
+        return Ok(
+            serde_json::from_str(&text).map_err(|e| format!("grid {}: {e}", path.display()))?
+        );
+    }
+    Ok(match views {
+        Views::D2(_) => OutputGrid::Image(ImageGrid::square(args.size, args.pixel_mm)),
+        Views::D3(_) => OutputGrid::Volume(VolumeGrid::cube(args.size, args.pixel_mm)),
+    })
+}
+
+pub fn run(args: ReconArgs) -> CliResult<()> {
+    let geometry_path = args
+        .geometry
+        .clone()
+        .unwrap_or_else(|| sidecar(&args.input));
+    let geometry = read_geometry(&geometry_path)?;
+    let views = geometry.to_views()?;
+    let spec = algorithm_spec(&args)?;
+    let grid = output_grid(&args, &views)?;
+    let data = read_npy(&args.input)?;
+    let limits = Limits {
+        max_bytes: args.max_bytes,
+    };
+    let cancel = Cancel::new();
+    let bar = Bar::new();
+    let out = reconstruct(
+        &spec,
+        &views,
+        data.view(),
+        &grid,
+        &limits,
+        Control::new(&cancel, &bar),
+    );
+    bar.finish();
+    let out = out?;
+    write_npy(&args.output, &out)?;
+    eprintln!("wrote {} {:?}", args.output.display(), out.shape());
+    if let Some(png) = &args.png {
+        let slice = match out.ndim() {
+            3 => {
+                let nz = out.shape()[0];
+                let k = args.slice.unwrap_or(nz / 2);
+                if k >= nz {
+                    return Err(format!("--slice {k} is outside 0..{nz}").into());
+                }
+                out.index_axis(Axis(0), k)
+                    .into_dimensionality::<Ix2>()
+                    .map_err(|e| e.to_string())?
+            }
+            _ => out
+                .view()
+                .into_dimensionality::<Ix2>()
+                .map_err(|e| e.to_string())?,
+        };
+        write_png(png, slice, args.ww, args.wl)?;
+        eprintln!("wrote {}", png.display());
+    }
+    Ok(())
+}
+
+/// Map `value` through the window [level − width/2, level + width/2] to 0..=255.
+pub fn window_level(slice: ArrayView2<'_, f32>, ww: Option<f64>, wl: Option<f64>) -> Vec<u8> {
+    let (lo, hi) = slice.iter().fold((f64::MAX, f64::MIN), |(lo, hi), &v| {
+        (lo.min(v as f64), hi.max(v as f64))
+    });
+    let width = ww.unwrap_or(hi - lo);
+    let level = wl.unwrap_or((lo + hi) / 2.0);
+    let bottom = level - width / 2.0;
+    slice
+        .iter()
+        .map(|&v| {
+            let t = if width > 0.0 {
+                (v as f64 - bottom) / width
+            } else {
+                0.0
+            };
+            (t.clamp(0.0, 1.0) * 255.0).round() as u8
+        })
+        .collect()
+}
+
+fn write_png(
+    path: &Path,
+    slice: ArrayView2<'_, f32>,
+    ww: Option<f64>,
+    wl: Option<f64>,
+) -> CliResult<()> {
+    if let Some(w) = ww
+        && !(w.is_finite() && w > 0.0)
+    {
+        return Err(format!("--ww must be positive, got {w}").into());
+    }
+    let (h, w) = slice.dim();
+    let pixels = window_level(slice, ww, wl);
+    let file =
+        std::fs::File::create(path).map_err(|e| format!("writing {}: {e}", path.display()))?;
+    let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), w as u32, h as u32);
+    encoder.set_color(png::ColorType::Grayscale);
+    encoder.set_depth(png::BitDepth::Eight);
+    let mut writer = encoder.write_header()?;
+    writer.write_image_data(&pixels)?;
+    writer.finish()?;
+    Ok(())
+}

@@ -1,0 +1,60 @@
+//! `/healthz` (the process answers), `/readyz` (database and data directory usable), `/metrics`
+//! (Prometheus text), `/openapi.yaml` (the contract).
+
+use axum::extract::State;
+use axum::http::header;
+use axum::response::{IntoResponse, Response};
+use serde_json::json;
+
+use super::super::AppState;
+use super::super::problem::{ApiResult, api_error};
+use crate::error_code::ErrorCode;
+use crate::telemetry::names;
+
+pub async fn healthz() -> Response {
+    axum::Json(json!({ "status": "ok" })).into_response()
+}
+
+pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
+    let db = st.db.ping().await;
+    let store = st.store.clone();
+    let disk = tokio::task::spawn_blocking(move || store.probe())
+        .await
+        .unwrap_or(false);
+    if db && disk {
+        Ok(
+            axum::Json(json!({ "status": "ready", "database": "ok", "data_dir": "ok" }))
+                .into_response(),
+        )
+    } else {
+        Err(api_error(
+            ErrorCode::Unavailable,
+            format!(
+                "database {}, data directory {}",
+                if db { "ok" } else { "unavailable" },
+                if disk { "ok" } else { "unavailable" }
+            ),
+        ))
+    }
+}
+
+pub async fn metrics(State(st): State<AppState>) -> ApiResult<Response> {
+    for (status, n) in st.db.counts().await? {
+        metrics::gauge!(names::JOBS, "status" => status.as_str()).set(n as f64);
+        if status == crate::jobs::JobStatus::Queued {
+            metrics::gauge!(names::QUEUE_DEPTH).set(n as f64);
+        }
+    }
+    Ok((
+        [(header::CONTENT_TYPE, "text/plain; version=0.0.4")],
+        st.metrics.render(),
+    )
+        .into_response())
+}
+
+/// The OpenAPI 3.1 description of this API.
+pub const OPENAPI_YAML: &str = include_str!("../../../openapi.yaml");
+
+pub async fn openapi() -> Response {
+    ([(header::CONTENT_TYPE, "application/yaml")], OPENAPI_YAML).into_response()
+}

@@ -1,0 +1,7 @@
+//! Route handlers, one file per resource.
+
+pub mod datasets;
+pub mod events;
+pub mod health;
+pub mod jobs;
+pub mod results;

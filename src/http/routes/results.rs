@@ -1,0 +1,170 @@
+//! Results of a succeeded job, immutable once written: `volume.npy`, `slice`, `projection`, `mesh.stl`,
+//! `metrics`. Views are rendered on the worker pool on first request and cached; every file is served
+//! with a strong ETag, `Cache-Control: immutable` and range support.
+
+use axum::extract::{Path, State};
+use axum::http::{HeaderMap, HeaderValue, header};
+use axum::response::{IntoResponse, Response};
+use sha2::{Digest, Sha256};
+
+use super::super::AppState;
+use super::super::extract::{ApiQuery, job_id};
+use super::super::files::{FileMeta, serve_file};
+use super::super::problem::{ApiResult, api_error};
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::views::{MeshQuery, ProjectionQuery, SliceQuery, ViewRequest, render};
+use crate::jobs::{JobResult, JobStatus};
+use crate::storage::npy::hex;
+use crate::storage::{JobId, ResultName};
+
+/// The result of job `id`, or why there is none.
+async fn result_of(st: &AppState, id: JobId) -> ApiResult<JobResult> {
+    let job = st
+        .db
+        .get_job(id)
+        .await?
+        .ok_or_else(|| api_error(ErrorCode::JobNotFound, format!("no job {id}")))?;
+    match (job.status, job.result) {
+        (JobStatus::Succeeded, Some(r)) => Ok(r),
+        (status, _) => Err(api_error(
+            ErrorCode::JobNotSucceeded,
+            format!(
+                "the job is {}; results exist once it has succeeded",
+                status.as_str()
+            ),
+        )),
+    }
+}
+
+pub async fn volume(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    let r = result_of(&st, id).await?;
+    serve_file(
+        &headers,
+        FileMeta {
+            path: st.store.result_path(id, &ResultName::Volume),
+            etag: r.volume.sha256,
+            content_type: "application/x-npy",
+            filename: Some(format!("{id}.npy")),
+        },
+    )
+    .await
+}
+
+pub async fn metrics(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    let r = result_of(&st, id).await?;
+    let Some(m) = r.metrics else {
+        return Err(api_error(
+            ErrorCode::ResultUnavailable,
+            "this job computed no metrics (request `outputs: [\"volume\", \"metrics\"]` on a simulation)",
+        ));
+    };
+    let body = serde_json::to_vec(&m).unwrap_or_default();
+    let etag = format!("\"{}\"", hex(&Sha256::digest(&body)));
+    if headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"))
+    {
+        let mut r = axum::http::StatusCode::NOT_MODIFIED.into_response();
+        if let Ok(v) = HeaderValue::from_str(&etag) {
+            r.headers_mut().insert(header::ETAG, v);
+        }
+        return Ok(r);
+    }
+    let mut resp = (
+        [
+            (header::CONTENT_TYPE, "application/json"),
+            (header::CACHE_CONTROL, "public, max-age=31536000, immutable"),
+        ],
+        body,
+    )
+        .into_response();
+    if let Ok(v) = HeaderValue::from_str(&etag) {
+        resp.headers_mut().insert(header::ETAG, v);
+    }
+    Ok(resp)
+}
+
+async fn view(
+    st: AppState,
+    id: String,
+    req: ViewRequest,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    req.validate()?;
+    let r = result_of(&st, id).await?;
+    let mu_water = st.settings.mu_water_per_mm;
+    let key = req.key(mu_water);
+    let (ext, content_type) = req.media();
+    let path = st.store.result_path(
+        id,
+        &ResultName::Derived {
+            key_hex: key.clone(),
+            ext,
+        },
+    );
+    if !tokio::fs::try_exists(&path).await.unwrap_or(false) {
+        let store = st.store.clone();
+        let dest = path.clone();
+        st.engine
+            .compute(move || {
+                let io = |e: std::io::Error| {
+                    tracing::error!(error = %e, "rendering a view failed");
+                    Problem::internal()
+                };
+                let bytes =
+                    std::fs::read(store.result_path(id, &ResultName::Volume)).map_err(io)?;
+                let out = render(&bytes, &r.grid, &req, mu_water)?;
+                store.write_atomic(&dest, &out).map_err(io)
+            })
+            .await?;
+    }
+    serve_file(
+        &headers,
+        FileMeta {
+            path,
+            etag: key,
+            content_type,
+            filename: Some(format!("{id}.{ext}")),
+        },
+    )
+    .await
+}
+
+pub async fn slice(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<SliceQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    view(st, id, ViewRequest::Slice(q), headers).await
+}
+
+pub async fn projection(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<ProjectionQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    view(st, id, ViewRequest::Projection(q), headers).await
+}
+
+pub async fn mesh(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<MeshQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    view(st, id, ViewRequest::Mesh(q), headers).await
+}

@@ -1,0 +1,428 @@
+//! The engine: a dedicated rayon pool that does all computation, a scheduler that starts queued jobs
+//! within the concurrency limit and the memory budget, cancellation, progress (broadcast live, persisted
+//! at a bounded rate), and crash recovery at start.
+//!
+//! The async runtime never computes: work goes to the pool and its result comes back through a oneshot
+//! channel. Job state lives in the database; the engine keeps in memory only the cancel flags and memory
+//! reservations of the jobs it is running.
+
+use std::collections::HashMap;
+use std::panic::AssertUnwindSafe;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use serde::Serialize;
+use tokio::sync::{Notify, broadcast, oneshot};
+use tracing::Instrument;
+
+use super::model::{Job, JobStatus};
+use super::repo::{Db, DbError};
+use super::run::{RunError, execute};
+use crate::error_code::{ErrorCode, Problem};
+use crate::recon::control::{Cancel, Control, Progress};
+use crate::recon::grid::Limits;
+use crate::storage::{BlobStore, JobId};
+use crate::telemetry::names;
+
+/// A change of a job's status, progress or stage, as sent to event subscribers.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct JobEvent {
+    pub id: JobId,
+    pub status: JobStatus,
+    pub progress: u8,
+    pub stage: String,
+}
+
+/// Engine limits.
+#[derive(Debug, Clone, Copy)]
+pub struct EngineConfig {
+    pub worker_threads: usize,
+    pub max_concurrent_jobs: usize,
+    pub memory_budget_bytes: u64,
+    pub max_attempts: u32,
+    pub progress_interval: Duration,
+}
+
+struct Running {
+    cancel: Cancel,
+    estimate: u64,
+}
+
+struct Inner {
+    db: Db,
+    store: BlobStore,
+    pool: rayon::ThreadPool,
+    config: EngineConfig,
+    running: Mutex<HashMap<JobId, Running>>,
+    wake: Notify,
+    events: broadcast::Sender<JobEvent>,
+}
+
+/// Handle to the engine; cheap to clone.
+#[derive(Clone)]
+pub struct Engine {
+    inner: Arc<Inner>,
+}
+
+/// Latest progress of a running job, written by the pool, read by the persisting task.
+#[derive(Default)]
+struct Latest {
+    progress: u8,
+    stage: String,
+    dirty: bool,
+}
+
+/// The progress sink handed to a running job: publishes each change of whole percent or stage.
+struct Sink {
+    id: JobId,
+    latest: Arc<Mutex<Latest>>,
+    events: broadcast::Sender<JobEvent>,
+}
+
+impl Progress for Sink {
+    fn report(&self, stage: &str, fraction: f64, _: Option<usize>, _: Option<f64>) {
+        // Never 100 while running: 100 means succeeded.
+        let pct = (fraction.clamp(0.0, 1.0) * 100.0).floor().min(99.0) as u8;
+        let Ok(mut l) = self.latest.lock() else {
+            return;
+        };
+        if l.progress == pct && l.stage == stage {
+            return;
+        }
+        l.progress = pct;
+        if l.stage != stage {
+            l.stage = stage.to_string();
+        }
+        l.dirty = true;
+        let _ = self.events.send(JobEvent {
+            id: self.id,
+            status: JobStatus::Running,
+            progress: pct,
+            stage: l.stage.clone(),
+        });
+    }
+}
+
+impl Engine {
+    /// Build the pool, recover from a crash (re-queue or fail jobs left running, remove partial results)
+    /// and start the scheduler on the current runtime.
+    pub async fn start(db: Db, store: BlobStore, config: EngineConfig) -> Result<Self, StartError> {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(config.worker_threads)
+            .thread_name(|i| format!("ctrecon-worker-{i}"))
+            .build()
+            .map_err(|e| StartError::Pool(e.to_string()))?;
+        let (requeued, failed) = db.recover(config.max_attempts).await?;
+        if requeued + failed > 0 {
+            tracing::warn!(
+                requeued,
+                failed,
+                "recovered jobs left running by a previous process"
+            );
+        }
+        for id in db.unfinished_ids().await? {
+            store
+                .remove_results(id)
+                .map_err(|e| StartError::Pool(format!("removing partial results: {e}")))?;
+        }
+        let (events, _) = broadcast::channel(1024);
+        let engine = Engine {
+            inner: Arc::new(Inner {
+                db,
+                store,
+                pool,
+                config,
+                running: Mutex::new(HashMap::new()),
+                wake: Notify::new(),
+                events,
+            }),
+        };
+        let scheduler = engine.clone();
+        tokio::spawn(async move { scheduler.schedule().await });
+        Ok(engine)
+    }
+
+    /// Subscribe to job events (status, progress, stage changes of every job).
+    pub fn subscribe(&self) -> broadcast::Receiver<JobEvent> {
+        self.inner.events.subscribe()
+    }
+
+    /// Tell the scheduler that a job was queued.
+    pub fn wake(&self) {
+        self.inner.wake.notify_one();
+    }
+
+    /// Number of jobs running now.
+    pub fn running_count(&self) -> usize {
+        self.inner.running.lock().map(|r| r.len()).unwrap_or(0)
+    }
+
+    pub fn publish(&self, job: &Job) {
+        let _ = self.inner.events.send(JobEvent {
+            id: job.id,
+            status: job.status,
+            progress: job.progress,
+            stage: job.stage.clone(),
+        });
+    }
+
+    /// Run `f` on the worker pool and await its result; a panic becomes an internal error.
+    pub async fn compute<T, F>(&self, f: F) -> Result<T, Problem>
+    where
+        T: Send + 'static,
+        F: FnOnce() -> Result<T, Problem> + Send + 'static,
+    {
+        let (tx, rx) = oneshot::channel();
+        let span = tracing::Span::current();
+        self.inner.pool.spawn(move || {
+            let _g = span.enter();
+            let _ = tx.send(std::panic::catch_unwind(AssertUnwindSafe(f)));
+        });
+        match rx.await {
+            Ok(Ok(r)) => r,
+            _ => {
+                tracing::error!("a computation panicked");
+                Err(Problem::internal())
+            }
+        }
+    }
+
+    /// Cancel a job: a queued job is canceled at once; a running one is flagged and stops at its next
+    /// check (within a second). Terminal jobs answer `job_already_finished`.
+    pub async fn cancel(&self, id: JobId) -> Result<(), CancelError> {
+        let db = &self.inner.db;
+        if db.cancel_queued(id).await? {
+            if let Some(job) = db.get_job(id).await? {
+                self.publish(&job);
+            }
+            return Ok(());
+        }
+        let flag = self
+            .inner
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
+        if let Some(flag) = flag {
+            db.request_cancel(id).await?;
+            flag.cancel();
+            return Ok(());
+        }
+        match db.get_job(id).await? {
+            None => Err(CancelError::NotFound),
+            Some(j) if j.status.is_terminal() => Err(CancelError::Finished(j.status)),
+            // Claimed between the two checks: the flag is registered before the claim, look again.
+            Some(_) => {
+                let flag = self
+                    .inner
+                    .running
+                    .lock()
+                    .ok()
+                    .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
+                if let Some(flag) = flag {
+                    db.request_cancel(id).await?;
+                    flag.cancel();
+                }
+                Ok(())
+            }
+        }
+    }
+
+    async fn schedule(self) {
+        loop {
+            if let Err(e) = self.dispatch().await {
+                tracing::error!(error = %e, "scheduling failed");
+            }
+            tokio::select! {
+                _ = self.inner.wake.notified() => {}
+                _ = tokio::time::sleep(Duration::from_secs(2)) => {}
+            }
+        }
+    }
+
+    /// Start queued jobs, oldest first, while the concurrency limit and the memory budget allow.
+    async fn dispatch(&self) -> Result<(), DbError> {
+        let cfg = self.inner.config;
+        for (id, estimate) in self.inner.db.queued(64).await? {
+            {
+                let Ok(mut running) = self.inner.running.lock() else {
+                    return Ok(());
+                };
+                if running.contains_key(&id) {
+                    continue;
+                }
+                let used: u64 = running.values().map(|r| r.estimate).sum();
+                if running.len() >= cfg.max_concurrent_jobs
+                    || used.saturating_add(estimate) > cfg.memory_budget_bytes
+                {
+                    // First come, first served: the head of the queue waits for room.
+                    return Ok(());
+                }
+                running.insert(
+                    id,
+                    Running {
+                        cancel: Cancel::new(),
+                        estimate,
+                    },
+                );
+            }
+            match self.inner.db.claim(id).await {
+                Ok(true) => {
+                    let engine = self.clone();
+                    let span = tracing::info_span!("job", job_id = %id);
+                    tokio::spawn(async move { engine.supervise(id).await }.instrument(span));
+                }
+                other => {
+                    self.release(id);
+                    other?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn release(&self, id: JobId) {
+        if let Ok(mut r) = self.inner.running.lock() {
+            r.remove(&id);
+        }
+        self.inner.wake.notify_one();
+    }
+
+    async fn supervise(self, id: JobId) {
+        let started = Instant::now();
+        let (status, error, result) = self.run(id).await;
+        let db = &self.inner.db;
+        let ok = db
+            .finish(id, status, error.as_ref(), result.as_ref())
+            .await
+            .inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"));
+        self.release(id);
+        if let Ok(true) = ok {
+            tracing::info!(status = status.as_str(), "job finished");
+            metrics::counter!(names::JOBS_FINISHED, "status" => status.as_str()).increment(1);
+            metrics::histogram!(names::JOB_DURATION, "status" => status.as_str())
+                .record(started.elapsed().as_secs_f64());
+        }
+        match db.get_job(id).await {
+            Ok(Some(job)) => self.publish(&job),
+            Ok(None) => {}
+            Err(e) => tracing::error!(error = %e, "reading a finished job failed"),
+        }
+    }
+
+    async fn run(
+        &self,
+        id: JobId,
+    ) -> (JobStatus, Option<Problem>, Option<super::model::JobResult>) {
+        let failed = |p: Problem| (JobStatus::Failed, Some(p), None);
+        let db = &self.inner.db;
+        let job = match db.get_job(id).await {
+            Ok(Some(j)) => j,
+            Ok(None) => return failed(Problem::internal()),
+            Err(e) => {
+                tracing::error!(error = %e, "loading a job failed");
+                return failed(Problem::internal());
+            }
+        };
+        self.publish(&job);
+        let dataset = match db.get_dataset(job.request.input).await {
+            Ok(Some(d)) => d,
+            Ok(None) => {
+                return failed(Problem::new(
+                    ErrorCode::DatasetNotFound,
+                    "the input dataset no longer exists",
+                ));
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "loading a dataset failed");
+                return failed(Problem::internal());
+            }
+        };
+        let cancel = self
+            .inner
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()))
+            .unwrap_or_default();
+        if job.cancel_requested {
+            cancel.cancel();
+        }
+        let latest = Arc::new(Mutex::new(Latest::default()));
+        let sink = Sink {
+            id,
+            latest: latest.clone(),
+            events: self.inner.events.clone(),
+        };
+        let store = self.inner.store.clone();
+        let limits = Limits {
+            max_bytes: self.inner.config.memory_budget_bytes,
+        };
+        let (tx, mut rx) = oneshot::channel();
+        let span = tracing::Span::current();
+        self.inner.pool.spawn(move || {
+            let _g = span.enter();
+            let r = std::panic::catch_unwind(AssertUnwindSafe(|| {
+                execute(
+                    &store,
+                    &job,
+                    &dataset,
+                    &limits,
+                    Control::new(&cancel, &sink),
+                )
+            }));
+            let _ = tx.send(r);
+        });
+        let mut tick = tokio::time::interval(self.inner.config.progress_interval);
+        let outcome = loop {
+            tokio::select! {
+                r = &mut rx => break r,
+                _ = tick.tick() => self.persist_progress(id, &latest).await,
+            }
+        };
+        match outcome {
+            Ok(Ok(Ok(result))) => (JobStatus::Succeeded, None, Some(result)),
+            Ok(Ok(Err(RunError::Canceled))) => (JobStatus::Canceled, None, None),
+            Ok(Ok(Err(RunError::Failed(p)))) => failed(p),
+            _ => {
+                tracing::error!("a job panicked");
+                failed(Problem::internal())
+            }
+        }
+    }
+
+    async fn persist_progress(&self, id: JobId, latest: &Mutex<Latest>) {
+        let snapshot = match latest.lock() {
+            Ok(mut l) if l.dirty => {
+                l.dirty = false;
+                Some((l.progress, l.stage.clone()))
+            }
+            _ => None,
+        };
+        if let Some((p, stage)) = snapshot
+            && let Err(e) = self.inner.db.set_progress(id, p, &stage).await
+        {
+            tracing::warn!(error = %e, "persisting progress failed");
+        }
+    }
+}
+
+/// Why the engine could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum StartError {
+    #[error(transparent)]
+    Db(#[from] DbError),
+    #[error("{0}")]
+    Pool(String),
+}
+
+/// Why a cancel was refused.
+#[derive(Debug, thiserror::Error)]
+pub enum CancelError {
+    #[error("no such job")]
+    NotFound,
+    #[error("the job has already {}", .0.as_str())]
+    Finished(JobStatus),
+    #[error(transparent)]
+    Db(#[from] DbError),
+}

@@ -1,0 +1,246 @@
+//! The job and dataset model: statuses and their transitions, the typed job and simulation requests,
+//! stored records and results.
+//!
+//! Job states: `queued → running → succeeded | failed | canceled`, plus `queued → canceled`; a crash puts
+//! `running` back to `queued` (or `failed` after too many attempts). Terminal states never change.
+
+use serde::{Deserialize, Serialize};
+
+use crate::error_code::Problem;
+use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
+use crate::recon::geometry::Geometry;
+use crate::recon::grid::VolumeGrid;
+use crate::recon::phantom::PhantomSpec;
+use crate::storage::{DatasetId, JobId};
+
+/// Where a job is in its life.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum JobStatus {
+    Queued,
+    Running,
+    Succeeded,
+    Failed,
+    Canceled,
+}
+
+impl JobStatus {
+    pub const ALL: [JobStatus; 5] = [
+        JobStatus::Queued,
+        JobStatus::Running,
+        JobStatus::Succeeded,
+        JobStatus::Failed,
+        JobStatus::Canceled,
+    ];
+    pub fn as_str(self) -> &'static str {
+        match self {
+            JobStatus::Queued => "queued",
+            JobStatus::Running => "running",
+            JobStatus::Succeeded => "succeeded",
+            JobStatus::Failed => "failed",
+            JobStatus::Canceled => "canceled",
+        }
+    }
+    pub fn parse(s: &str) -> Option<Self> {
+        Self::ALL.into_iter().find(|x| x.as_str() == s)
+    }
+    /// Succeeded, failed and canceled jobs never change again.
+    pub fn is_terminal(self) -> bool {
+        matches!(
+            self,
+            JobStatus::Succeeded | JobStatus::Failed | JobStatus::Canceled
+        )
+    }
+}
+
+/// What a job produces besides the volume (which every reconstruction writes).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum OutputKind {
+    /// The reconstructed volume (`.npy`); slices, projections and meshes derive from it.
+    Volume,
+    /// RMSE, PSNR and SSIM against the phantom (simulated inputs only).
+    Metrics,
+}
+
+fn default_outputs() -> Vec<OutputKind> {
+    vec![OutputKind::Volume]
+}
+
+/// `POST /v1/jobs`: reconstruct dataset `input` with `algorithm` on `grid`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct JobRequest {
+    pub input: DatasetId,
+    pub algorithm: AlgorithmSpec,
+    /// `{nx, ny, dx_mm, dy_mm}` for 2D geometries, `{nx, ny, nz, spacing_mm}` for cone beams.
+    pub grid: OutputGrid,
+    #[serde(default = "default_outputs")]
+    pub outputs: Vec<OutputKind>,
+}
+
+impl JobRequest {
+    pub fn wants_metrics(&self) -> bool {
+        self.outputs.contains(&OutputKind::Metrics)
+    }
+}
+
+/// The kind of every job this service runs today.
+pub const KIND_RECONSTRUCTION: &str = "reconstruction";
+
+/// A stored job.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Job {
+    pub id: JobId,
+    pub kind: String,
+    pub status: JobStatus,
+    /// 0–100.
+    pub progress: u8,
+    pub stage: String,
+    pub request: JobRequest,
+    pub estimate_bytes: u64,
+    pub attempts: u32,
+    pub cancel_requested: bool,
+    pub error: Option<Problem>,
+    pub result: Option<JobResult>,
+    pub created_us: i64,
+    pub started_us: Option<i64>,
+    pub finished_us: Option<i64>,
+}
+
+/// A file written by a job.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct FileInfo {
+    pub bytes: u64,
+    pub sha256: String,
+}
+
+/// Image quality against the phantom, on the output grid.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct Quality {
+    pub rmse: f64,
+    /// dB, peak = the truth's max − min.
+    pub psnr_db: f64,
+    pub ssim: f64,
+    /// Supersampling of the rasterised truth (per axis).
+    pub truth_supersample: usize,
+}
+
+/// What a succeeded job wrote.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct JobResult {
+    /// `[nz, ny, nx]`; 2D reconstructions have nz = 1.
+    pub shape: [usize; 3],
+    /// The volume grid (2D: one slice of thickness `dx_mm`).
+    pub grid: VolumeGrid,
+    pub volume: FileInfo,
+    pub min: f32,
+    pub max: f32,
+    pub mean: f64,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub metrics: Option<Quality>,
+}
+
+/// Where a dataset came from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum DatasetKind {
+    Upload,
+    Simulation,
+}
+
+impl DatasetKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DatasetKind::Upload => "upload",
+            DatasetKind::Simulation => "simulation",
+        }
+    }
+}
+
+/// Poisson noise of a simulation.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NoiseSpec {
+    /// Incident photons per detector element (I0).
+    pub incident_photons: f64,
+    #[serde(default)]
+    pub seed: u64,
+}
+
+/// `POST /v1/simulations`: the exact projections of a phantom for a geometry, optionally noisy.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SimulationRequest {
+    pub phantom: PhantomSpec,
+    pub geometry: Geometry,
+    #[serde(default)]
+    pub noise: Option<NoiseSpec>,
+}
+
+/// A stored projection dataset.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct Dataset {
+    pub id: DatasetId,
+    pub kind: DatasetKind,
+    pub geometry: Geometry,
+    pub shape: Vec<usize>,
+    pub dtype: String,
+    pub bytes: u64,
+    pub sha256: String,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub phantom: Option<PhantomSpec>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub noise: Option<NoiseSpec>,
+    #[serde(skip)]
+    pub created_us: i64,
+}
+
+/// Microseconds since the Unix epoch, now.
+pub fn now_us() -> i64 {
+    (time::OffsetDateTime::now_utc().unix_timestamp_nanos() / 1000) as i64
+}
+
+/// RFC 3339 text of a microsecond timestamp.
+pub fn rfc3339(us: i64) -> String {
+    time::OffsetDateTime::from_unix_timestamp_nanos(us as i128 * 1000)
+        .ok()
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
+        .unwrap_or_default()
+}
+
+/// Microseconds since the epoch of RFC 3339 text.
+pub fn parse_rfc3339(s: &str) -> Option<i64> {
+    time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
+        .ok()
+        .map(|t| (t.unix_timestamp_nanos() / 1000) as i64)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_job_request_takes_typed_specs_and_refuses_unknown_fields() {
+        let ok = r#"{"input": "0192d1f2-7a3b-7c4d-8e5f-60718293a4b5",
+                     "algorithm": {"name": "fbp", "filter": "hann"},
+                     "grid": {"nx": 64, "ny": 64, "dx_mm": 1, "dy_mm": 1}}"#;
+        let r: JobRequest = serde_json::from_str(ok).unwrap();
+        assert_eq!(r.outputs, [OutputKind::Volume]);
+        assert!(matches!(r.grid, OutputGrid::Image(_)));
+        let extra = ok.replace("\"grid\"", "\"colour\": 1, \"grid\"");
+        assert!(serde_json::from_str::<JobRequest>(&extra).is_err());
+        let bad_param = ok.replace("\"hann\"", "\"hann\", \"iterations\": 3");
+        assert!(serde_json::from_str::<JobRequest>(&bad_param).is_err());
+    }
+
+    #[test]
+    fn timestamps_round_trip_through_rfc3339() {
+        let t = 1_795_000_000_123_456;
+        assert_eq!(parse_rfc3339(&rfc3339(t)), Some(t));
+        assert!(rfc3339(t).ends_with('Z'));
+    }
+}

@@ -1,0 +1,146 @@
+//! The surface pipeline a user asks for in one request: iso-surface, largest component, Taubin smoothing,
+//! decimation, and the measurements reported with the result.
+
+use serde::{Deserialize, Serialize};
+
+use super::{Mesh, decimate, marching_cubes, taubin};
+use crate::volume::Volume;
+
+/// Most Taubin iterations accepted.
+pub const MAX_SMOOTHING: usize = 500;
+
+fn yes() -> bool {
+    true
+}
+
+/// Options of a surface extraction. JSON: `{"iso": 300, "largest_component": true, "smoothing": 10,
+/// "target_triangles": 200000}`.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MeshOptions {
+    /// Iso-value in the volume's units (HU for CT series, 1/mm for reconstructions).
+    pub iso: f32,
+    /// Keep only the connected piece with the most triangles (default true).
+    #[serde(default = "yes")]
+    pub largest_component: bool,
+    /// Taubin λ|μ iterations (default 0).
+    #[serde(default)]
+    pub smoothing: usize,
+    /// Decimate to at most this many triangles (default: no decimation).
+    #[serde(default)]
+    pub target_triangles: Option<usize>,
+}
+
+/// What was built.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+pub struct MeshStats {
+    pub triangles: usize,
+    pub vertices: usize,
+    pub area_mm2: f64,
+    pub volume_mm3: f64,
+    pub closed: bool,
+}
+
+/// A mesh request that cannot be honoured.
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum MeshError {
+    #[error("invalid mesh option `{name}`: {reason}")]
+    InvalidOption { name: &'static str, reason: String },
+}
+
+impl MeshError {
+    pub fn code(&self) -> &'static str {
+        "invalid_mesh_options"
+    }
+}
+
+impl MeshOptions {
+    pub fn validate(&self) -> Result<(), MeshError> {
+        if !self.iso.is_finite() {
+            return Err(MeshError::InvalidOption {
+                name: "iso",
+                reason: format!("must be finite, got {}", self.iso),
+            });
+        }
+        if self.smoothing > MAX_SMOOTHING {
+            return Err(MeshError::InvalidOption {
+                name: "smoothing",
+                reason: format!("at most {MAX_SMOOTHING} iterations"),
+            });
+        }
+        if self.target_triangles.is_some_and(|t| t < 4) {
+            return Err(MeshError::InvalidOption {
+                name: "target_triangles",
+                reason: "a closed surface needs at least 4 triangles".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+impl Mesh {
+    pub fn stats(&self) -> MeshStats {
+        MeshStats {
+            triangles: self.triangle_count(),
+            vertices: self.vertices.len(),
+            area_mm2: self.area_mm2(),
+            volume_mm3: self.volume_mm3(),
+            closed: self.is_closed(),
+        }
+    }
+}
+
+/// Run the surface pipeline on `vol`.
+pub fn extract(vol: &Volume, opts: &MeshOptions) -> Result<(Mesh, MeshStats), MeshError> {
+    opts.validate()?;
+    let mut mesh = marching_cubes(vol.data.view(), &vol.frame, opts.iso);
+    if opts.largest_component {
+        mesh = mesh.largest_component();
+    }
+    taubin(&mut mesh, opts.smoothing);
+    if let Some(t) = opts.target_triangles {
+        mesh = decimate(&mesh, t);
+    }
+    let stats = mesh.stats();
+    Ok((mesh, stats))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::recon::grid::VolumeGrid;
+    use crate::volume::Frame;
+
+    #[test]
+    fn the_pipeline_keeps_the_big_sphere_smooths_and_decimates() {
+        let grid = VolumeGrid::cube(40, 1.0);
+        let data = ndarray::Array3::from_shape_fn((40, 40, 40), |(k, j, i)| {
+            let (x, y, z) = (grid.x(i), grid.y(j), grid.z(k));
+            let big = 10.0 - ((x + 7.0).powi(2) + y * y + z * z).sqrt();
+            let small = 3.0 - ((x - 13.0).powi(2) + y * y + z * z).sqrt();
+            big.max(small) as f32
+        });
+        let vol = Volume {
+            data,
+            frame: Frame::from_grid(&grid),
+        };
+        let opts: MeshOptions =
+            serde_json::from_str(r#"{"iso": 0, "smoothing": 5, "target_triangles": 2000}"#)
+                .unwrap();
+        let (mesh, stats) = extract(&vol, &opts).unwrap();
+        assert!(stats.closed);
+        assert!(stats.triangles <= 2000 && stats.triangles == mesh.triangle_count());
+        let v0 = 4.0 / 3.0 * std::f64::consts::PI * 1000.0;
+        assert!(
+            (stats.volume_mm3 - v0).abs() / v0 < 0.04,
+            "{}",
+            stats.volume_mm3
+        );
+        let bad = MeshOptions {
+            iso: f32::NAN,
+            ..opts
+        };
+        assert!(extract(&vol, &bad).is_err());
+        assert!(serde_json::from_str::<MeshOptions>(r#"{"iso": 1, "colour": 3}"#).is_err());
+    }
+}

@@ -1,0 +1,611 @@
+//! Bad input is answered with a 4xx `application/problem+json` and its catalogue code, never a panic or
+//! a 5xx; bearer tokens; the OpenAPI contract lists every route and every error code.
+
+mod common;
+
+use common::{assert_problem, cone_geometry, npy, parallel_geometry, spawn_app, spawn_app_with};
+use ctrecon::error_code::ErrorCode;
+use serde_json::{Value, json};
+
+const GOOD_ID: &str = "0192d1f2-7a3b-7c4d-8e5f-60718293a4b5";
+
+fn percent(s: &str) -> String {
+    s.bytes()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
+        .collect()
+}
+
+fn f32s(values: &[f32]) -> Vec<u8> {
+    values.iter().flat_map(|v| v.to_le_bytes()).collect()
+}
+
+/// Raw upload of `body` for a parallel geometry of 4 views × 3 detector elements.
+async fn upload(app: &common::TestApp, body: Vec<u8>) -> reqwest::Response {
+    let geometry = parallel_geometry(4, 3, 1.0).to_string();
+    app.client
+        .post(app.url("/v1/sinograms"))
+        .header("content-type", "application/x-npy")
+        .header("x-ctrecon-geometry", geometry)
+        .body(body)
+        .send()
+        .await
+        .unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_accept_float32_float64_and_uint16_and_refuse_every_malformed_array() {
+    let app = spawn_app_with(|s| s.max_upload_bytes = 1 << 20).await;
+    // Accepted: the three dtypes, raw and multipart.
+    let r = upload(&app, npy("<f4", "(4, 3)", &f32s(&[0.5; 12]))).await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(
+        (v["shape"].clone(), v["dtype"].clone()),
+        (json!([4, 3]), json!("float32"))
+    );
+    assert_eq!(v["sha256"].as_str().unwrap().len(), 64);
+    let d64: Vec<u8> = [0.25f64; 12].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let r = upload(&app, npy("<f8", "(4, 3)", &d64)).await;
+    assert_eq!(r.status(), 201);
+    let form = reqwest::multipart::Form::new()
+        .text("geometry", parallel_geometry(4, 3, 1.0).to_string())
+        .part(
+            "data",
+            reqwest::multipart::Part::bytes(npy("<u2", "(4, 3)", &[1u8; 24])).file_name("s.npy"),
+        );
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["dtype"], "uint16");
+    let id = v["id"].as_str().unwrap();
+    assert_eq!(app.get(&format!("/v1/datasets/{id}")).await.status(), 200);
+
+    // Refused.
+    let good = f32s(&[0.5; 12]);
+    let mut bad_magic = npy("<f4", "(4, 3)", &good);
+    bad_magic[1] = b'X';
+    assert_problem(upload(&app, bad_magic).await, 400, "malformed_npy").await;
+    assert_problem(
+        upload(&app, npy("<f4", "(4, 3", &good)).await,
+        400,
+        "malformed_npy",
+    )
+    .await;
+    assert_problem(
+        upload(&app, npy("<i8", "(4, 3)", &[0; 96])).await,
+        422,
+        "unsupported_dtype",
+    )
+    .await;
+    assert_problem(
+        upload(&app, npy("<f4", "(3, 4)", &good)).await,
+        422,
+        "shape_mismatch",
+    )
+    .await;
+    let mut nan = [0.5f32; 12];
+    nan[7] = f32::NAN;
+    assert_problem(
+        upload(&app, npy("<f4", "(4, 3)", &f32s(&nan))).await,
+        422,
+        "non_finite_data",
+    )
+    .await;
+    assert_problem(
+        upload(&app, npy("<f4", "(4, 3)", &good[..40])).await,
+        400,
+        "truncated_upload",
+    )
+    .await;
+    let mut long = npy("<f4", "(4, 3)", &good);
+    long.extend_from_slice(&[0; 4]);
+    assert_problem(upload(&app, long).await, 400, "malformed_npy").await;
+    // A declared shape beyond the limit is refused from the header alone.
+    let app_big = spawn_app_with(|s| s.max_upload_bytes = 1 << 20).await;
+    let geometry = parallel_geometry(4000, 3000, 0.1).to_string();
+    let r = app_big
+        .client
+        .post(app_big.url("/v1/sinograms"))
+        .header("content-type", "application/x-npy")
+        .header("x-ctrecon-geometry", geometry)
+        .body(npy("<f4", "(4000, 3000)", &[0; 64]))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 413, "array_too_large").await;
+    // A body over the upload limit is refused from its length.
+    assert_problem(
+        upload(&app, vec![0; (1 << 20) + 200_000]).await,
+        413,
+        "body_too_large",
+    )
+    .await;
+    // Wrong content type, missing geometry, missing parts.
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .header("content-type", "text/plain")
+        .body("hello")
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 415, "unsupported_media_type").await;
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .header("content-type", "application/x-npy")
+        .body(npy("<f4", "(4, 3)", &good))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 422, "invalid_request").await;
+    let form =
+        reqwest::multipart::Form::new().text("geometry", parallel_geometry(4, 3, 1.0).to_string());
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 400, "invalid_multipart").await;
+    // A geometry that cannot exist.
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .header("content-type", "application/x-npy")
+        .header(
+            "x-ctrecon-geometry",
+            parallel_geometry(4, 3, -1.0).to_string(),
+        )
+        .body(npy("<f4", "(4, 3)", &good))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 422, "invalid_geometry").await;
+    // Nothing half-written was kept.
+    assert_eq!(
+        std::fs::read_dir(app.dir.path().join("tmp"))
+            .unwrap()
+            .count(),
+        0
+    );
+    assert_eq!(
+        std::fs::read_dir(app.dir.path().join("datasets"))
+            .unwrap()
+            .count(),
+        3
+    );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn json_requests_with_bad_syntax_fields_or_values_are_refused_with_their_codes() {
+    let app = spawn_app().await;
+    let sim =
+        |g: Value| json!({"phantom": {"table": "shepp_logan", "scale_mm": 20}, "geometry": g});
+    let r = app
+        .client
+        .post(app.url("/v1/simulations"))
+        .header("content-type", "application/json")
+        .body("{\"phantom\": ")
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 400, "malformed_json").await;
+    let r = app
+        .client
+        .post(app.url("/v1/simulations"))
+        .body(sim(cone_geometry(8, 16)).to_string())
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 415, "unsupported_media_type").await;
+    let mut unknown = sim(cone_geometry(8, 16));
+    unknown["colour"] = json!("red");
+    assert_problem(
+        app.post_json("/v1/simulations", &unknown).await,
+        422,
+        "invalid_request",
+    )
+    .await;
+    let zero_views = sim(
+        json!({"type": "cone", "angles": {"count": 0}, "dso_mm": 400, "dsd_mm": 600,
+        "detector": {"nu": 16, "nv": 16, "du_mm": 1, "dv_mm": 1}}),
+    );
+    assert_problem(
+        app.post_json("/v1/simulations", &zero_views).await,
+        422,
+        "invalid_geometry",
+    )
+    .await;
+    let mut noisy = sim(cone_geometry(8, 16));
+    noisy["noise"] = json!({"incident_photons": -5});
+    assert_problem(
+        app.post_json("/v1/simulations", &noisy).await,
+        422,
+        "invalid_parameter",
+    )
+    .await;
+    let big = sim(cone_geometry(4000, 4000));
+    assert_problem(
+        app.post_json("/v1/simulations", &big).await,
+        413,
+        "array_too_large",
+    )
+    .await;
+    let r = app
+        .client
+        .post(app.url("/v1/jobs"))
+        .header("content-type", "application/json")
+        .body(format!("{{\"pad\": \"{}\"}}", "x".repeat(100_000)))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 413, "body_too_large").await;
+
+    let input = app.simulate(cone_geometry(16, 32), 20.0).await;
+    let job = |alg: Value, grid: Value| json!({"input": input, "algorithm": alg, "grid": grid});
+    let cube = json!({"nx": 16, "ny": 16, "nz": 16, "spacing_mm": [1, 1, 1]});
+    // NaN is not JSON; negative, zero and out-of-range parameters are refused before queueing.
+    let r = app
+        .client
+        .post(app.url("/v1/jobs"))
+        .header("content-type", "application/json")
+        .body(format!(
+            "{{\"input\": \"{input}\", \"algorithm\": {{\"name\": \"fdk\", \"cutoff\": NaN}}, \"grid\": {cube}}}"
+        ))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 400, "malformed_json").await;
+    for (alg, grid) in [
+        (json!({"name": "fdk", "cutoff": -0.5}), cube.clone()),
+        (json!({"name": "fdk", "cutoff": 0}), cube.clone()),
+        (json!({"name": "sirt", "iterations": 0}), cube.clone()),
+        (json!({"name": "sirt", "relaxation": -1}), cube.clone()),
+        (json!({"name": "os_sart", "subsets": 0}), cube.clone()),
+        (
+            json!({"name": "fdk"}),
+            json!({"nx": 0, "ny": 16, "nz": 16, "spacing_mm": [1, 1, 1]}),
+        ),
+        (
+            json!({"name": "fdk"}),
+            json!({"nx": 16, "ny": 16, "nz": 16, "spacing_mm": [1, -1, 1]}),
+        ),
+        (
+            json!({"name": "fdk"}),
+            json!({"nx": 16, "ny": 16, "dx_mm": 1, "dy_mm": 1}),
+        ),
+    ] {
+        let body = job(alg.clone(), grid.clone());
+        assert_problem(
+            app.post_json("/v1/jobs", &body).await,
+            422,
+            "invalid_parameter",
+        )
+        .await;
+    }
+    let unknown_param = job(json!({"name": "fdk", "iterations": 3}), cube.clone());
+    assert_problem(
+        app.post_json("/v1/jobs", &unknown_param).await,
+        422,
+        "invalid_request",
+    )
+    .await;
+    let metrics_on_upload = {
+        let r = app
+            .client
+            .post(app.url(&format!(
+                "/v1/sinograms?geometry={}",
+                percent(&parallel_geometry(4, 3, 1.0).to_string())
+            )))
+            .header("content-type", "application/x-npy")
+            .body(npy("<f4", "(4, 3)", &f32s(&[0.0; 12])))
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+        let v: Value = r.json().await.unwrap();
+        json!({"input": v["id"], "algorithm": {"name": "fbp"},
+               "grid": {"nx": 4, "ny": 4, "dx_mm": 1, "dy_mm": 1}, "outputs": ["metrics"]})
+    };
+    assert_problem(
+        app.post_json("/v1/jobs", &metrics_on_upload).await,
+        422,
+        "invalid_parameter",
+    )
+    .await;
+    // A job that can never fit the memory budget (1 GiB) is refused at submission.
+    let huge = job(
+        json!({"name": "fdk"}),
+        json!({"nx": 2048, "ny": 2048, "nz": 2048, "spacing_mm": [0.01, 0.01, 0.01]}),
+    );
+    assert_problem(app.post_json("/v1/jobs", &huge).await, 422, "job_too_large").await;
+    let nothing = json!({"input": GOOD_ID, "algorithm": {"name": "fdk"}, "grid": cube});
+    assert_problem(
+        app.post_json("/v1/jobs", &nothing).await,
+        404,
+        "dataset_not_found",
+    )
+    .await;
+    let r = app
+        .client
+        .post(app.url("/v1/jobs"))
+        .header("idempotency-key", "")
+        .json(&nothing)
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 400, "invalid_idempotency_key").await;
+    // Nothing was queued by any of these.
+    let list: Value = app.get("/v1/jobs").await.json().await.unwrap();
+    assert_eq!(list["jobs"], json!([]));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn unknown_ids_routes_queries_and_illegal_transitions_are_4xx_problems() {
+    let app = spawn_app().await;
+    assert_problem(
+        app.get(&format!("/v1/jobs/{GOOD_ID}")).await,
+        404,
+        "job_not_found",
+    )
+    .await;
+    assert_problem(app.get("/v1/jobs/..%2F..%2Fetc").await, 400, "invalid_id").await;
+    assert_problem(
+        app.get("/v1/jobs/not-an-id/result/volume.npy").await,
+        400,
+        "invalid_id",
+    )
+    .await;
+    assert_problem(
+        app.get(&format!("/v1/datasets/{GOOD_ID}")).await,
+        404,
+        "dataset_not_found",
+    )
+    .await;
+    assert_problem(
+        app.get(&format!("/v1/jobs/{GOOD_ID}/events")).await,
+        404,
+        "job_not_found",
+    )
+    .await;
+    assert_problem(
+        app.post_json(&format!("/v1/jobs/{GOOD_ID}/cancel"), &json!({}))
+            .await,
+        404,
+        "job_not_found",
+    )
+    .await;
+    assert_problem(app.get("/v1/nothing").await, 404, "not_found").await;
+    let r = app.client.put(app.url("/v1/jobs")).send().await.unwrap();
+    assert_problem(r, 405, "method_not_allowed").await;
+    assert_problem(
+        app.get("/v1/jobs?status=sleeping").await,
+        400,
+        "invalid_query",
+    )
+    .await;
+    assert_problem(app.get("/v1/jobs?limit=0").await, 400, "invalid_query").await;
+    assert_problem(app.get("/v1/jobs?cursor=abc").await, 400, "invalid_query").await;
+    assert_problem(
+        app.get("/v1/jobs?created_after=yesterday").await,
+        400,
+        "invalid_query",
+    )
+    .await;
+    assert_problem(app.get("/v1/jobs?colour=red").await, 400, "invalid_query").await;
+
+    // A finished job: cancel is 409, results of a failed job are 409, bad view parameters are 4xx.
+    let input = app.simulate(cone_geometry(24, 32), 14.0).await;
+    let cube = json!({"nx": 16, "ny": 16, "nz": 16, "spacing_mm": [1, 1, 1]});
+    let job = app
+        .submit(&json!({"input": input, "algorithm": {"name": "fdk"}, "grid": cube}))
+        .await;
+    let id = job["id"].as_str().unwrap();
+    let done = app.finish(id).await;
+    assert!(
+        matches!(done["status"].as_str(), Some("succeeded" | "failed")),
+        "{done}"
+    );
+    assert_problem(
+        app.post_json(&format!("/v1/jobs/{id}/cancel"), &json!({}))
+            .await,
+        409,
+        "job_already_finished",
+    )
+    .await;
+    if done["status"] == "succeeded" {
+        let base = format!("/v1/jobs/{id}/result");
+        assert_problem(
+            app.get(&format!("{base}/slice?index=99")).await,
+            422,
+            "slice_out_of_range",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/slice?axis=oblique")).await,
+            400,
+            "invalid_query",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/slice?ww=-1&wl=0")).await,
+            422,
+            "invalid_window",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/slice?ww=1")).await,
+            422,
+            "invalid_parameter",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/slice?preset=bone&ww=1&wl=0"))
+                .await,
+            422,
+            "invalid_parameter",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/slice?depth=12")).await,
+            422,
+            "invalid_parameter",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/projection?slab_start=10&slab_end=5"))
+                .await,
+            422,
+            "invalid_slab",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/mesh.stl")).await,
+            400,
+            "invalid_query",
+        )
+        .await;
+        assert_problem(
+            app.get(&format!("{base}/metrics")).await,
+            404,
+            "result_unavailable",
+        )
+        .await;
+        let r = app
+            .client
+            .get(app.url(&format!("{base}/volume.npy")))
+            .header("range", "bytes=999999999-")
+            .send()
+            .await
+            .unwrap();
+        assert_problem(r, 416, "range_not_satisfiable").await;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_tokens_configured_only_bearers_of_a_valid_token_get_in() {
+    let app = spawn_app_with(|s| s.api_tokens = vec!["correct-horse-battery".into()]).await;
+    assert_eq!(app.get("/healthz").await.status(), 200);
+    assert_eq!(app.get("/readyz").await.status(), 200);
+    assert_problem(app.get("/v1/jobs").await, 401, "unauthorized").await;
+    let r = app
+        .client
+        .get(app.url("/v1/jobs"))
+        .bearer_auth("correct-horse-batter")
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 401, "unauthorized").await;
+    let r = app
+        .client
+        .get(app.url("/v1/jobs"))
+        .bearer_auth("correct-horse-battery")
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_service_reports_metrics_and_echoes_request_ids() {
+    let app = spawn_app().await;
+    let r = app.get("/healthz").await;
+    assert!(r.headers().contains_key("x-request-id"));
+    let text = app.get("/metrics").await.text().await.unwrap();
+    assert!(text.contains("ctrecon_jobs{status=\"queued\"}"), "{text}");
+    assert!(text.contains("ctrecon_queue_depth"));
+    assert!(text.contains("ctrecon_http_requests_total"));
+}
+
+/// `(method, path)` of every route the router declares, read from its source.
+fn declared_routes() -> Vec<(String, String)> {
+    let src = include_str!("../src/http/mod.rs");
+    let mut out = Vec::new();
+    for line in src.lines() {
+        let Some((_, rest)) = line.split_once(".route(\"") else {
+            continue;
+        };
+        let path = rest.split('"').next().unwrap().to_string();
+        for m in ["get", "post", "delete", "put", "patch"] {
+            if rest.contains(&format!("{m}(")) {
+                out.push((m.to_string(), path.clone()));
+            }
+        }
+    }
+    out
+}
+
+/// `(method, path)` of every operation in the OpenAPI document (2-space path keys, 4-space methods).
+fn documented_routes(yaml: &str) -> Vec<(String, String)> {
+    let mut out = Vec::new();
+    let mut in_paths = false;
+    let mut path = None;
+    for line in yaml.lines() {
+        if line == "paths:" {
+            in_paths = true;
+            continue;
+        }
+        if in_paths && !line.starts_with(' ') && !line.is_empty() {
+            in_paths = false;
+        }
+        if !in_paths {
+            continue;
+        }
+        if let Some(p) = line.strip_prefix("  /") {
+            path = Some(format!("/{}", p.trim_end_matches(':')));
+        } else if let Some(m) = line.strip_prefix("    ")
+            && !m.starts_with(' ')
+            && let Some(m) = m.strip_suffix(':')
+            && ["get", "post", "delete", "put", "patch"].contains(&m)
+            && let Some(p) = &path
+        {
+            out.push((m.to_string(), p.clone()));
+        }
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_openapi_document_describes_every_route_and_every_error_code() {
+    let yaml = include_str!("../openapi.yaml");
+    assert!(yaml.starts_with("openapi: 3.1"), "OpenAPI 3.1");
+    let declared = declared_routes();
+    assert!(declared.len() >= 15, "{declared:?}");
+    let documented = documented_routes(yaml);
+    for route in &declared {
+        assert!(
+            documented.contains(route),
+            "{route:?} is not in openapi.yaml"
+        );
+    }
+    for route in &documented {
+        assert!(
+            declared.contains(route),
+            "openapi.yaml documents {route:?}, which does not exist"
+        );
+    }
+    for code in ErrorCode::ALL {
+        assert!(
+            yaml.contains(&format!("- {}\n", code.code())),
+            "error code {} is not in openapi.yaml",
+            code.code()
+        );
+    }
+    let app = spawn_app().await;
+    let served = app.get("/openapi.yaml").await.text().await.unwrap();
+    assert_eq!(served, yaml);
+}
