@@ -42,7 +42,7 @@ fn lidc() -> Option<(ctrecon::dicom::SeriesReport, Assembled)> {
         })
         .collect();
     files.sort();
-    let up = read_upload(&files, &ReadLimits::default());
+    let up = read_upload(&files, &ReadLimits::default(), unattended()).unwrap();
     assert!(up.rejected.is_empty(), "{:?}", up.rejected);
     assert_eq!(up.series.len(), 1);
     let g = up.series.into_iter().next().unwrap();

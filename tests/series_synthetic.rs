@@ -75,7 +75,7 @@ fn a_shuffled_series_assembles_to_the_phantom_within_the_int16_step() {
     assert_eq!(written.files.len(), 24);
     let mut files = written.files.clone();
     shuffle(&mut files);
-    let up = read_upload(&files, &ReadLimits::default());
+    let up = read_upload(&files, &ReadLimits::default(), unattended()).unwrap();
     assert!(up.rejected.is_empty());
     assert_eq!(up.series.len(), 1);
     let group = up.series.into_iter().next().unwrap();
@@ -109,7 +109,7 @@ fn a_tilted_series_keeps_its_sheared_slice_axis() {
     vol.frame.direction[2] = [0.0, t.sin(), t.cos()];
     vol.frame.spacing_mm[2] = 8.0 / t.cos();
     let written = write_ct_series(&vol, &meta("tilted")).unwrap();
-    let up = read_upload(&written.files, &ReadLimits::default());
+    let up = read_upload(&written.files, &ReadLimits::default(), unattended()).unwrap();
     let a = up
         .series
         .into_iter()
@@ -136,7 +136,10 @@ fn a_missing_slice_is_refused_with_a_clear_message_or_interpolated() {
     let vol = phantom_volume();
     let mut files = write_ct_series(&vol, &meta("gap")).unwrap().files;
     files.remove(10); // slice k = 10
-    let group = read_upload(&files, &ReadLimits::default()).series.remove(0);
+    let group = read_upload(&files, &ReadLimits::default(), unattended())
+        .unwrap()
+        .series
+        .remove(0);
     let e = group
         .clone()
         .assemble(&AssemblyOptions::default(), true, unattended())
@@ -199,7 +202,7 @@ fn two_series_in_one_zip_are_split_and_reported() {
     let zip = write_zip(&all).unwrap();
     let files = unpack("upload.zip", zip, &ZipLimits::default()).unwrap();
     assert_eq!(files.len(), 26);
-    let up = read_upload(&files, &ReadLimits::default());
+    let up = read_upload(&files, &ReadLimits::default(), unattended()).unwrap();
     assert_eq!(up.rejected.len(), 1);
     assert_eq!(up.rejected[0].error.code(), "dicom_not_dicom");
     assert_eq!(up.series.len(), 2);
@@ -217,7 +220,7 @@ fn an_enhanced_multi_frame_file_assembles_like_the_classic_series() {
     let vol = phantom_volume();
     let written = write_enhanced_ct(&vol, &meta("enhanced")).unwrap();
     assert_eq!(written.files.len(), 1);
-    let up = read_upload(&written.files, &ReadLimits::default());
+    let up = read_upload(&written.files, &ReadLimits::default(), unattended()).unwrap();
     assert!(up.rejected.is_empty(), "{:?}", up.rejected);
     let a = up
         .series
@@ -246,7 +249,12 @@ fn a_secondary_capture_is_not_a_ct_series() {
     let (_, bytes) =
         write_secondary_capture(mip.view(), WindowPreset::Bone.window(), &meta("mip"), None)
             .unwrap();
-    let up = read_upload(&[("mip.dcm".into(), bytes)], &ReadLimits::default());
+    let up = read_upload(
+        &[("mip.dcm".into(), bytes)],
+        &ReadLimits::default(),
+        unattended(),
+    )
+    .unwrap();
     let g = up.series.into_iter().next().unwrap();
     assert_eq!(g.modality.as_deref(), Some("OT"));
     assert_eq!(g.instances[0].slices[0].rows, 24);
@@ -288,10 +296,24 @@ fn hostile_files_are_refused_with_typed_errors() {
     // Declared 49 rows with pixel data for 48: shorter than declared.
     let mut short = good.clone();
     short[pos + 8..pos + 10].copy_from_slice(&49u16.to_le_bytes());
-    let e = dicom::read_bytes("short.dcm", &short, &lim).unwrap_err();
-    assert_eq!(e.code(), "dicom_pixel_data_short", "{e}");
+    let e_short = dicom::read_bytes("short.dcm", &short, &lim).unwrap_err();
+    assert_eq!(e_short.code(), "dicom_pixel_data_short", "{e_short}");
+    // A pixel data element declaring 4 GB in a small file is refused before anything is allocated for it.
+    let px = good
+        .windows(6)
+        .rposition(|w| w == [0xE0, 0x7F, 0x10, 0x00, b'O', b'W'])
+        .unwrap();
+    let mut huge = good.clone();
+    huge[px + 8..px + 12].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
+    let e = dicom::read_bytes("huge.dcm", &huge, &lim).unwrap_err();
+    assert_eq!(e.code(), "dicom_parse_error");
+    assert!(
+        e.to_string()
+            .contains("(7FE0,0010) declares 4294967280 bytes"),
+        "{e}"
+    );
     assert!(matches!(
-        e,
+        e_short,
         DicomError::PixelDataShort {
             expected: 3920,
             got: 3840,
@@ -331,7 +353,7 @@ fn zip_bombs_and_hostile_names_are_handled() {
     let names: Vec<&str> = files.iter().map(|(n, _)| n.as_str()).collect();
     assert_eq!(names, ["../../etc/passwd.dcm", "/abs/x.dcm"]);
     // The same instance twice: kept once, with a warning.
-    let up = read_upload(&files, &ReadLimits::default());
+    let up = read_upload(&files, &ReadLimits::default(), unattended()).unwrap();
     assert_eq!(up.series[0].instances.len(), 1);
     assert_eq!(up.series[0].warnings[0].code, "duplicate_instance_dropped");
     // Not a ZIP at all, and a broken one.
@@ -348,4 +370,25 @@ fn zip_bombs_and_hostile_names_are_handled() {
     )
     .unwrap_err();
     assert_eq!(e.code(), "zip_invalid");
+}
+
+#[test]
+fn canceling_stops_decoding_and_assembly() {
+    use ctrecon::recon::{Cancel, Control, NoProgress};
+    let vol = phantom_volume();
+    let files = write_ct_series(&vol, &meta("cancel")).unwrap().files;
+    let cancel = Cancel::new();
+    cancel.cancel();
+    let ctl = Control::new(&cancel, &NoProgress);
+    let e = read_upload(&files, &ReadLimits::default(), ctl).unwrap_err();
+    assert_eq!(e.code(), "canceled");
+    let g = read_upload(&files, &ReadLimits::default(), unattended())
+        .unwrap()
+        .series
+        .remove(0);
+    let e = g
+        .assemble(&AssemblyOptions::default(), true, ctl)
+        .unwrap_err();
+    assert_eq!(e.code(), "canceled");
+    assert!(!e.is_client_error());
 }

@@ -50,6 +50,8 @@ pub enum DicomError {
         #[source]
         source: SeriesError,
     },
+    #[error("canceled")]
+    Canceled,
     #[error("cannot write DICOM: {0}")]
     Write(String),
 }
@@ -71,13 +73,14 @@ impl DicomError {
             DicomError::ZipBomb { .. } => "zip_limits_exceeded",
             DicomError::NoImages => "dicom_no_images",
             DicomError::Series { source, .. } => source.code(),
+            DicomError::Canceled => "canceled",
             DicomError::Write(_) => "dicom_write_failed",
         }
     }
 
     /// Whether the error is the client's input (a 4xx) rather than ours.
     pub fn is_client_error(&self) -> bool {
-        !matches!(self, DicomError::Write(_))
+        !matches!(self, DicomError::Write(_) | DicomError::Canceled)
             && !matches!(
                 self,
                 DicomError::Series {

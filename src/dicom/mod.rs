@@ -14,6 +14,7 @@
 
 mod error;
 mod read;
+mod scan;
 mod upload;
 mod write;
 
@@ -26,5 +27,3 @@ pub use write::{
     DerivedSeries, SeriesMeta, new_uid, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
     write_secondary_capture, write_zip,
 };
-
-pub use crate::series;

@@ -10,6 +10,7 @@ use dicom_object::{InMemDicomObject, OpenFileOptions};
 use dicom_pixeldata::PixelDecoder;
 
 use super::error::DicomError;
+use super::scan;
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -125,6 +126,20 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
     } else {
         return Err(DicomError::NotDicom { label: label_s });
     };
+    // Declared lengths must fit in the file before the parser allocates for them.
+    let after_marker = if preamble == ReadPreamble::Always {
+        &bytes[132..]
+    } else {
+        &bytes[4..]
+    };
+    if let Some((group, element, declared, left)) = scan::overrun(after_marker) {
+        return Err(DicomError::Parse {
+            label: label_s,
+            reason: format!(
+                "element ({group:04X},{element:04X}) declares {declared} bytes but only {left} remain (truncated or corrupt)"
+            ),
+        });
+    }
     let parse = || {
         OpenFileOptions::new()
             .read_preamble(preamble)

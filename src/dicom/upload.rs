@@ -2,6 +2,7 @@
 
 use std::collections::BTreeMap;
 use std::io::{Cursor, Read};
+use std::sync::atomic::{AtomicUsize, Ordering};
 
 use rayon::prelude::*;
 use serde::Serialize;
@@ -147,29 +148,45 @@ pub struct Upload {
     pub rejected: Vec<Rejected>,
 }
 
-/// Decode `files` in parallel and split them by SeriesInstanceUID (series in order of UID).
-pub fn read_upload(files: &[(String, Vec<u8>)], limits: &ReadLimits) -> Upload {
-    let results: Vec<Result<Instance, Rejected>> = files
+/// Decode `files` in parallel and split them by SeriesInstanceUID (series in order of UID). Files that fail are
+/// listed in [`Upload::rejected`]; the cancel flag is checked before each file and progress reported after it.
+pub fn read_upload(
+    files: &[(String, Vec<u8>)],
+    limits: &ReadLimits,
+    ctl: Control<'_>,
+) -> Result<Upload, DicomError> {
+    let done = AtomicUsize::new(0);
+    let total = files.len().max(1) as f64;
+    let results: Vec<Option<Result<Instance, Rejected>>> = files
         .par_iter()
         .map(|(label, bytes)| {
-            read_bytes(label, bytes, limits).map_err(|error| Rejected {
+            if ctl.cancel.is_canceled() {
+                return None;
+            }
+            let r = read_bytes(label, bytes, limits).map_err(|error| Rejected {
                 label: label.clone(),
                 error,
-            })
+            });
+            let n = done.fetch_add(1, Ordering::Relaxed) + 1;
+            ctl.step("decode", n as f64 / total);
+            Some(r)
         })
         .collect();
+    if ctl.cancel.is_canceled() {
+        return Err(DicomError::Canceled);
+    }
     let mut instances = Vec::new();
     let mut rejected = Vec::new();
-    for r in results {
+    for r in results.into_iter().flatten() {
         match r {
             Ok(i) => instances.push(i),
             Err(r) => rejected.push(r),
         }
     }
-    Upload {
+    Ok(Upload {
         series: group_series(instances),
         rejected,
-    }
+    })
 }
 
 /// Split instances by SeriesInstanceUID; repeated SOP Instance UIDs are dropped with a warning.

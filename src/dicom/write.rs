@@ -8,6 +8,7 @@ use dicom_core::{DataElement, Tag, VR};
 use dicom_dictionary_std::{tags, uids};
 use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
 use ndarray::ArrayView2;
+use rayon::prelude::*;
 
 use super::error::DicomError;
 use crate::volume::{Volume, Window};
@@ -71,6 +72,16 @@ fn ds_value(v: f64) -> f64 {
 
 struct Builder(InMemDicomObject);
 
+/// UIDs, modality and number of one instance.
+struct Identity<'a> {
+    sop_class: &'a str,
+    sop_instance: &'a str,
+    modality: &'a str,
+    study_uid: &'a str,
+    series_uid: &'a str,
+    instance_number: usize,
+}
+
 impl Builder {
     fn new() -> Self {
         Self(InMemDicomObject::new_empty())
@@ -114,16 +125,15 @@ impl Builder {
         self
     }
     /// Patient, study, series and instance identity shared by all writers.
-    fn identity(
-        &mut self,
-        sop_class: &str,
-        sop_instance: &str,
-        modality: &str,
-        study_uid: &str,
-        series_uid: &str,
-        meta: &SeriesMeta,
-        instance_number: usize,
-    ) -> &mut Self {
+    fn identity(&mut self, id: Identity<'_>, meta: &SeriesMeta) -> &mut Self {
+        let Identity {
+            sop_class,
+            sop_instance,
+            modality,
+            study_uid,
+            series_uid,
+            instance_number,
+        } = id;
         self.str(tags::SPECIFIC_CHARACTER_SET, VR::CS, "ISO_IR 192")
             .str(tags::SOP_CLASS_UID, VR::UI, sop_class)
             .str(tags::SOP_INSTANCE_UID, VR::UI, sop_instance)
@@ -237,7 +247,8 @@ fn plane_bytes(vol: &Volume, k: usize, slope: f64, intercept: f64) -> Vec<u8> {
 
 /// Write a volume in HU (`[z][y][x]`, convert μ first with `volume::mu_to_hu`) as a derived CT series: one
 /// file per slice, new Series/SOP Instance UIDs, study and frame of reference kept when `meta` has them,
-/// position/orientation/spacing from the volume's frame, int16 with a rescale to HU.
+/// position/orientation/spacing from the volume's frame, int16 with a rescale to HU. Slices are encoded in
+/// parallel.
 pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries, DicomError> {
     let (nz, ny, nx) = check_volume(vol)?;
     let (slope, intercept) = quantisation(vol)?;
@@ -254,48 +265,52 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
         f.direction[1][2],
     ];
     let thickness = normal_spacing(vol);
-    let mut files = Vec::with_capacity(nz);
-    for k in 0..nz {
-        let mut b = Builder::new();
-        b.identity(
-            uids::CT_IMAGE_STORAGE,
-            &new_uid(),
-            "CT",
-            &study_uid,
-            &series_uid,
-            meta,
-            k + 1,
-        )
-        .strs(
-            tags::IMAGE_TYPE,
-            VR::CS,
-            &["DERIVED".into(), "SECONDARY".into(), "AXIAL".into()],
-        )
-        .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
-        .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
-        .str(tags::KVP, VR::DS, "")
-        .str(tags::ACQUISITION_NUMBER, VR::IS, "")
-        .dss(
-            tags::IMAGE_POSITION_PATIENT,
-            &f.position(k as f64, 0.0, 0.0),
-        )
-        .dss(tags::IMAGE_ORIENTATION_PATIENT, &orientation)
-        .dss(tags::SLICE_THICKNESS, &[thickness])
-        .dss(tags::SPACING_BETWEEN_SLICES, &[thickness])
-        .dss(tags::PIXEL_SPACING, &[f.spacing_mm[1], f.spacing_mm[0]])
-        .dss(tags::RESCALE_INTERCEPT, &[intercept])
-        .dss(tags::RESCALE_SLOPE, &[slope])
-        .str(tags::RESCALE_TYPE, VR::LO, "HU")
-        .dss(tags::WINDOW_CENTER, &[40.0])
-        .dss(tags::WINDOW_WIDTH, &[400.0]);
-        image_pixel(&mut b, ny, nx);
-        b.bytes(
-            tags::PIXEL_DATA,
-            VR::OW,
-            plane_bytes(vol, k, slope, intercept),
-        );
-        files.push((format!("IM{:05}.dcm", k + 1), b.finish()?));
-    }
+    let files = (0..nz)
+        .into_par_iter()
+        .map(|k| {
+            let mut b = Builder::new();
+            b.identity(
+                Identity {
+                    sop_class: uids::CT_IMAGE_STORAGE,
+                    sop_instance: &new_uid(),
+                    modality: "CT",
+                    study_uid: &study_uid,
+                    series_uid: &series_uid,
+                    instance_number: k + 1,
+                },
+                meta,
+            )
+            .strs(
+                tags::IMAGE_TYPE,
+                VR::CS,
+                &["DERIVED".into(), "SECONDARY".into(), "AXIAL".into()],
+            )
+            .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
+            .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
+            .str(tags::KVP, VR::DS, "")
+            .str(tags::ACQUISITION_NUMBER, VR::IS, "")
+            .dss(
+                tags::IMAGE_POSITION_PATIENT,
+                &f.position(k as f64, 0.0, 0.0),
+            )
+            .dss(tags::IMAGE_ORIENTATION_PATIENT, &orientation)
+            .dss(tags::SLICE_THICKNESS, &[thickness])
+            .dss(tags::SPACING_BETWEEN_SLICES, &[thickness])
+            .dss(tags::PIXEL_SPACING, &[f.spacing_mm[1], f.spacing_mm[0]])
+            .dss(tags::RESCALE_INTERCEPT, &[intercept])
+            .dss(tags::RESCALE_SLOPE, &[slope])
+            .str(tags::RESCALE_TYPE, VR::LO, "HU")
+            .dss(tags::WINDOW_CENTER, &[40.0])
+            .dss(tags::WINDOW_WIDTH, &[400.0]);
+            image_pixel(&mut b, ny, nx);
+            b.bytes(
+                tags::PIXEL_DATA,
+                VR::OW,
+                plane_bytes(vol, k, slope, intercept),
+            );
+            Ok((format!("IM{:05}.dcm", k + 1), b.finish()?))
+        })
+        .collect::<Result<Vec<_>, DicomError>>()?;
     Ok(DerivedSeries {
         study_uid,
         series_uid,
@@ -371,13 +386,15 @@ pub fn write_enhanced_ct(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSerie
         .collect();
     let mut b = Builder::new();
     b.identity(
-        uids::ENHANCED_CT_IMAGE_STORAGE,
-        &new_uid(),
-        "CT",
-        &study_uid,
-        &series_uid,
+        Identity {
+            sop_class: uids::ENHANCED_CT_IMAGE_STORAGE,
+            sop_instance: &new_uid(),
+            modality: "CT",
+            study_uid: &study_uid,
+            series_uid: &series_uid,
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .strs(
         tags::IMAGE_TYPE,
@@ -429,13 +446,15 @@ pub fn write_secondary_capture(
     let sop = new_uid();
     let mut b = Builder::new();
     b.identity(
-        uids::SECONDARY_CAPTURE_IMAGE_STORAGE,
-        &sop,
-        "OT",
-        &study_uid,
-        &series_uid,
+        Identity {
+            sop_class: uids::SECONDARY_CAPTURE_IMAGE_STORAGE,
+            sop_instance: &sop,
+            modality: "OT",
+            study_uid: &study_uid,
+            series_uid: &series_uid,
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .strs(
         tags::IMAGE_TYPE,
@@ -479,13 +498,15 @@ pub fn write_encapsulated_stl(
         .str(tags::CODE_MEANING, VR::LO, "mm");
     let mut b = Builder::new();
     b.identity(
-        uids::ENCAPSULATED_STL_STORAGE,
-        &sop,
-        "M3D",
-        &study_uid,
-        &new_uid(),
+        Identity {
+            sop_class: uids::ENCAPSULATED_STL_STORAGE,
+            sop_instance: &sop,
+            modality: "M3D",
+            study_uid: &study_uid,
+            series_uid: &new_uid(),
+            instance_number: 1,
+        },
         meta,
-        1,
     )
     .str(tags::FRAME_OF_REFERENCE_UID, VR::UI, &for_uid)
     .str(tags::POSITION_REFERENCE_INDICATOR, VR::LO, "")
