@@ -150,8 +150,8 @@ impl Settings {
             "CTRECON_REQUEST_TIMEOUT_SECS" => self.request_timeout_secs = parsed(name, v)?,
             "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
             "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
-            // Read by the logger, not a setting.
-            "CTRECON_LOG_FORMAT" => {}
+            // Read by the logger and by the test suite, not settings.
+            "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
                     name: other.to_string(),
