@@ -2,6 +2,10 @@
 //! x ← x + λ C_S Aᵀ_S R_S (b_S − A_S x) for each subset S in turn, C_S = diag(1/Σ_{i∈S} a_ij),
 //! R = diag(1/Σ_j a_ij).
 
+use rand::SeedableRng;
+use rand::rngs::StdRng;
+use rand::seq::SliceRandom;
+
 use super::ops::{
     axpy_scaled, column_sums, constrain, converged, gather, norm, report, residual_in_place,
     row_sums, safe_reciprocal, subsets,
@@ -14,6 +18,9 @@ use crate::recon::projector::Operator;
 /// Most f32 values of per-subset column sums kept in memory; beyond this they are recomputed on each
 /// use (one extra back projection per subset).
 pub const MAX_STORED_WEIGHTS: u64 = 1 << 26;
+
+/// Seed of the subset order.
+pub const ORDER_SEED: u64 = 0x5a27_0bde;
 
 /// Whether the per-subset column sums of `count` subsets of an `image_len` image are stored.
 pub fn stores_weights(count: usize, image_len: usize) -> bool {
@@ -34,7 +41,10 @@ impl Sweep {
         let all: Vec<usize> = (0..op.view_count()).collect();
         let mut r_weight = row_sums(op, &all, ctl)?;
         safe_reciprocal(&mut r_weight);
-        let subsets = subsets(op.view_count(), count);
+        let mut subsets = subsets(op.view_count(), count);
+        // Visit the subsets in a fixed pseudo-random order (as ASTRA's SART does): successive updates
+        // from nearby angles are nearly parallel and converge slowly.
+        subsets.shuffle(&mut StdRng::seed_from_u64(ORDER_SEED));
         let c_weights = if stores_weights(count, op.image_len()) {
             let mut w = Vec::with_capacity(count);
             for s in &subsets {
