@@ -8,22 +8,9 @@ use std::cmp::Reverse;
 use std::collections::BinaryHeap;
 
 use super::Mesh;
+use crate::recon::geometry::vectors::{cross3 as cross, dot3 as dot, sub3 as sub};
 
 type P = [f64; 3];
-
-fn sub(a: P, b: P) -> P {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn cross(a: P, b: P) -> P {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
-fn dot(a: P, b: P) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
 
 struct State {
     pos: Vec<P>,

@@ -10,6 +10,8 @@ mod stl;
 
 use std::collections::HashMap;
 
+use crate::recon::geometry::vectors::{cross3 as cross, sub3 as sub};
+
 pub use decimate::decimate;
 pub use marching::marching_cubes;
 pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
@@ -23,16 +25,6 @@ pub struct Mesh {
     pub triangles: Vec<[u32; 3]>,
 }
 
-fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
-}
-fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
 fn f64s(p: [f32; 3]) -> [f64; 3] {
     p.map(f64::from)
 }

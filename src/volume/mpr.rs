@@ -12,19 +12,10 @@ use super::display::ProjectionKind;
 use super::error::VolumeError;
 use super::frame::Volume;
 use super::resample::trilinear;
+use crate::recon::geometry::vectors::{cross3 as cross, dot3 as dot};
 
 type V3 = [f64; 3];
 
-fn dot(a: V3, b: V3) -> f64 {
-    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-}
-fn cross(a: V3, b: V3) -> V3 {
-    [
-        a[1] * b[2] - a[2] * b[1],
-        a[2] * b[0] - a[0] * b[2],
-        a[0] * b[1] - a[1] * b[0],
-    ]
-}
 fn unit(a: V3) -> Option<V3> {
     let n = dot(a, a).sqrt();
     (n > 1e-12 && n.is_finite()).then(|| a.map(|c| c / n))

@@ -40,6 +40,13 @@ pub fn scale3(a: Vec3, s: f64) -> Vec3 {
 pub fn dot3(a: Vec3, b: Vec3) -> f64 {
     a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 }
+pub fn cross3(a: Vec3, b: Vec3) -> Vec3 {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
 pub fn norm3(a: Vec3) -> f64 {
     dot3(a, a).sqrt()
 }
