@@ -277,6 +277,30 @@ fn never() -> Cancel {
     Cancel::new()
 }
 
+/// Which side of the operator pair to apply.
+#[derive(Clone, Copy)]
+enum Direction {
+    Forward,
+    Back,
+}
+
+/// Apply `op` (or its adjoint) over every view to `input`, into the fresh zeroed array `out`; never canceled.
+fn apply_all<D: ndarray::Dimension>(
+    op: &impl Operator,
+    direction: Direction,
+    input: &[f32],
+    mut out: ndarray::Array<f32, D>,
+) -> ndarray::Array<f32, D> {
+    let subset = all_views(op.view_count());
+    let slice = out.as_slice_mut().expect("fresh array is contiguous");
+    let r = match direction {
+        Direction::Forward => op.forward(input, &subset, slice, &never()),
+        Direction::Back => op.back(input, &subset, slice, &never()),
+    };
+    debug_assert!(r.is_ok());
+    out
+}
+
 /// Joseph forward projection of `image` (`[y][x]` on `grid`, μ in 1/mm) for every view: the sinogram
 /// `[view][u]` of line integrals. Parallel, fan arc and fan flat geometries alike.
 ///
@@ -284,18 +308,12 @@ fn never() -> Cancel {
 /// If `image` does not have the shape of `grid` (a programming error; the dispatcher checks shapes).
 pub fn forward_2d(views: &Views2, image: ArrayView2<'_, f32>, grid: &ImageGrid) -> Array2<f32> {
     assert_eq!(image.shape(), grid.shape(), "image shape must match grid");
-    let op = Projector2 { views, grid };
-    let mut out = Array2::<f32>::zeros(views.shape());
-    let x = contiguous(&image);
-    let subset = all_views(op.view_count());
-    let r = op.forward(
-        &x,
-        &subset,
-        out.as_slice_mut().expect("fresh array is contiguous"),
-        &never(),
-    );
-    debug_assert!(r.is_ok());
-    out
+    apply_all(
+        &Projector2 { views, grid },
+        Direction::Forward,
+        &contiguous(&image),
+        Array2::<f32>::zeros(views.shape()),
+    )
 }
 
 /// The exact adjoint of [`forward_2d`]: back projection of `sinogram` (`[view][u]`) onto `grid`.
@@ -308,18 +326,12 @@ pub fn back_2d(views: &Views2, sinogram: ArrayView2<'_, f32>, grid: &ImageGrid) 
         views.shape(),
         "sinogram shape must match views"
     );
-    let op = Projector2 { views, grid };
-    let mut out = Array2::<f32>::zeros(grid.shape());
-    let y = contiguous(&sinogram);
-    let subset = all_views(op.view_count());
-    let r = op.back(
-        &y,
-        &subset,
-        out.as_slice_mut().expect("fresh array is contiguous"),
-        &never(),
-    );
-    debug_assert!(r.is_ok());
-    out
+    apply_all(
+        &Projector2 { views, grid },
+        Direction::Back,
+        &contiguous(&sinogram),
+        Array2::<f32>::zeros(grid.shape()),
+    )
 }
 
 /// Joseph forward projection of `volume` (`[z][y][x]` on `grid`) for every cone-beam view: projections
@@ -329,18 +341,12 @@ pub fn back_2d(views: &Views2, sinogram: ArrayView2<'_, f32>, grid: &ImageGrid) 
 /// If `volume` does not have the shape of `grid`.
 pub fn forward_3d(views: &Views3, volume: ArrayView3<'_, f32>, grid: &VolumeGrid) -> Array3<f32> {
     assert_eq!(volume.shape(), grid.shape(), "volume shape must match grid");
-    let op = Projector3 { views, grid };
-    let mut out = Array3::<f32>::zeros(views.shape());
-    let x = contiguous(&volume);
-    let subset = all_views(op.view_count());
-    let r = op.forward(
-        &x,
-        &subset,
-        out.as_slice_mut().expect("fresh array is contiguous"),
-        &never(),
-    );
-    debug_assert!(r.is_ok());
-    out
+    apply_all(
+        &Projector3 { views, grid },
+        Direction::Forward,
+        &contiguous(&volume),
+        Array3::<f32>::zeros(views.shape()),
+    )
 }
 
 /// The exact adjoint of [`forward_3d`]: back projection of `projections` (`[view][v][u]`) onto `grid`.
@@ -353,16 +359,10 @@ pub fn back_3d(views: &Views3, projections: ArrayView3<'_, f32>, grid: &VolumeGr
         views.shape(),
         "projections shape must match views"
     );
-    let op = Projector3 { views, grid };
-    let mut out = Array3::<f32>::zeros(grid.shape());
-    let y = contiguous(&projections);
-    let subset = all_views(op.view_count());
-    let r = op.back(
-        &y,
-        &subset,
-        out.as_slice_mut().expect("fresh array is contiguous"),
-        &never(),
-    );
-    debug_assert!(r.is_ok());
-    out
+    apply_all(
+        &Projector3 { views, grid },
+        Direction::Back,
+        &contiguous(&projections),
+        Array3::<f32>::zeros(grid.shape()),
+    )
 }
