@@ -550,15 +550,21 @@ async fn the_service_reports_metrics_and_echoes_request_ids() {
 
 /// `(method, path)` of every route the router declares, read from its source.
 fn declared_routes() -> Vec<(String, String)> {
-    let src = include_str!("../src/http/mod.rs");
+    // Whitespace-normalised, so that a `.route(` call that rustfmt wraps over lines still reads as one.
+    let src = include_str!("../src/http/mod.rs")
+        .split_whitespace()
+        .collect::<Vec<_>>()
+        .join(" ");
     let mut out = Vec::new();
-    for line in src.lines() {
-        let Some((_, rest)) = line.split_once(".route(\"") else {
+    for call in src.split(".route(").skip(1) {
+        let Some(rest) = call.trim_start().strip_prefix('"') else {
             continue;
         };
         let path = rest.split('"').next().unwrap().to_string();
+        // The handlers of this call: up to its closing parenthesis (one level of nesting).
+        let args = rest.split("))").next().unwrap_or("");
         for m in ["get", "post", "delete", "put", "patch"] {
-            if rest.contains(&format!("{m}(")) {
+            if args.contains(&format!("{m}(")) {
                 out.push((m.to_string(), path.clone()));
             }
         }

@@ -181,7 +181,7 @@ async fn a_job_interrupted_too_often_fails_with_a_clear_reason() {
             status: ctrecon::jobs::JobStatus::Queued,
             progress: 0,
             stage: "queued".into(),
-            request,
+            request: ctrecon::jobs::JobSpec::Reconstruction(request),
             estimate_bytes: 1,
             attempts: 0,
             cancel_requested: false,

@@ -38,7 +38,7 @@ use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
 use crate::storage::BlobStore;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
-use routes::{datasets, events, health, jobs, results};
+use routes::{datasets, events, health, jobs, results, series};
 
 /// What every handler can reach.
 pub struct Shared {
@@ -170,6 +170,14 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .route("/v1/jobs/{id}/result/slice", get(results::slice))
         .route("/v1/jobs/{id}/result/projection", get(results::projection))
         .route("/v1/jobs/{id}/result/mesh.stl", get(results::mesh))
+        .route("/v1/jobs/{id}/result/series.zip", get(results::series_zip))
+        .route(
+            "/v1/jobs/{id}/result/products/{index}",
+            get(results::product),
+        )
+        .route("/v1/uploads/{id}", get(series::get_upload))
+        .route("/v1/series/{id}", get(series::get_series))
+        .route("/v1/series/{id}/volume.npy", get(series::series_volume))
         .route("/v1/jobs/{id}/result/metrics", get(results::metrics))
         .layer(DefaultBodyLimit::max(s.max_json_bytes))
         .layer(timeout(request_timeout));
@@ -179,6 +187,8 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .layer(timeout(upload_timeout));
     let uploads = Router::new()
         .route("/v1/sinograms", post(datasets::post_sinogram))
+        .route("/v1/series", post(series::post_series))
+        .route("/v1/uploads/{id}/complete", post(series::complete_upload))
         .layer(DefaultBodyLimit::disable())
         .layer(timeout(upload_timeout));
     let streams = Router::new().route("/v1/jobs/{id}/events", get(events::job_events));

@@ -15,7 +15,8 @@ use serde::Serialize;
 use tokio::sync::{Notify, broadcast, oneshot};
 use tracing::Instrument;
 
-use super::model::{Job, JobStatus};
+use super::imaging::{VolumeInput, VolumeJobRequest, execute_volume, resolve_input};
+use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus};
 use super::repo::{Db, DbError};
 use super::run::{RunError, execute};
 use crate::error_code::{ErrorCode, Problem};
@@ -56,6 +57,13 @@ struct Inner {
     running: Mutex<HashMap<JobId, Running>>,
     wake: Notify,
     events: broadcast::Sender<JobEvent>,
+}
+
+/// What a job run does, with its input resolved (one per running job: its size does not matter).
+#[allow(clippy::large_enum_variant)]
+enum Work {
+    Reconstruct(JobRequest, Dataset),
+    Volume(VolumeJobRequest, VolumeInput),
 }
 
 /// Handle to the engine; cheap to clone.
@@ -325,18 +333,24 @@ impl Engine {
             }
         };
         self.publish(&job);
-        let dataset = match db.get_dataset(job.request.input).await {
-            Ok(Some(d)) => d,
-            Ok(None) => {
-                return failed(Problem::new(
-                    ErrorCode::DatasetNotFound,
-                    "the input dataset no longer exists",
-                ));
-            }
-            Err(e) => {
-                tracing::error!(error = %e, "loading a dataset failed");
-                return failed(Problem::internal());
-            }
+        let work = match &job.request {
+            JobSpec::Reconstruction(req) => match db.get_dataset(req.input).await {
+                Ok(Some(d)) => Work::Reconstruct(req.clone(), d),
+                Ok(None) => {
+                    return failed(Problem::new(
+                        ErrorCode::DatasetNotFound,
+                        "the input dataset no longer exists",
+                    ));
+                }
+                Err(e) => {
+                    tracing::error!(error = %e, "loading a dataset failed");
+                    return failed(Problem::internal());
+                }
+            },
+            JobSpec::Volume(req) => match resolve_input(db, &self.inner.store, req.input).await {
+                Ok(input) => Work::Volume(req.clone(), input),
+                Err(p) => return failed(p),
+            },
         };
         let cancel = self
             .inner
@@ -362,14 +376,23 @@ impl Engine {
         let span = tracing::Span::current();
         self.inner.pool.spawn(move || {
             let _g = span.enter();
-            let r = std::panic::catch_unwind(AssertUnwindSafe(|| {
-                execute(
+            let r = std::panic::catch_unwind(AssertUnwindSafe(|| match &work {
+                Work::Reconstruct(req, dataset) => execute(
                     &store,
                     &job,
-                    &dataset,
+                    req,
+                    dataset,
                     &limits,
                     Control::new(&cancel, &sink),
-                )
+                ),
+                Work::Volume(req, input) => execute_volume(
+                    &store,
+                    &job,
+                    req,
+                    input,
+                    limits.max_bytes,
+                    Control::new(&cancel, &sink),
+                ),
             }));
             let _ = tx.send(r);
         });

@@ -3,6 +3,8 @@
 
 pub mod cache;
 pub mod engine;
+pub mod imaging;
+pub mod ingest;
 pub mod model;
 pub mod plan;
 pub mod quality;
@@ -11,5 +13,8 @@ pub mod run;
 pub mod views;
 
 pub use engine::{CancelError, Engine, EngineConfig, JobEvent, StartError};
-pub use model::{Dataset, DatasetKind, Job, JobRequest, JobResult, JobStatus, SimulationRequest};
-pub use repo::{Db, DbError, IdempotencyKey, Inserted, JobFilter};
+pub use model::{
+    Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, SeriesRecord,
+    SimulationRequest, UploadRecord,
+};
+pub use repo::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter};

@@ -7,11 +7,15 @@
 use serde::{Deserialize, Serialize};
 
 use crate::error_code::Problem;
+use crate::mesh::MeshStats;
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
 use crate::recon::geometry::Geometry;
 use crate::recon::grid::VolumeGrid;
 use crate::recon::phantom::PhantomSpec;
-use crate::storage::{DatasetId, JobId};
+use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
+use crate::volume::Frame;
+
+use super::imaging::VolumeJobRequest;
 
 /// Where a job is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -85,8 +89,35 @@ impl JobRequest {
     }
 }
 
-/// The kind of every job this service runs today.
+/// Kind of a job that reconstructs a projection dataset.
 pub const KIND_RECONSTRUCTION: &str = "reconstruction";
+/// Kind of a job that processes a volume (a CT series or a reconstruction) in the image domain.
+pub const KIND_VOLUME: &str = "volume";
+
+/// What a job does: reconstruct projections, or process a volume. Stored as the request JSON; which one it
+/// is follows from the job's `kind`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(untagged)]
+pub enum JobSpec {
+    Volume(VolumeJobRequest),
+    Reconstruction(JobRequest),
+}
+
+impl JobSpec {
+    pub fn kind(&self) -> &'static str {
+        match self {
+            JobSpec::Reconstruction(_) => KIND_RECONSTRUCTION,
+            JobSpec::Volume(_) => KIND_VOLUME,
+        }
+    }
+    /// The id of the input (a dataset, a series or a job).
+    pub fn input_id(&self) -> String {
+        match self {
+            JobSpec::Reconstruction(r) => r.input.to_string(),
+            JobSpec::Volume(v) => v.input.to_string(),
+        }
+    }
+}
 
 /// A stored job.
 #[derive(Debug, Clone, PartialEq)]
@@ -97,7 +128,7 @@ pub struct Job {
     /// 0–100.
     pub progress: u8,
     pub stage: String,
-    pub request: JobRequest,
+    pub request: JobSpec,
     pub estimate_bytes: u64,
     pub attempts: u32,
     pub cancel_requested: bool,
@@ -126,12 +157,40 @@ pub struct Quality {
     pub truth_supersample: usize,
 }
 
+/// Units of a result volume.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VolumeUnits {
+    /// Linear attenuation μ in 1/mm (reconstructions; phantom units for simulations).
+    #[default]
+    MuPerMm,
+    /// Hounsfield units (CT series and what is derived from them).
+    Hu,
+}
+
+/// Something a job or an assembly wants the user to know that did not stop it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Notice {
+    pub code: String,
+    pub message: String,
+}
+
+impl From<&crate::series::Warning> for Notice {
+    fn from(w: &crate::series::Warning) -> Self {
+        Self {
+            code: w.code.to_string(),
+            message: w.message.clone(),
+        }
+    }
+}
+
 /// What a succeeded job wrote.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobResult {
     /// `[nz, ny, nx]`; 2D reconstructions have nz = 1.
     pub shape: [usize; 3],
-    /// The volume grid (2D: one slice of thickness `dx_mm`).
+    /// The reconstruction grid (2D: one slice of thickness `dx_mm`); for volume jobs the sample counts,
+    /// spacing and centre of `frame`.
     pub grid: VolumeGrid,
     pub volume: FileInfo,
     pub min: f32,
@@ -139,6 +198,90 @@ pub struct JobResult {
     pub mean: f64,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub metrics: Option<Quality>,
+    #[serde(default)]
+    pub units: VolumeUnits,
+    /// Placement in patient space (LPS, mm) when it is not the axis-aligned frame of `grid` (series).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<Frame>,
+    /// The CT series the volume derives from (its study and patient are kept in DICOM results).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub source_series: Option<SeriesId>,
+    /// Images and meshes a volume job made, in request order.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub products: Vec<ProductResult>,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub warnings: Vec<Notice>,
+}
+
+impl JobResult {
+    /// The volume's placement in patient space.
+    pub fn frame(&self) -> Frame {
+        self.frame.unwrap_or_else(|| Frame::from_grid(&self.grid))
+    }
+}
+
+/// One product of a volume job: an image stack (`[frames, rows, columns]`, volume units) or a mesh.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ProductResult {
+    pub index: usize,
+    /// The product's `type` in the request (`projection`, `mpr`, `curved`, `rotating`, `mesh`).
+    #[serde(rename = "type")]
+    pub kind: String,
+    /// Image stacks: `[frames, rows, columns]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shape: Option<[usize; 3]>,
+    /// Image stacks: pixel size (mm) along rows and columns.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pixel_mm: Option<[f64; 2]>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mesh: Option<MeshStats>,
+    pub file: FileInfo,
+}
+
+impl ProductResult {
+    pub fn is_mesh(&self) -> bool {
+        self.mesh.is_some()
+    }
+}
+
+/// An assembled CT series: where its HU volume sits in patient space, what the upload said about it, and the
+/// identity kept in derived DICOM results.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct SeriesRecord {
+    pub id: SeriesId,
+    pub upload_id: UploadId,
+    pub series_uid: String,
+    pub study_uid: Option<String>,
+    pub frame_of_reference_uid: Option<String>,
+    pub modality: Option<String>,
+    pub description: Option<String>,
+    pub patient_name: Option<String>,
+    pub patient_id: Option<String>,
+    pub instances: usize,
+    /// `[nz, ny, nx]`.
+    pub shape: [usize; 3],
+    pub frame: Frame,
+    pub tilt_deg: f64,
+    pub normal_spacing_mm: f64,
+    pub hu_min: f32,
+    pub hu_max: f32,
+    pub volume: FileInfo,
+    pub transfer_syntaxes: Vec<String>,
+    pub warnings: Vec<Notice>,
+    #[serde(skip)]
+    pub created_us: i64,
+}
+
+/// A DICOM upload.
+#[derive(Debug, Clone, PartialEq)]
+pub struct UploadRecord {
+    pub id: UploadId,
+    pub open: bool,
+    pub instances: u32,
+    pub bytes: u64,
+    /// The completion's JSON (series made and files refused) once completed.
+    pub outcome: Option<serde_json::Value>,
+    pub created_us: i64,
 }
 
 /// Where a dataset came from.

@@ -4,7 +4,9 @@
 use ndarray::{Array3, ArrayD, ArrayView3, Axis, Ix3};
 use sha2::{Digest, Sha256};
 
-use super::model::{Dataset, FileInfo, Job, JobResult, Quality, SimulationRequest};
+use super::model::{
+    Dataset, FileInfo, Job, JobRequest, JobResult, Quality, SimulationRequest, VolumeUnits,
+};
 use super::plan::recon_problem;
 use super::quality::quality;
 use crate::error_code::{ErrorCode, Problem};
@@ -101,6 +103,7 @@ fn truth(phantom: &PhantomSpec, grid: &OutputGrid, s: usize) -> Result<Array3<f3
 pub fn execute(
     store: &BlobStore,
     job: &Job,
+    req: &JobRequest,
     dataset: &Dataset,
     limits: &Limits,
     ctl: Control<'_>,
@@ -118,7 +121,6 @@ pub fn execute(
         lo: 0.02,
         hi: 0.9,
     };
-    let req = &job.request;
     let out = reconstruct(
         &req.algorithm,
         &views,
@@ -189,5 +191,10 @@ fn write_volume(
         max: finite(max as f64) as f32,
         mean: finite(sum / vol.len().max(1) as f64),
         metrics,
+        units: VolumeUnits::MuPerMm,
+        frame: None,
+        source_series: None,
+        products: Vec::new(),
+        warnings: Vec::new(),
     })
 }

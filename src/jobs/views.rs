@@ -4,20 +4,30 @@
 //! hash is its strong ETag.
 //!
 //! Windows: a `preset` (soft_tissue, lung, liver, bone, brain) is in HU and applies after converting the
-//! volume's μ (1/mm) with μ_water; explicit `ww`/`wl` are in the volume's units, or HU with `units=hu`;
-//! with neither, the window spans the 0.5–99.5 percentiles of the image.
+//! volume's μ (1/mm) with μ_water (volumes already in HU, from CT series, are used as they are); explicit
+//! `ww`/`wl` are in the volume's units, or HU with `units=hu`; with neither, the window spans the 0.5–99.5
+//! percentiles of the image.
+//!
+//! DICOM formats: a 2D view as a Secondary Capture instance (8-bit, through the window), a mesh as an
+//! Encapsulated STL instance, the whole volume as a derived CT series (a ZIP). They keep the study, frame of
+//! reference and patient of the source series when there is one.
 
-use ndarray::{Array2, ArrayView3, Ix3};
+use ndarray::{Array2, Array3, Ix3};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use super::ingest::dicom_problem;
+use super::model::{ProductResult, VolumeUnits};
+use crate::dicom::{
+    SeriesMeta, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
+    write_secondary_capture, write_zip,
+};
 use crate::error_code::{ErrorCode, Problem};
-use crate::mesh::marching_cubes;
-use crate::recon::grid::VolumeGrid;
+use crate::mesh::{MeshOptions, extract};
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::volume::{
-    Axis, BitDepth, Frame, ProjectionKind, VolumeError, Window, WindowPreset, encode_png, mu_to_hu,
-    project, slice,
+    Axis, BitDepth, Frame, ProjectionKind, Volume, VolumeError, Window, WindowPreset, encode_apng,
+    encode_png, mu_to_hu, project, slice,
 };
 
 /// Units of explicit window values and iso levels.
@@ -38,6 +48,19 @@ pub enum ImageFormat {
     #[default]
     Png,
     Npy,
+    /// A DICOM Secondary Capture instance.
+    Dicom,
+}
+
+/// Encoding of a mesh.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum MeshFormat {
+    /// Binary STL (mm, LPS).
+    #[default]
+    Stl,
+    /// A DICOM Encapsulated STL instance.
+    Dicom,
 }
 
 fn axial() -> Axis {
@@ -96,6 +119,33 @@ pub struct MeshQuery {
     /// Keep only the largest connected component.
     #[serde(default)]
     pub largest: bool,
+    /// Taubin smoothing iterations (default 0).
+    #[serde(default)]
+    pub smoothing: usize,
+    /// Decimate to at most this many triangles.
+    #[serde(default)]
+    pub target_triangles: Option<usize>,
+    #[serde(default)]
+    pub format: MeshFormat,
+}
+
+/// Layout of a derived CT series download.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SeriesLayout {
+    /// One CT Image Storage file per slice.
+    #[default]
+    Classic,
+    /// One multi-frame Enhanced CT file.
+    Enhanced,
+}
+
+/// `GET …/series.zip`: the volume as a derived CT series.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SeriesQuery {
+    #[serde(default)]
+    pub layout: SeriesLayout,
 }
 
 /// A derived view of a job's volume.
@@ -105,6 +155,7 @@ pub enum ViewRequest {
     Slice(SliceQuery),
     Projection(ProjectionQuery),
     Mesh(MeshQuery),
+    Series(SeriesQuery),
 }
 
 struct Display {
@@ -141,16 +192,16 @@ impl ViewRequest {
                 depth: q.depth,
                 format: q.format,
             }),
-            ViewRequest::Mesh(_) => None,
+            ViewRequest::Mesh(_) | ViewRequest::Series(_) => None,
         }
     }
 
     /// File extension and content type of the view.
     pub fn media(&self) -> (&'static str, &'static str) {
-        match self.display().map(|d| d.format) {
-            Some(ImageFormat::Png) => ("png", "image/png"),
-            Some(ImageFormat::Npy) => ("npy", "application/x-npy"),
-            None => ("stl", "model/stl"),
+        match (self, self.display().map(|d| d.format)) {
+            (_, Some(f)) => image_media(f),
+            (ViewRequest::Mesh(m), _) => mesh_media(m.format),
+            _ => ("zip", "application/zip"),
         }
     }
 
@@ -171,12 +222,64 @@ impl ViewRequest {
                 Window::new(w, l).map_err(|e| volume_problem(&e))?;
             }
         }
-        if let ViewRequest::Mesh(m) = self
-            && !m.iso.is_finite()
-        {
-            return bad("`iso` must be finite");
+        if let ViewRequest::Mesh(m) = self {
+            if !m.iso.is_finite() {
+                return bad("`iso` must be finite");
+            }
+            mesh_options(m, 1.0, VolumeUnits::MuPerMm)
+                .validate()
+                .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))?;
         }
         Ok(())
+    }
+}
+
+fn image_media(f: ImageFormat) -> (&'static str, &'static str) {
+    match f {
+        ImageFormat::Png => ("png", "image/png"),
+        ImageFormat::Npy => ("npy", "application/x-npy"),
+        ImageFormat::Dicom => ("dcm", "application/dicom"),
+    }
+}
+
+fn mesh_media(f: MeshFormat) -> (&'static str, &'static str) {
+    match f {
+        MeshFormat::Stl => ("stl", "model/stl"),
+        MeshFormat::Dicom => ("dcm", "application/dicom"),
+    }
+}
+
+/// What rendering needs besides the data: placement, units, μ_water and the identity of DICOM outputs.
+#[derive(Debug, Clone)]
+pub struct RenderContext {
+    pub frame: Frame,
+    pub units: VolumeUnits,
+    pub mu_water: f64,
+    pub meta: SeriesMeta,
+}
+
+impl RenderContext {
+    /// Values in HU.
+    fn to_hu(&self, img: Array2<f32>) -> Array2<f32> {
+        match self.units {
+            VolumeUnits::Hu => img,
+            VolumeUnits::MuPerMm => img.mapv(|v| mu_to_hu(v, self.mu_water)),
+        }
+    }
+}
+
+/// The mesh options of a query, with the iso-value in the volume's units.
+fn mesh_options(q: &MeshQuery, mu_water: f64, units: VolumeUnits) -> MeshOptions {
+    let iso = match (q.units, units) {
+        // HU → μ: μ = μ_water (1 + HU/1000).
+        (Units::Hu, VolumeUnits::MuPerMm) => (mu_water * (1.0 + q.iso / 1000.0)) as f32,
+        _ => q.iso as f32,
+    };
+    MeshOptions {
+        iso,
+        largest_component: q.largest,
+        smoothing: q.smoothing,
+        target_triangles: q.target_triangles,
     }
 }
 
@@ -188,16 +291,17 @@ pub fn volume_problem(e: &VolumeError) -> Problem {
     )
 }
 
-fn encode_view(img: Array2<f32>, d: &Display, mu_water: f64) -> Result<Vec<u8>, Problem> {
-    if d.format == ImageFormat::Npy {
-        return Ok(encode_f32(img.view()));
-    }
-    let to_hu = |img: Array2<f32>| img.mapv(|v| mu_to_hu(v, mu_water));
-    let (img, window) = match (d.preset, d.ww, d.wl) {
-        (Some(p), _, _) => (to_hu(img), p.window()),
+/// The image in display units and its window.
+fn windowed(
+    img: Array2<f32>,
+    d: &Display,
+    ctx: &RenderContext,
+) -> Result<(Array2<f32>, Window), Problem> {
+    Ok(match (d.preset, d.ww, d.wl) {
+        (Some(p), _, _) => (ctx.to_hu(img), p.window()),
         (None, Some(w), Some(l)) => {
             let img = if d.units == Units::Hu {
-                to_hu(img)
+                ctx.to_hu(img)
             } else {
                 img
             };
@@ -205,14 +309,26 @@ fn encode_view(img: Array2<f32>, d: &Display, mu_water: f64) -> Result<Vec<u8>, 
         }
         _ => {
             let img = if d.units == Units::Hu {
-                to_hu(img)
+                ctx.to_hu(img)
             } else {
                 img
             };
             let w = Window::auto(img.view());
             (img, w)
         }
-    };
+    })
+}
+
+fn encode_view(img: Array2<f32>, d: &Display, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+    if d.format == ImageFormat::Npy {
+        return Ok(encode_f32(img.view()));
+    }
+    let (img, window) = windowed(img, d, ctx)?;
+    if d.format == ImageFormat::Dicom {
+        return write_secondary_capture(img.view(), window, &ctx.meta, None)
+            .map(|(_, bytes)| bytes)
+            .map_err(|e| dicom_problem(&e));
+    }
     let depth = if d.depth == Some(16) {
         BitDepth::Sixteen
     } else {
@@ -221,37 +337,59 @@ fn encode_view(img: Array2<f32>, d: &Display, mu_water: f64) -> Result<Vec<u8>, 
     encode_png(img.view(), window, depth).map_err(|e| volume_problem(&e))
 }
 
-fn mesh_stl(vol: ArrayView3<'_, f32>, grid: &VolumeGrid, q: &MeshQuery, mu_water: f64) -> Vec<u8> {
-    let iso = match q.units {
-        Units::Native => q.iso as f32,
-        // HU → μ: μ = μ_water (1 + HU/1000).
-        Units::Hu => (mu_water * (1.0 + q.iso / 1000.0)) as f32,
-    };
-    let mesh = marching_cubes(vol, &Frame::from_grid(grid), iso);
-    let mesh = if q.largest {
-        mesh.largest_component()
-    } else {
-        mesh
-    };
-    mesh.to_stl_binary()
+fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+    let opts = mesh_options(q, ctx.mu_water, ctx.units);
+    let (mesh, _) = extract(&vol, &opts)
+        .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))?;
+    let stl = mesh.to_stl_binary();
+    match q.format {
+        MeshFormat::Stl => Ok(stl),
+        MeshFormat::Dicom => encapsulate(&stl, ctx),
+    }
 }
 
-/// Render `req` from the bytes of a job's `volume.npy` on `grid`.
-pub fn render(
-    volume_npy: &[u8],
-    grid: &VolumeGrid,
-    req: &ViewRequest,
-    mu_water: f64,
-) -> Result<Vec<u8>, Problem> {
-    let vol = decode_f32(volume_npy)
+fn encapsulate(stl: &[u8], ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+    write_encapsulated_stl(stl, &ctx.meta, "ctrecon iso-surface")
+        .map(|(_, bytes)| bytes)
+        .map_err(|e| dicom_problem(&e))
+}
+
+/// The volume as a ZIP of a derived CT series (values converted to HU first).
+fn series_zip(vol: Volume, q: &SeriesQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+    let vol = match ctx.units {
+        VolumeUnits::Hu => vol,
+        VolumeUnits::MuPerMm => Volume {
+            data: vol.data.mapv(|v| mu_to_hu(v, ctx.mu_water)),
+            frame: vol.frame,
+        },
+    };
+    let written = match q.layout {
+        SeriesLayout::Classic => write_ct_series(&vol, &ctx.meta),
+        SeriesLayout::Enhanced => write_enhanced_ct(&vol, &ctx.meta),
+    }
+    .map_err(|e| dicom_problem(&e))?;
+    write_zip(&written.files).map_err(|e| dicom_problem(&e))
+}
+
+fn decode_volume(bytes: &[u8]) -> Result<Array3<f32>, Problem> {
+    decode_f32(bytes)
         .ok()
         .and_then(|a| a.into_dimensionality::<Ix3>().ok())
-        .ok_or_else(Problem::internal)?;
+        .ok_or_else(Problem::internal)
+}
+
+/// Render `req` from the bytes of a job's `volume.npy`.
+pub fn render(
+    volume_npy: &[u8],
+    ctx: &RenderContext,
+    req: &ViewRequest,
+) -> Result<Vec<u8>, Problem> {
+    let vol = decode_volume(volume_npy)?;
     match req {
         ViewRequest::Slice(q) => {
             let index = q.index.unwrap_or(q.axis.len(&vol.view()) / 2);
             let img = slice(vol.view(), q.axis, index).map_err(|e| volume_problem(&e))?;
-            encode_view(img, &req.display().ok_or_else(Problem::internal)?, mu_water)
+            encode_view(img, &req.display().ok_or_else(Problem::internal)?, ctx)
         }
         ViewRequest::Projection(q) => {
             let len = q.axis.len(&vol.view());
@@ -260,8 +398,174 @@ pub fn render(
                 (s, e) => Some(s.unwrap_or(0)..e.unwrap_or(len)),
             };
             let img = project(vol.view(), q.axis, q.kind, slab).map_err(|e| volume_problem(&e))?;
-            encode_view(img, &req.display().ok_or_else(Problem::internal)?, mu_water)
+            encode_view(img, &req.display().ok_or_else(Problem::internal)?, ctx)
         }
-        ViewRequest::Mesh(q) => Ok(mesh_stl(vol.view(), grid, q, mu_water)),
+        ViewRequest::Mesh(q) => mesh_bytes(
+            Volume {
+                data: vol,
+                frame: ctx.frame,
+            },
+            q,
+            ctx,
+        ),
+        ViewRequest::Series(q) => series_zip(
+            Volume {
+                data: vol,
+                frame: ctx.frame,
+            },
+            q,
+            ctx,
+        ),
+    }
+}
+
+/// Encoding of a product of a volume job.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProductFormat {
+    /// One frame of an image stack.
+    Png,
+    /// Every frame of an image stack as an animated PNG.
+    Apng,
+    /// The image stack as float32 `[frames][rows][columns]`.
+    Npy,
+    /// A mesh as binary STL.
+    Stl,
+    /// One frame as Secondary Capture, or a mesh as Encapsulated STL.
+    Dicom,
+}
+
+/// `GET …/products/{index}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProductQuery {
+    /// Default: `png` for images, `stl` for meshes.
+    pub format: Option<ProductFormat>,
+    /// Frame of a stack (default the middle one).
+    pub frame: Option<usize>,
+    pub preset: Option<WindowPreset>,
+    pub ww: Option<f64>,
+    pub wl: Option<f64>,
+    #[serde(default)]
+    pub units: Units,
+    pub depth: Option<u8>,
+    /// Animated PNG: milliseconds per frame (default 100).
+    pub delay_ms: Option<u16>,
+}
+
+impl ProductQuery {
+    /// The format asked for, checked against the product.
+    pub fn format_for(&self, p: &ProductResult) -> Result<ProductFormat, Problem> {
+        let f = self.format.unwrap_or(if p.is_mesh() {
+            ProductFormat::Stl
+        } else {
+            ProductFormat::Png
+        });
+        let ok = match f {
+            ProductFormat::Stl => p.is_mesh(),
+            ProductFormat::Png | ProductFormat::Apng | ProductFormat::Npy => !p.is_mesh(),
+            ProductFormat::Dicom => true,
+        };
+        if !ok {
+            return Err(Problem::new(
+                ErrorCode::InvalidParameter,
+                format!("a {} product cannot be sent as {f:?}", p.kind).to_lowercase(),
+            ));
+        }
+        Ok(f)
+    }
+
+    fn display(&self, format: ImageFormat) -> Display {
+        Display {
+            preset: self.preset,
+            ww: self.ww,
+            wl: self.wl,
+            units: self.units,
+            depth: self.depth,
+            format,
+        }
+    }
+
+    /// Checks that need no data.
+    pub fn validate(&self) -> Result<(), Problem> {
+        ViewRequest::Slice(SliceQuery {
+            axis: Axis::Axial,
+            index: None,
+            format: ImageFormat::Png,
+            preset: self.preset,
+            ww: self.ww,
+            wl: self.wl,
+            units: self.units,
+            depth: self.depth,
+        })
+        .validate()?;
+        if self.delay_ms == Some(0) {
+            return Err(Problem::new(
+                ErrorCode::InvalidParameter,
+                "`delay_ms` must be positive",
+            ));
+        }
+        Ok(())
+    }
+
+    /// Hex SHA-256 of the product, format and parameters: cache key and ETag of a rendering.
+    pub fn key(&self, index: usize, format: ProductFormat, mu_water: f64) -> String {
+        let text = serde_json::to_string(&(index, format, self, mu_water)).unwrap_or_default();
+        hex(&Sha256::digest(text.as_bytes()))
+    }
+}
+
+impl ProductFormat {
+    pub fn media(self) -> (&'static str, &'static str) {
+        match self {
+            ProductFormat::Png => ("png", "image/png"),
+            ProductFormat::Apng => ("png", "image/apng"),
+            ProductFormat::Npy => ("npy", "application/x-npy"),
+            ProductFormat::Stl => ("stl", "model/stl"),
+            ProductFormat::Dicom => ("dcm", "application/dicom"),
+        }
+    }
+}
+
+/// Render a stored product (`product-{i}.npy` or `.stl` bytes) in a format other than the stored one.
+pub fn render_product(
+    bytes: &[u8],
+    p: &ProductResult,
+    q: &ProductQuery,
+    format: ProductFormat,
+    ctx: &RenderContext,
+) -> Result<Vec<u8>, Problem> {
+    if p.is_mesh() {
+        return encapsulate(bytes, ctx);
+    }
+    let stack = decode_volume(bytes)?;
+    let n = stack.dim().0;
+    let frame_at = |k: usize| -> Result<Array2<f32>, Problem> {
+        if k >= n {
+            return Err(Problem::new(
+                ErrorCode::SliceOutOfRange,
+                format!("frame {k} is outside the {n} frames of the product"),
+            ));
+        }
+        Ok(stack.index_axis(ndarray::Axis(0), k).to_owned())
+    };
+    let k = q.frame.unwrap_or(n / 2);
+    match format {
+        ProductFormat::Png => encode_view(frame_at(k)?, &q.display(ImageFormat::Png), ctx),
+        ProductFormat::Dicom => encode_view(frame_at(k)?, &q.display(ImageFormat::Dicom), ctx),
+        ProductFormat::Apng => {
+            // One window for every frame: the one the chosen frame would get.
+            let d = q.display(ImageFormat::Png);
+            let (_, window) = windowed(frame_at(k)?, &d, ctx)?;
+            let frames: Vec<Array2<f32>> = (0..n)
+                .map(|i| {
+                    let f = stack.index_axis(ndarray::Axis(0), i).to_owned();
+                    let hu = d.preset.is_some() || d.units == Units::Hu;
+                    if hu { ctx.to_hu(f) } else { f }
+                })
+                .collect();
+            encode_apng(&frames, window, q.delay_ms.unwrap_or(100)).map_err(|e| volume_problem(&e))
+        }
+        ProductFormat::Npy | ProductFormat::Stl => Err(Problem::internal()),
     }
 }

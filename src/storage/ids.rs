@@ -67,6 +67,18 @@ id_type!(
     /// Id of a job.
     JobId
 );
+id_type!(
+    /// Id of a DICOM upload (open while instances are appended one by one).
+    UploadId
+);
+id_type!(
+    /// Id of an assembled CT series (an HU volume).
+    SeriesId
+);
+id_type!(
+    /// An id of some resource (a series or a job) whose type is found by looking it up.
+    AnyId
+);
 
 #[cfg(test)]
 mod tests {

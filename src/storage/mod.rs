@@ -15,7 +15,7 @@ use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-pub use ids::{BadId, DatasetId, JobId};
+pub use ids::{AnyId, BadId, DatasetId, JobId, SeriesId, UploadId};
 
 /// Names of the files a job's result directory holds.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -26,6 +26,8 @@ pub enum ResultName {
     Metrics,
     /// A derived file (slice, projection, mesh) keyed by the hex SHA-256 of its parameters.
     Derived { key_hex: String, ext: &'static str },
+    /// The `index`-th product of a volume job (an image stack `.npy` or a mesh `.stl`).
+    Product { index: usize, ext: &'static str },
 }
 
 impl ResultName {
@@ -34,6 +36,7 @@ impl ResultName {
             ResultName::Volume => "volume.npy".into(),
             ResultName::Metrics => "metrics.json".into(),
             ResultName::Derived { key_hex, ext } => format!("derived-{key_hex}.{ext}"),
+            ResultName::Product { index, ext } => format!("product-{index}.{ext}"),
         }
     }
 }
@@ -75,7 +78,7 @@ fn sync_dir(dir: &Path) {
 impl BlobStore {
     /// Create the layout under `root` and empty `tmp/`.
     pub fn open(root: &Path) -> io::Result<Self> {
-        for sub in ["datasets", "results", "tmp"] {
+        for sub in ["datasets", "results", "series", "uploads", "tmp"] {
             fs::create_dir_all(root.join(sub))?;
         }
         for entry in fs::read_dir(root.join("tmp"))? {
@@ -95,6 +98,27 @@ impl BlobStore {
 
     pub fn dataset_path(&self, id: DatasetId) -> PathBuf {
         self.root.join("datasets").join(format!("{id}.npy"))
+    }
+
+    pub fn series_path(&self, id: SeriesId) -> PathBuf {
+        self.root.join("series").join(format!("{id}.npy"))
+    }
+
+    pub fn upload_dir(&self, id: UploadId) -> PathBuf {
+        self.root.join("uploads").join(id.to_string())
+    }
+
+    /// An instance of an open upload, named by the hex SHA-256 of its bytes (computed here, never sent).
+    pub fn upload_file(&self, id: UploadId, sha256_hex: &str) -> PathBuf {
+        self.upload_dir(id).join(format!("{sha256_hex}.dcm"))
+    }
+
+    /// Remove an upload's instances (missing is fine).
+    pub fn remove_upload(&self, id: UploadId) -> io::Result<()> {
+        match fs::remove_dir_all(self.upload_dir(id)) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+            _ => Ok(()),
+        }
     }
 
     pub fn result_dir(&self, id: JobId) -> PathBuf {

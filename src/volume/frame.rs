@@ -6,7 +6,7 @@ use crate::recon::grid::VolumeGrid;
 
 /// Placement of a `[z][y][x]` sample grid in patient space (LPS, millimetres), as DICOM describes it:
 /// voxel `[k][j][i]` sits at `origin + i·Δx·dir[0] + j·Δy·dir[1] + k·Δz·dir[2]`.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Frame {
     /// Spacing along the column (x, index `i`), row (y, index `j`) and slice (z, index `k`) axes (mm, > 0).
     pub spacing_mm: [f64; 3],

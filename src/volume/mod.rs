@@ -17,7 +17,7 @@ pub use error::VolumeError;
 pub use filter::{gaussian, largest_component, median3, threshold};
 pub use frame::{Frame, Volume};
 pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, rotating_projection, slab_series};
-pub use resample::{resample_isotropic, trilinear};
+pub use resample::{isotropic_grid, resample_isotropic, trilinear};
 pub use window::{
     BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_png, mu_to_hu,
 };

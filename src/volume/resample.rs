@@ -36,16 +36,14 @@ pub fn trilinear(vol: &ArrayView3<'_, f32>, idx: [f64; 3]) -> Option<f32> {
     Some(lerp(c(k0), c(k0 + 1), fk) as f32)
 }
 
-/// Resample `vol` onto a grid of cubic voxels of `spacing_mm` (default: the smallest input spacing) whose axes
-/// are the input column and row axes and the slice normal, covering the whole input (a tilted series becomes
-/// an orthogonal one). Samples outside the input get `fill`. Refuses outputs of more than `max_voxels`.
-pub fn resample_isotropic(
-    vol: &Volume,
+/// The grid [`resample_isotropic`] produces for a volume of `dim` (`[z][y][x]`) samples in frame `f`: its
+/// sample counts `[x, y, z]` and frame. Checks the spacing and the voxel limit without touching any data.
+pub fn isotropic_grid(
+    f: &Frame,
+    dim: (usize, usize, usize),
     spacing_mm: Option<f64>,
-    fill: f32,
     max_voxels: u64,
-) -> Result<Volume, VolumeError> {
-    let f = &vol.frame;
+) -> Result<([usize; 3], Frame), VolumeError> {
     let s =
         spacing_mm.unwrap_or_else(|| f.spacing_mm.iter().copied().fold(f64::INFINITY, f64::min));
     if !(s.is_finite() && s > 0.0) {
@@ -54,7 +52,7 @@ pub fn resample_isotropic(
             reason: format!("must be finite and positive, got {s}"),
         });
     }
-    let (nz, ny, nx) = vol.data.dim();
+    let (nz, ny, nx) = dim;
     if nz == 0 || ny == 0 || nx == 0 {
         return Err(VolumeError::Empty);
     }
@@ -87,11 +85,27 @@ pub fn resample_isotropic(
         });
     }
     let origin: [f64; 3] = std::array::from_fn(|c| (0..3).map(|a| lo[a] * axes[a][c]).sum());
-    let out_frame = Frame {
-        spacing_mm: [s; 3],
-        origin_mm: origin,
-        direction: axes,
-    };
+    Ok((
+        n,
+        Frame {
+            spacing_mm: [s; 3],
+            origin_mm: origin,
+            direction: axes,
+        },
+    ))
+}
+
+/// Resample `vol` onto a grid of cubic voxels of `spacing_mm` (default: the smallest input spacing) whose axes
+/// are the input column and row axes and the slice normal, covering the whole input (a tilted series becomes
+/// an orthogonal one). Samples outside the input get `fill`. Refuses outputs of more than `max_voxels`.
+pub fn resample_isotropic(
+    vol: &Volume,
+    spacing_mm: Option<f64>,
+    fill: f32,
+    max_voxels: u64,
+) -> Result<Volume, VolumeError> {
+    let f = &vol.frame;
+    let (n, out_frame) = isotropic_grid(f, vol.data.dim(), spacing_mm, max_voxels)?;
     let src = vol.data.view();
     let mut data = Array3::from_elem((n[2], n[1], n[0]), fill);
     data.axis_iter_mut(ndarray::Axis(0))

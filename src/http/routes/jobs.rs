@@ -8,12 +8,15 @@ use serde::Deserialize;
 use serde_json::json;
 
 use super::super::AppState;
-use super::super::extract::{ApiJson, ApiQuery, idempotency_key, job_id};
+use super::super::extract::{ApiJson, ApiQuery, from_value, idempotency_key, job_id};
 use super::super::problem::{ApiResult, api_error};
 use crate::error_code::ErrorCode;
-use crate::jobs::model::{KIND_RECONSTRUCTION, now_us, parse_rfc3339, rfc3339};
+use crate::jobs::imaging::{VolumeJobRequest, plan, resolve_input};
+use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us, parse_rfc3339, rfc3339};
 use crate::jobs::plan::admit_job;
-use crate::jobs::{CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobStatus};
+use crate::jobs::{
+    CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobSpec, JobStatus,
+};
 use crate::storage::JobId;
 
 const ROUTE_JOBS: &str = "POST /v1/jobs";
@@ -32,8 +35,20 @@ fn links(job: &Job) -> serde_json::Value {
         l["slice"] = json!(format!("{r}/slice?axis=axial"));
         l["projection"] = json!(format!("{r}/projection?axis=axial&kind=mip"));
         l["mesh"] = json!(format!("{r}/mesh.stl?iso=<value>"));
-        if job.result.as_ref().is_some_and(|r| r.metrics.is_some()) {
-            l["metrics"] = json!(format!("{r}/metrics"));
+        l["series"] = json!(format!("{r}/series.zip"));
+        if let Some(result) = &job.result {
+            if result.metrics.is_some() {
+                l["metrics"] = json!(format!("{r}/metrics"));
+            }
+            if !result.products.is_empty() {
+                l["products"] = json!(
+                    result
+                        .products
+                        .iter()
+                        .map(|p| format!("{r}/products/{}", p.index))
+                        .collect::<Vec<_>>()
+                );
+            }
         }
     }
     l
@@ -41,7 +56,7 @@ fn links(job: &Job) -> serde_json::Value {
 
 /// The JSON view of a job.
 pub fn job_view(job: &Job) -> serde_json::Value {
-    json!({
+    let mut v = json!({
         "id": job.id,
         "kind": job.kind,
         "status": job.status,
@@ -51,15 +66,22 @@ pub fn job_view(job: &Job) -> serde_json::Value {
         "created_at": rfc3339(job.created_us),
         "started_at": job.started_us.map(rfc3339),
         "finished_at": job.finished_us.map(rfc3339),
-        "input": job.request.input,
-        "algorithm": job.request.algorithm,
-        "grid": job.request.grid,
-        "outputs": job.request.outputs,
         "estimate_bytes": job.estimate_bytes,
         "error": job.error,
         "result": job.result,
         "links": links(job),
-    })
+    });
+    // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
+    if let (Some(m), Ok(serde_json::Value::Object(req))) =
+        (v.as_object_mut(), serde_json::to_value(&job.request))
+    {
+        for (k, x) in req {
+            if k != "kind" {
+                m.insert(k, x);
+            }
+        }
+    }
+    v
 }
 
 fn accepted(job: &Job) -> Response {
@@ -84,10 +106,45 @@ fn reused() -> super::super::problem::ApiError {
     )
 }
 
+/// Admit a request: a reconstruction (the default `kind`) of a dataset, or a volume job on a series or a
+/// succeeded job's volume. Returns the typed spec and its memory estimate.
+async fn admit(st: &AppState, body: serde_json::Value) -> ApiResult<(JobSpec, u64)> {
+    let kind = body
+        .get("kind")
+        .map(|k| k.as_str().unwrap_or("").to_string());
+    match kind.as_deref() {
+        Some(KIND_VOLUME) => {
+            let req: VolumeJobRequest = from_value(body)?;
+            let input = resolve_input(&st.db, &st.store, req.input).await?;
+            let planned = plan(&req, input.shape, st.settings.memory_budget_bytes)?;
+            Ok((JobSpec::Volume(req), planned.estimate_bytes))
+        }
+        None | Some(KIND_RECONSTRUCTION) => {
+            let mut body = body;
+            if let Some(m) = body.as_object_mut() {
+                m.remove("kind");
+            }
+            let req: JobRequest = from_value(body)?;
+            let dataset = st.db.get_dataset(req.input).await?.ok_or_else(|| {
+                api_error(
+                    ErrorCode::DatasetNotFound,
+                    format!("no dataset {}", req.input),
+                )
+            })?;
+            let estimate = admit_job(&req, &dataset, st.settings.memory_budget_bytes)?;
+            Ok((JobSpec::Reconstruction(req), estimate))
+        }
+        Some(other) => Err(api_error(
+            ErrorCode::InvalidRequest,
+            format!("unknown job kind `{other}`: `reconstruction` (default) or `volume`"),
+        )),
+    }
+}
+
 pub async fn post_job(
     State(st): State<AppState>,
     headers: HeaderMap,
-    body: ApiJson<JobRequest>,
+    body: ApiJson<serde_json::Value>,
 ) -> ApiResult<Response> {
     let key = idempotency_key(&headers)?;
     if let Some(k) = &key
@@ -98,21 +155,14 @@ pub async fn post_job(
         }
         return Ok(accepted(&load(&st, job_id(&id)?).await?));
     }
-    let req = body.value;
-    let dataset = st.db.get_dataset(req.input).await?.ok_or_else(|| {
-        api_error(
-            ErrorCode::DatasetNotFound,
-            format!("no dataset {}", req.input),
-        )
-    })?;
-    let estimate = admit_job(&req, &dataset, st.settings.memory_budget_bytes)?;
+    let (spec, estimate) = admit(&st, body.value).await?;
     let job = Job {
         id: JobId::generate(),
-        kind: KIND_RECONSTRUCTION.into(),
+        kind: spec.kind().into(),
         status: JobStatus::Queued,
         progress: 0,
         stage: "queued".into(),
-        request: req,
+        request: spec,
         estimate_bytes: estimate,
         attempts: 0,
         cancel_requested: false,
@@ -129,7 +179,11 @@ pub async fn post_job(
     });
     match st.db.insert_job(&job, key.as_ref()).await? {
         Inserted::New => {
-            tracing::info!(job_id = %job.id, algorithm = job.request.algorithm.name(), "job queued");
+            let what = match &job.request {
+                JobSpec::Reconstruction(r) => r.algorithm.name(),
+                JobSpec::Volume(_) => KIND_VOLUME,
+            };
+            tracing::info!(job_id = %job.id, kind = %job.kind, what, "job queued");
             st.engine.publish(&job);
             st.engine.wake();
             Ok(accepted(&job))

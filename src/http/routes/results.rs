@@ -1,6 +1,7 @@
 //! Results of a succeeded job, immutable once written: `volume.npy`, `slice`, `projection`, `mesh.stl`,
-//! `metrics`. Views are rendered on the worker pool on first request and cached; every file is served
-//! with a strong ETag, `Cache-Control: immutable` and range support.
+//! `series.zip` (a derived CT series), `metrics`, and the `products/{index}` of volume jobs. Views are rendered
+//! on the worker pool on first request and cached; every file is served with a strong ETag,
+//! `Cache-Control: immutable` and range support.
 
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, header};
@@ -11,8 +12,12 @@ use super::super::AppState;
 use super::super::extract::{ApiQuery, job_id};
 use super::super::files::{FileMeta, serve_file};
 use super::super::problem::{ApiResult, api_error};
+use crate::dicom::SeriesMeta;
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::views::{MeshQuery, ProjectionQuery, SliceQuery, ViewRequest, render};
+use crate::jobs::views::{
+    MeshQuery, ProductFormat, ProductQuery, ProjectionQuery, RenderContext, SeriesQuery,
+    SliceQuery, ViewRequest, render, render_product,
+};
 use crate::jobs::{JobResult, JobStatus};
 use crate::storage::npy::hex;
 use crate::storage::{JobId, ResultName};
@@ -95,6 +100,42 @@ pub async fn metrics(
     Ok(resp)
 }
 
+/// How DICOM results of `r` are labelled: the source series' study, frame of reference and patient when the
+/// volume derives from one.
+async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext> {
+    let source = match r.source_series {
+        Some(id) => st.db.get_series(id).await?,
+        None => None,
+    };
+    let meta = match source {
+        Some(s) => SeriesMeta {
+            study_uid: s.study_uid,
+            frame_of_reference_uid: s.frame_of_reference_uid,
+            patient_name: s.patient_name,
+            patient_id: s.patient_id,
+            series_description: format!(
+                "ctrecon {}",
+                s.description.as_deref().unwrap_or("derived")
+            )
+            .chars()
+            .take(64)
+            .collect(),
+            series_number: 900,
+        },
+        None => SeriesMeta {
+            series_description: "ctrecon reconstruction".into(),
+            series_number: 900,
+            ..SeriesMeta::default()
+        },
+    };
+    Ok(RenderContext {
+        frame: r.frame(),
+        units: r.units,
+        mu_water: st.settings.mu_water_per_mm,
+        meta,
+    })
+}
+
 async fn view(
     st: AppState,
     id: String,
@@ -115,6 +156,7 @@ async fn view(
         },
     );
     if !tokio::fs::try_exists(&path).await.unwrap_or(false) {
+        let ctx = render_context(&st, &r).await?;
         let store = st.store.clone();
         let dest = path.clone();
         st.engine
@@ -125,7 +167,7 @@ async fn view(
                 };
                 let bytes =
                     std::fs::read(store.result_path(id, &ResultName::Volume)).map_err(io)?;
-                let out = render(&bytes, &r.grid, &req, mu_water)?;
+                let out = render(&bytes, &ctx, &req)?;
                 store.write_atomic(&dest, &out).map_err(io)
             })
             .await?;
@@ -137,6 +179,97 @@ async fn view(
             etag: key,
             content_type,
             filename: Some(format!("{id}.{ext}")),
+        },
+    )
+    .await
+}
+
+pub async fn series_zip(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+    ApiQuery(q): ApiQuery<SeriesQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    view(st, id, ViewRequest::Series(q), headers).await
+}
+
+pub async fn product(
+    State(st): State<AppState>,
+    Path((id, index)): Path<(String, String)>,
+    ApiQuery(q): ApiQuery<ProductQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let id = job_id(&id)?;
+    let index: usize = index.parse().map_err(|_| {
+        api_error(
+            ErrorCode::InvalidId,
+            "a product index is a non-negative integer",
+        )
+    })?;
+    q.validate()?;
+    let r = result_of(&st, id).await?;
+    let Some(p) = r.products.iter().find(|p| p.index == index).cloned() else {
+        return Err(api_error(
+            ErrorCode::ResultUnavailable,
+            format!(
+                "the job has {} product(s); there is no product {index}",
+                r.products.len()
+            ),
+        ));
+    };
+    let format = q.format_for(&p)?;
+    let stored_ext = if p.is_mesh() { "stl" } else { "npy" };
+    let stored = st.store.result_path(
+        id,
+        &ResultName::Product {
+            index,
+            ext: stored_ext,
+        },
+    );
+    let (ext, content_type) = format.media();
+    if matches!(format, ProductFormat::Npy | ProductFormat::Stl) {
+        return serve_file(
+            &headers,
+            FileMeta {
+                path: stored,
+                etag: p.file.sha256,
+                content_type,
+                filename: Some(format!("{id}-{index}.{ext}")),
+            },
+        )
+        .await;
+    }
+    let key = q.key(index, format, st.settings.mu_water_per_mm);
+    let path = st.store.result_path(
+        id,
+        &ResultName::Derived {
+            key_hex: key.clone(),
+            ext,
+        },
+    );
+    if !tokio::fs::try_exists(&path).await.unwrap_or(false) {
+        let ctx = render_context(&st, &r).await?;
+        let store = st.store.clone();
+        let dest = path.clone();
+        st.engine
+            .compute(move || {
+                let io = |e: std::io::Error| {
+                    tracing::error!(error = %e, "rendering a product failed");
+                    Problem::internal()
+                };
+                let bytes = std::fs::read(&stored).map_err(io)?;
+                let out = render_product(&bytes, &p, &q, format, &ctx)?;
+                store.write_atomic(&dest, &out).map_err(io)
+            })
+            .await?;
+    }
+    serve_file(
+        &headers,
+        FileMeta {
+            path,
+            etag: key,
+            content_type,
+            filename: Some(format!("{id}-{index}.{ext}")),
         },
     )
     .await
