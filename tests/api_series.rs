@@ -241,6 +241,7 @@ async fn two_series_in_one_zip_are_split_and_a_missing_slice_is_refused_or_resam
     let v: Value = r.json().await.unwrap();
     let series = v["series"].as_array().unwrap();
     assert_eq!(series.len(), 2);
+    assert_eq!(v["upload"]["instances"], 80);
     let mut descriptions: Vec<&str> = series
         .iter()
         .map(|s| s["report"]["description"].as_str().unwrap())

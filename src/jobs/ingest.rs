@@ -69,6 +69,15 @@ pub struct Ingested {
 }
 
 impl Ingested {
+    /// Files read or refused.
+    pub fn files(&self) -> usize {
+        self.series
+            .iter()
+            .map(|s| s.report.instances)
+            .sum::<usize>()
+            + self.rejected.len()
+    }
+
     pub fn ready(&self) -> impl Iterator<Item = &SeriesRecord> {
         self.series.iter().filter_map(|s| s.series.as_ref())
     }

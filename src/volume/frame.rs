@@ -49,8 +49,14 @@ impl Frame {
 
 impl Frame {
     /// Fractional index `[k, j, i]` of patient position `p_mm`, the inverse of [`Frame::position`]; `None` when the
-    /// direction vectors are degenerate.
+    /// direction vectors are degenerate. For many points, build the [`IndexMap`] once.
     pub fn index_of(&self, p_mm: [f64; 3]) -> Option<[f64; 3]> {
+        self.index_map().map(|m| m.index(p_mm))
+    }
+
+    /// The inverse of [`Frame::position`] as a precomputed affine map; `None` when the direction vectors are
+    /// degenerate.
+    pub fn index_map(&self) -> Option<IndexMap> {
         // Columns of M are the scaled index axes: p − origin = M · (i, j, k).
         let m: [[f64; 3]; 3] = std::array::from_fn(|r| {
             std::array::from_fn(|c| self.direction[c][r] * self.spacing_mm[c])
@@ -61,23 +67,18 @@ impl Frame {
         if det.abs() < 1e-12 || !det.is_finite() {
             return None;
         }
-        let d = [
-            p_mm[0] - self.origin_mm[0],
-            p_mm[1] - self.origin_mm[1],
-            p_mm[2] - self.origin_mm[2],
-        ];
-        // Cramer's rule.
-        let solve = |col: usize| {
-            let mut a = m;
-            for r in 0..3 {
-                a[r][col] = d[r];
-            }
-            (a[0][0] * (a[1][1] * a[2][2] - a[1][2] * a[2][1])
-                - a[0][1] * (a[1][0] * a[2][2] - a[1][2] * a[2][0])
-                + a[0][2] * (a[1][0] * a[2][1] - a[1][1] * a[2][0]))
-                / det
+        // Inverse by the adjugate; rows ordered k, j, i.
+        let inv_row = |r: usize| -> [f64; 3] {
+            let (a, b) = ((r + 1) % 3, (r + 2) % 3);
+            std::array::from_fn(|c| {
+                let (x, y) = ((c + 1) % 3, (c + 2) % 3);
+                (m[x][a] * m[y][b] - m[x][b] * m[y][a]) / det
+            })
         };
-        Some([solve(2), solve(1), solve(0)])
+        Some(IndexMap {
+            origin_mm: self.origin_mm,
+            rows: [inv_row(2), inv_row(1), inv_row(0)],
+        })
     }
 
     /// Unit normal of the slice planes (column axis × row axis).
@@ -94,6 +95,25 @@ impl Frame {
         } else {
             [0.0, 0.0, 1.0]
         }
+    }
+}
+
+/// Patient position (mm) → fractional index `[k, j, i]` of a [`Frame`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct IndexMap {
+    origin_mm: [f64; 3],
+    /// Rows of the inverse of the scaled direction matrix, for k, j and i.
+    rows: [[f64; 3]; 3],
+}
+
+impl IndexMap {
+    pub fn index(&self, p_mm: [f64; 3]) -> [f64; 3] {
+        let d = [
+            p_mm[0] - self.origin_mm[0],
+            p_mm[1] - self.origin_mm[1],
+            p_mm[2] - self.origin_mm[2],
+        ];
+        self.rows.map(|r| r[0] * d[0] + r[1] * d[1] + r[2] * d[2])
     }
 }
 

@@ -15,7 +15,7 @@ mod window;
 pub use display::{Axis, ProjectionKind, project, slice};
 pub use error::VolumeError;
 pub use filter::{gaussian, largest_component, median3, threshold};
-pub use frame::{Frame, Volume};
+pub use frame::{Frame, IndexMap, Volume};
 pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, rotating_projection, slab_series};
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
 pub use window::{

@@ -145,17 +145,48 @@ fn render(
 ) -> Array2<f32> {
     let data = vol.data.view();
     let mut out = Array2::from_elem((rows, cols), fill);
+    let Some(map) = vol.frame.index_map() else {
+        return out;
+    };
+    debug_assert!(offsets.windows(2).all(|w| w[0] <= w[1]), "offsets ascend");
+    let (nz, ny, nx) = vol.data.dim();
+    let last = [nz, ny, nx].map(|n| n as f64 - 1.0);
     out.axis_iter_mut(ndarray::Axis(0))
         .into_par_iter()
         .enumerate()
         .for_each(|(r, mut row)| {
             for (c, px) in row.iter_mut().enumerate() {
+                // `point` is affine in the offset: index = i0 + o · d. Keep the offsets whose sample lies in the
+                // volume (a small margin; trilinear checks again).
+                let i0 = map.index(point(r, c, 0.0));
+                let d = if offsets.len() > 1 {
+                    let i1 = map.index(point(r, c, 1.0));
+                    [i1[0] - i0[0], i1[1] - i0[1], i1[2] - i0[2]]
+                } else {
+                    [0.0; 3]
+                };
+                let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
+                for a in 0..3 {
+                    if d[a].abs() < 1e-12 {
+                        if i0[a] < -1e-6 || i0[a] > last[a] + 1e-6 {
+                            hi = f64::NEG_INFINITY;
+                        }
+                    } else {
+                        let t1 = (-1e-6 - i0[a]) / d[a];
+                        let t2 = (last[a] + 1e-6 - i0[a]) / d[a];
+                        lo = lo.max(t1.min(t2));
+                        hi = hi.min(t1.max(t2));
+                    }
+                }
+                if lo > hi {
+                    continue;
+                }
+                let start = offsets.partition_point(|&o| o < lo);
+                let end = offsets.partition_point(|&o| o <= hi);
                 let mut acc: Option<f32> = None;
                 let mut n = 0u32;
-                for &o in offsets {
-                    let Some(idx) = vol.frame.index_of(point(r, c, o)) else {
-                        continue;
-                    };
+                for &o in &offsets[start..end.max(start)] {
+                    let idx = [i0[0] + o * d[0], i0[1] + o * d[1], i0[2] + o * d[2]];
                     let Some(s) = trilinear(&data, idx) else {
                         continue;
                     };

@@ -108,15 +108,19 @@ pub fn resample_isotropic(
     let (n, out_frame) = isotropic_grid(f, vol.data.dim(), spacing_mm, max_voxels)?;
     let src = vol.data.view();
     let mut data = Array3::from_elem((n[2], n[1], n[0]), fill);
+    let Some(map) = f.index_map() else {
+        return Err(VolumeError::InvalidParameter {
+            name: "frame",
+            reason: "the volume's direction vectors are degenerate".into(),
+        });
+    };
     data.axis_iter_mut(ndarray::Axis(0))
         .into_par_iter()
         .enumerate()
         .for_each(|(k, mut plane)| {
             for ((j, i), v) in plane.indexed_iter_mut() {
                 let p = out_frame.position(k as f64, j as f64, i as f64);
-                if let Some(idx) = f.index_of(p)
-                    && let Some(x) = trilinear(&src, idx)
-                {
+                if let Some(x) = trilinear(&src, map.index(p)) {
                     *v = x;
                 }
             }

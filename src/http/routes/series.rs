@@ -251,10 +251,11 @@ pub async fn post_series(
             ));
         }
     };
-    let instances = files.len() as u32;
     let bytes: u64 = files.iter().map(|(_, b)| b.len() as u64).sum();
     let id = UploadId::generate();
     let ingested = run_ingest(&st, id, files, q.uneven).await?;
+    // Instances (ZIP entries included), not request parts.
+    let instances = ingested.files() as u32;
     let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
     if records.is_empty() {
         return Err(ingested.failure().into());
