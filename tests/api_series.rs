@@ -875,3 +875,70 @@ async fn lidc_over_http_series_mip_and_bone_mesh() {
         "spine band {spine_mean} HU, whole MIP {mean} HU"
     );
 }
+
+/// pydicom's test files, each sent alone as `application/dicom` and as a one-file form: every answer is a 2xx or
+/// a 4xx problem with a catalogue code (never a 5xx), and the service still answers afterwards.
+#[tokio::test]
+async fn every_file_of_the_pydicom_corpus_is_accepted_or_refused_with_a_4xx() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join(".testdata/pydicom");
+    if !dir.is_dir() {
+        assert!(
+            std::env::var("CTRECON_REQUIRE_TEST_DATA").as_deref() != Ok("1"),
+            "{} is missing and CTRECON_REQUIRE_TEST_DATA=1",
+            dir.display()
+        );
+        eprintln!("SKIPPED: {} is missing", dir.display());
+        return;
+    }
+    let app = spawn_app_with(|s| s.max_upload_bytes = 64 << 20).await;
+    fn walk(d: &std::path::Path, out: &mut Vec<std::path::PathBuf>) {
+        for e in std::fs::read_dir(d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                walk(&p, out);
+            } else {
+                out.push(p);
+            }
+        }
+    }
+    let mut paths = Vec::new();
+    walk(&dir, &mut paths);
+    paths.sort();
+    assert!(paths.len() > 100, "{} files", paths.len());
+    let (mut ok, mut refused) = (0, std::collections::BTreeMap::<String, usize>::new());
+    for p in &paths {
+        let name = p.strip_prefix(&dir).unwrap().to_string_lossy().into_owned();
+        let body = std::fs::read(p).unwrap();
+        for r in [
+            post_bytes(&app, "/v1/series", "application/dicom", body.clone()).await,
+            post_form(&app, "", &[(name.clone(), body.clone())]).await,
+        ] {
+            let status = r.status().as_u16();
+            let text = r.text().await.unwrap();
+            match status {
+                200 | 201 => ok += 1,
+                400..=499 => {
+                    let v: Value =
+                        serde_json::from_str(&text).unwrap_or_else(|_| panic!("{name}: {text}"));
+                    let code = v["code"].as_str().unwrap_or_default().to_string();
+                    assert!(
+                        ctrecon::error_code::ErrorCode::from_code(&code).is_some(),
+                        "{name}: {text}"
+                    );
+                    assert!(
+                        !v["detail"].as_str().unwrap_or_default().is_empty(),
+                        "{name}"
+                    );
+                    *refused.entry(code).or_default() += 1;
+                }
+                _ => panic!("{name}: {status} {text}"),
+            }
+        }
+    }
+    println!(
+        "{} files: {ok} accepted, refused by code: {refused:?}",
+        paths.len()
+    );
+    assert!(ok > 20, "{ok} accepted");
+    assert_eq!(app.get("/healthz").await.status(), 200);
+}
