@@ -8,7 +8,9 @@ use serde::Deserialize;
 use sha2::{Digest, Sha256};
 
 use super::super::AppState;
-use super::super::extract::{ApiJson, ApiQuery, dataset_id, idempotency_key, parse_json};
+use super::super::extract::{
+    ApiJson, ApiQuery, dataset_id, idempotency_key, media_type, parse_json,
+};
 use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{UploadSink, Uploaded};
 use crate::error_code::{ErrorCode, Problem};
@@ -181,15 +183,6 @@ fn parse_geometry(text: &[u8]) -> ApiResult<ParsedGeometry> {
         geometry,
         fingerprint,
     })
-}
-
-fn media_type(headers: &HeaderMap) -> String {
-    headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split(';').next())
-        .map(|s| s.trim().to_ascii_lowercase())
-        .unwrap_or_default()
 }
 
 pub async fn post_sinogram(

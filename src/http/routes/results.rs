@@ -136,6 +136,38 @@ async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext
     })
 }
 
+/// Render a derived file from `source` into `path` on the worker pool, unless it is already there (results are
+/// immutable, so a rendering never goes stale).
+async fn render_once<F>(
+    st: &AppState,
+    r: &JobResult,
+    path: &std::path::Path,
+    make: F,
+    source: std::path::PathBuf,
+) -> ApiResult<()>
+where
+    F: FnOnce(&[u8], &RenderContext) -> Result<Vec<u8>, Problem> + Send + 'static,
+{
+    if tokio::fs::try_exists(path).await.unwrap_or(false) {
+        return Ok(());
+    }
+    let ctx = render_context(st, r).await?;
+    let store = st.store.clone();
+    let dest = path.to_path_buf();
+    st.engine
+        .compute(move || {
+            let io = |e: std::io::Error| {
+                tracing::error!(error = %e, "rendering a result failed");
+                Problem::internal()
+            };
+            let bytes = std::fs::read(&source).map_err(io)?;
+            let out = make(&bytes, &ctx)?;
+            store.write_atomic(&dest, &out).map_err(io)
+        })
+        .await?;
+    Ok(())
+}
+
 async fn view(
     st: AppState,
     id: String,
@@ -155,23 +187,15 @@ async fn view(
             ext,
         },
     );
-    if !tokio::fs::try_exists(&path).await.unwrap_or(false) {
-        let ctx = render_context(&st, &r).await?;
-        let store = st.store.clone();
-        let dest = path.clone();
-        st.engine
-            .compute(move || {
-                let io = |e: std::io::Error| {
-                    tracing::error!(error = %e, "rendering a view failed");
-                    Problem::internal()
-                };
-                let bytes =
-                    std::fs::read(store.result_path(id, &ResultName::Volume)).map_err(io)?;
-                let out = render(&bytes, &ctx, &req)?;
-                store.write_atomic(&dest, &out).map_err(io)
-            })
-            .await?;
-    }
+    let source = st.store.result_path(id, &ResultName::Volume);
+    render_once(
+        &st,
+        &r,
+        &path,
+        move |bytes, ctx| render(bytes, ctx, &req),
+        source,
+    )
+    .await?;
     serve_file(
         &headers,
         FileMeta {
@@ -247,22 +271,14 @@ pub async fn product(
             ext,
         },
     );
-    if !tokio::fs::try_exists(&path).await.unwrap_or(false) {
-        let ctx = render_context(&st, &r).await?;
-        let store = st.store.clone();
-        let dest = path.clone();
-        st.engine
-            .compute(move || {
-                let io = |e: std::io::Error| {
-                    tracing::error!(error = %e, "rendering a product failed");
-                    Problem::internal()
-                };
-                let bytes = std::fs::read(&stored).map_err(io)?;
-                let out = render_product(&bytes, &p, &q, format, &ctx)?;
-                store.write_atomic(&dest, &out).map_err(io)
-            })
-            .await?;
-    }
+    render_once(
+        &st,
+        &r,
+        &path,
+        move |bytes, ctx| render_product(bytes, &p, &q, format, ctx),
+        stored,
+    )
+    .await?;
     serve_file(
         &headers,
         FileMeta {

@@ -16,7 +16,7 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 
 use super::super::AppState;
-use super::super::extract::ApiQuery;
+use super::super::extract::{ApiQuery, media_type};
 use super::super::files::{FileMeta, serve_file};
 use super::super::problem::{ApiError, ApiResult, api_error};
 use crate::dicom::{ReadLimits, ZipLimits, read_bytes};
@@ -45,15 +45,6 @@ fn upload_id(s: &str) -> ApiResult<UploadId> {
 
 fn series_id(s: &str) -> ApiResult<SeriesId> {
     SeriesId::parse(s).map_err(|e| api_error(ErrorCode::InvalidId, e.to_string()))
-}
-
-fn media_type(headers: &HeaderMap) -> String {
-    headers
-        .get(header::CONTENT_TYPE)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.split(';').next())
-        .map(|s| s.trim().to_ascii_lowercase())
-        .unwrap_or_default()
 }
 
 /// A client-supplied file name, made safe for messages (it is never a path).
@@ -391,13 +382,16 @@ async fn append(st: &AppState, q: SeriesQuery, req: Request) -> ApiResult<Respon
     }
 }
 
-pub async fn get_upload(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
-    let id = upload_id(&id)?;
-    let u = st
-        .db
+async fn load_upload(st: &AppState, id: &str) -> ApiResult<UploadRecord> {
+    let id = upload_id(id)?;
+    st.db
         .get_upload(id)
         .await?
-        .ok_or_else(|| api_error(ErrorCode::UploadNotFound, format!("no upload {id}")))?;
+        .ok_or_else(|| api_error(ErrorCode::UploadNotFound, format!("no upload {id}")))
+}
+
+pub async fn get_upload(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
+    let u = load_upload(&st, &id).await?;
     Ok(axum::Json(upload_view(&u)).into_response())
 }
 
@@ -413,12 +407,8 @@ pub async fn complete_upload(
     Path(id): Path<String>,
     ApiQuery(q): ApiQuery<CompleteQuery>,
 ) -> ApiResult<Response> {
-    let id = upload_id(&id)?;
-    let u = st
-        .db
-        .get_upload(id)
-        .await?
-        .ok_or_else(|| api_error(ErrorCode::UploadNotFound, format!("no upload {id}")))?;
+    let u = load_upload(&st, &id).await?;
+    let id = u.id;
     if !u.open {
         return Err(api_error(
             ErrorCode::UploadClosed,
