@@ -254,6 +254,34 @@ async fn two_series_in_one_zip_are_split_and_a_missing_slice_is_refused_or_resam
             .all(|s| s["status"] == "ready" && s["report"]["instances"] == 40)
     );
 
+    // The same ZIP under an Idempotency-Key answers the same upload; another body under it is refused.
+    let zip = write_zip(&all).unwrap();
+    let send = |body: Vec<u8>| {
+        app.client
+            .post(app.url("/v1/series"))
+            .header("content-type", "application/zip")
+            .header("idempotency-key", "pacs-batch-1")
+            .body(body)
+            .send()
+    };
+    let first: Value = send(zip.clone()).await.unwrap().json().await.unwrap();
+    let again = send(zip).await.unwrap();
+    assert_eq!(again.status(), 201);
+    let again: Value = again.json().await.unwrap();
+    assert_eq!(again["upload"]["id"], first["upload"]["id"]);
+    assert_eq!(
+        again["series"][0]["series"]["id"],
+        first["series"][0]["series"]["id"]
+    );
+    let other = write_zip(&a).unwrap();
+    assert_problem(send(other).await.unwrap(), 422, "idempotency_key_reused").await;
+    assert_eq!(
+        std::fs::read_dir(app.dir.path().join("series"))
+            .unwrap()
+            .count(),
+        4
+    );
+
     // Slice 11 of 40 missing: refused with a message naming the gap, or resampled with a warning.
     let mut gappy = a.clone();
     gappy.remove(10);

@@ -557,7 +557,7 @@ impl Db {
         Ok(())
     }
 
-    /// Record an upload completed in one request, with its series.
+    /// Record an upload completed in one request, with its series, under an optional Idempotency-Key.
     pub async fn insert_completed_upload(
         &self,
         id: UploadId,
@@ -565,8 +565,15 @@ impl Db {
         bytes: u64,
         outcome: &serde_json::Value,
         series: &[SeriesRecord],
-    ) -> Result<(), DbError> {
+        key: Option<&IdempotencyKey>,
+    ) -> Result<Inserted, DbError> {
         let mut tx = self.pool.begin().await?;
+        if let Some(key) = key
+            && let existing @ Inserted::Existing { .. } =
+                Self::claim_key(&mut tx, key, &id.to_string()).await?
+        {
+            return Ok(existing);
+        }
         let now = now_us();
         sqlx::query(
             "INSERT INTO uploads (id, status, instances, bytes, outcome, created_us, completed_us)
@@ -582,17 +589,29 @@ impl Db {
         .await?;
         Self::insert_series(&mut tx, series).await?;
         tx.commit().await?;
-        Ok(())
+        Ok(Inserted::New)
     }
 
-    /// Open a new upload.
-    pub async fn insert_open_upload(&self, id: UploadId) -> Result<(), DbError> {
+    /// Open a new upload, under an optional Idempotency-Key.
+    pub async fn insert_open_upload(
+        &self,
+        id: UploadId,
+        key: Option<&IdempotencyKey>,
+    ) -> Result<Inserted, DbError> {
+        let mut tx = self.pool.begin().await?;
+        if let Some(key) = key
+            && let existing @ Inserted::Existing { .. } =
+                Self::claim_key(&mut tx, key, &id.to_string()).await?
+        {
+            return Ok(existing);
+        }
         sqlx::query("INSERT INTO uploads (id, status, created_us) VALUES (?, 'open', ?)")
             .bind(id.to_string())
             .bind(now_us())
-            .execute(&self.pool)
+            .execute(&mut *tx)
             .await?;
-        Ok(())
+        tx.commit().await?;
+        Ok(Inserted::New)
     }
 
     pub async fn get_upload(&self, id: UploadId) -> Result<Option<UploadRecord>, DbError> {

@@ -16,14 +16,14 @@ use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
 
 use super::super::AppState;
-use super::super::extract::{ApiQuery, media_type};
+use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::files::{FileMeta, serve_file};
 use super::super::problem::{ApiError, ApiResult, api_error};
 use crate::dicom::{ReadLimits, ZipLimits, read_bytes};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::ingest::{IngestOptions, Ingested, dicom_problem, ingest};
 use crate::jobs::model::rfc3339;
-use crate::jobs::{Appended, Completed, SeriesRecord, UploadRecord};
+use crate::jobs::{Appended, Completed, IdempotencyKey, Inserted, SeriesRecord, UploadRecord};
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
@@ -215,15 +215,47 @@ async fn run_ingest(
         .await?)
 }
 
+const ROUTE_SERIES: &str = "POST /v1/series";
+
+/// The upload an earlier request with the same Idempotency-Key created (201 with its view), or 422 when that
+/// request differed; `None` when the key is new.
+async fn replay(st: &AppState, key: &IdempotencyKey) -> ApiResult<Option<Response>> {
+    let Some((id, fingerprint)) = st.db.idempotency_lookup(key.route, &key.key).await? else {
+        return Ok(None);
+    };
+    if fingerprint != key.fingerprint {
+        return Err(api_error(
+            ErrorCode::IdempotencyKeyReused,
+            "this Idempotency-Key was used with a different request",
+        ));
+    }
+    let u = load_upload(st, &id).await?;
+    Ok(Some(created(
+        &format!("/v1/uploads/{}", u.id),
+        upload_view(&u),
+    )))
+}
+
+/// Fingerprint of an upload: the media type, options and the SHA-256 of every file in order.
+fn fingerprint(media: &str, q: &SeriesQuery, files: &[(String, Vec<u8>)]) -> String {
+    let mut h = Sha256::new();
+    h.update(format!("{media}|{:?}|{:?}|", q.upload, q.uneven).as_bytes());
+    for (_, bytes) in files {
+        h.update(Sha256::digest(bytes));
+    }
+    hex(&h.finalize())
+}
+
 pub async fn post_series(
     State(st): State<AppState>,
     ApiQuery(q): ApiQuery<SeriesQuery>,
     req: Request,
 ) -> ApiResult<Response> {
     check_length(&st, req.headers())?;
+    let key = idempotency_key(req.headers())?;
     let media = media_type(req.headers());
     let files = match media.as_str() {
-        "application/dicom" => return append(&st, q, req).await,
+        "application/dicom" => return append(&st, q, key, req).await,
         _ if q.upload.is_some() => {
             return Err(api_error(
                 ErrorCode::InvalidQuery,
@@ -242,6 +274,16 @@ pub async fn post_series(
             ));
         }
     };
+    let key = key.map(|key| IdempotencyKey {
+        route: ROUTE_SERIES,
+        key,
+        fingerprint: fingerprint(&media, &q, &files),
+    });
+    if let Some(k) = &key
+        && let Some(r) = replay(&st, k).await?
+    {
+        return Ok(r);
+    }
     let bytes: u64 = files.iter().map(|(_, b)| b.len() as u64).sum();
     let id = UploadId::generate();
     let ingested = run_ingest(&st, id, files, q.uneven).await?;
@@ -252,13 +294,26 @@ pub async fn post_series(
         return Err(ingested.failure().into());
     }
     let view = outcome_view(id, instances, bytes, &ingested);
-    if let Err(e) = st
+    match st
         .db
-        .insert_completed_upload(id, instances, bytes, &view, &records)
+        .insert_completed_upload(id, instances, bytes, &view, &records, key.as_ref())
         .await
     {
-        discard(&st, &ingested);
-        return Err(e.into());
+        Ok(Inserted::New) => {}
+        Ok(Inserted::Existing { .. }) => {
+            // Lost a race with the same key: answer the winner.
+            discard(&st, &ingested);
+            if let Some(k) = &key
+                && let Some(r) = replay(&st, k).await?
+            {
+                return Ok(r);
+            }
+            return Err(Problem::internal().into());
+        }
+        Err(e) => {
+            discard(&st, &ingested);
+            return Err(e.into());
+        }
     }
     tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
     Ok(created(&format!("/v1/uploads/{id}"), view))
@@ -285,7 +340,12 @@ fn upload_view(u: &UploadRecord) -> Value {
 }
 
 /// Append one `application/dicom` instance to the open upload `q.upload`, or to a new one.
-async fn append(st: &AppState, q: SeriesQuery, req: Request) -> ApiResult<Response> {
+async fn append(
+    st: &AppState,
+    q: SeriesQuery,
+    key: Option<String>,
+    req: Request,
+) -> ApiResult<Response> {
     if q.uneven.is_some() {
         return Err(api_error(
             ErrorCode::InvalidQuery,
@@ -310,8 +370,26 @@ async fn append(st: &AppState, q: SeriesQuery, req: Request) -> ApiResult<Respon
             Some(_) => {}
         }
     }
+    if key.is_some() && existing.is_some() {
+        return Err(api_error(
+            ErrorCode::InvalidRequest,
+            "appends are idempotent by content; an Idempotency-Key applies to the request that opens an upload",
+        ));
+    }
     let body = read_body(st, req).await?;
     let sha = hex(&Sha256::digest(&body));
+    let key = key.map(|key| IdempotencyKey {
+        route: ROUTE_SERIES,
+        key,
+        fingerprint: hex(&Sha256::digest(
+            format!("application/dicom|{sha}").as_bytes(),
+        )),
+    });
+    if let Some(k) = &key
+        && let Some(r) = replay(st, k).await?
+    {
+        return Ok(r);
+    }
     let name = format!("instance-{}", &sha[..12]);
     // Decode now, so that a broken file is refused at once and never reaches the upload.
     let (body, series_uid) = {
@@ -328,7 +406,15 @@ async fn append(st: &AppState, q: SeriesQuery, req: Request) -> ApiResult<Respon
         Some(id) => (id, false),
         None => {
             let id = UploadId::generate();
-            st.db.insert_open_upload(id).await?;
+            if let Inserted::Existing { .. } = st.db.insert_open_upload(id, key.as_ref()).await? {
+                // Lost a race with the same key: answer the winner.
+                if let Some(k) = &key
+                    && let Some(r) = replay(st, k).await?
+                {
+                    return Ok(r);
+                }
+                return Err(Problem::internal().into());
+            }
             (id, true)
         }
     };
