@@ -10,7 +10,7 @@ use std::io::Write;
 
 use common::{TestApp, assert_problem, cone_geometry, read_npy_f32, spawn_app, spawn_app_with};
 use ctrecon::dicom::{
-    ReadLimits, SeriesMeta, ZipLimits, read_upload, unpack, write_ct_series,
+    ReadLimits, SeriesMeta, ZipLimits, read_upload, unpack, write_ct_series, write_enhanced_ct,
     write_secondary_capture, write_zip,
 };
 use ctrecon::recon::VolumeGrid;
@@ -680,6 +680,73 @@ async fn a_volume_job_resamples_filters_and_makes_every_product_with_dicom_resul
             .windows(25)
             .any(|w| w == b"1.2.840.10008.5.1.4.1.1.7")
     );
+}
+
+#[tokio::test]
+async fn a_tilted_series_and_an_enhanced_multi_frame_file_come_through() {
+    let app = spawn_app().await;
+    // Gantry tilt of 12° about x: each slice moves 4.5·tan 12° mm posteriorly.
+    let mut vol = body();
+    let t = 12f64.to_radians();
+    vol.frame.direction[2] = [0.0, t.sin(), t.cos()];
+    vol.frame.spacing_mm[2] = 4.5 / t.cos();
+    let tilted = write_ct_series(&vol, &meta("tilted")).unwrap();
+    let r = post_form(&app, "", &tilted.files).await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    let rec = &v["series"][0]["series"];
+    assert!((f(&rec["tilt_deg"]) - 12.0).abs() < 1e-3, "{rec}");
+    assert!((f(&rec["normal_spacing_mm"]) - 4.5).abs() < 1e-4);
+    assert!(
+        rec["warnings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|w| w["code"] == "gantry_tilt")
+    );
+    // Resampling makes it orthogonal: the frame's slice axis becomes the normal.
+    let job = app
+        .submit(&json!({"kind": "volume", "input": rec["id"], "steps": [{"op": "resample", "spacing_mm": 3}]}))
+        .await;
+    let done = app.finish(job["id"].as_str().unwrap()).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let frame: Frame = serde_json::from_value(done["result"]["frame"].clone()).unwrap();
+    let n = frame.slice_normal();
+    let d = frame.direction[2];
+    assert!(
+        (n[0] - d[0]).abs() + (n[1] - d[1]).abs() + (n[2] - d[2]).abs() < 1e-9,
+        "{frame:?}"
+    );
+    assert!(
+        done["result"]["warnings"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|w| w["code"] == "gantry_tilt")
+    );
+
+    // One Enhanced CT file holding all 40 frames, appended to an open upload.
+    let enhanced = write_enhanced_ct(&body(), &meta("enhanced")).unwrap();
+    assert_eq!(enhanced.files.len(), 1);
+    let r = post_bytes(
+        &app,
+        "/v1/series",
+        "application/dicom",
+        enhanced.files[0].1.clone(),
+    )
+    .await;
+    assert_eq!(r.status(), 201);
+    let id = r.json::<Value>().await.unwrap()["upload"]["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let r = app
+        .post_json(&format!("/v1/uploads/{id}/complete"), &json!({}))
+        .await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["series"][0]["report"]["frames"], 40);
+    assert_eq!(v["series"][0]["series"]["shape"], json!([40, 64, 64]));
 }
 
 #[tokio::test]
