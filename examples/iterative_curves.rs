@@ -4,7 +4,10 @@
 //!
 //! `cargo run --release --example iterative_curves` — the table;
 //! `cargo run --release --example iterative_curves -- cone` — one cone-beam SIRT×10 (128³ from 180
-//! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory.
+//! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory;
+//! `cargo run --release --example iterative_curves -- projector [N]` — best of N (default 5) wall times
+//! of one forward and one back projection of 512² / 720 views / 725 detectors and of 256² / 360 / 363
+//! (parallel beam), and of SIRT×100 and CGLS×50 on the 256² case.
 
 use std::time::Instant;
 
@@ -16,7 +19,82 @@ use ctrecon::recon::geometry::{Angles, ConeBeam, Panel, ParallelBeam, Views};
 use ctrecon::recon::grid::{ImageGrid, Limits, VolumeGrid};
 use ctrecon::recon::metrics::{inscribed_disk, rmse};
 use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
+use ctrecon::recon::projector::{back_2d, forward_2d};
 use ndarray::Ix2;
+
+/// Best wall time (s) of `n` runs of `f`.
+fn best_of(n: usize, mut f: impl FnMut()) -> f64 {
+    (0..n.max(1))
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64()
+        })
+        .fold(f64::INFINITY, f64::min)
+}
+
+fn parallel(n: usize, views: usize, det: usize) -> (ctrecon::recon::geometry::Views2, ImageGrid) {
+    let v = ParallelBeam {
+        angles: Angles::uniform(views, 180.0),
+        det_count: det,
+        det_spacing_mm: 1.0,
+        det_offset_mm: 0.0,
+    }
+    .to_views()
+    .expect("valid geometry");
+    (v, ImageGrid::square(n, 1.0))
+}
+
+fn projector(runs: usize) {
+    for (n, views, det) in [(512, 720, 725), (256, 360, 363)] {
+        let (v, grid) = parallel(n, views, det);
+        let image =
+            Phantom2::from_table(Table2::ModifiedSheppLogan, n as f64 / 2.0).rasterize(&grid, 1);
+        let sino = forward_2d(&v, image.view(), &grid);
+        let f = best_of(runs, || {
+            std::hint::black_box(forward_2d(&v, image.view(), &grid));
+        });
+        let b = best_of(runs, || {
+            std::hint::black_box(back_2d(&v, sino.view(), &grid));
+        });
+        println!("projector {n}² {views} views {det} det: forward {f:.4} s, back {b:.4} s");
+    }
+    let (v2, grid) = parallel(256, 360, 363);
+    let sino = Phantom2::from_table(Table2::ModifiedSheppLogan, 128.0).project(&v2);
+    let views = Views::D2(v2);
+    let specs = [
+        (
+            "SIRT×100",
+            AlgorithmSpec::Sirt(SirtParams {
+                iterations: 100,
+                ..SirtParams::default()
+            }),
+        ),
+        (
+            "CGLS×50",
+            AlgorithmSpec::Cgls(CglsParams {
+                iterations: 50,
+                ..CglsParams::default()
+            }),
+        ),
+    ];
+    for (name, spec) in specs {
+        let s = best_of(runs.min(3), || {
+            std::hint::black_box(
+                reconstruct(
+                    &spec,
+                    &views,
+                    sino.view().into_dyn(),
+                    &OutputGrid::Image(grid),
+                    &Limits::default(),
+                    unattended(),
+                )
+                .expect("reconstruction"),
+            );
+        });
+        println!("{name} 256² 360 views: {s:.3} s");
+    }
+}
 
 fn cone() {
     let grid = VolumeGrid::cube(128, 1.0);
@@ -61,6 +139,14 @@ fn cone() {
 fn main() {
     if std::env::args().nth(1).as_deref() == Some("cone") {
         cone();
+        return;
+    }
+    if std::env::args().nth(1).as_deref() == Some("projector") {
+        let runs = std::env::args()
+            .nth(2)
+            .and_then(|s| s.parse().ok())
+            .unwrap_or(5);
+        projector(runs);
         return;
     }
     let n = 256;
