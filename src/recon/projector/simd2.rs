@@ -1,0 +1,197 @@
+//! AVX2 + FMA forms of the 2D Joseph loops of [`super::kernel2`], 8 consecutive samples of one ray per
+//! step: positions and weights with the f32 operations of the scalar form (no FMA there, so the pairs
+//! and weights are bit for bit those of [`super::joseph2::Walk2::visit`]); the forward loop reads each
+//! sample's two neighbouring values with one 64-bit gather lane; the back loop adds them with scalar
+//! stores (AVX2 has no scatter). Selected at run time by [`super::kernel2::Kernel::detect`] and tested
+//! against the scalar form in `kernel2`'s tests.
+
+use std::arch::x86_64::*;
+
+use super::kernel2::Segment;
+
+/// True when the CPU has AVX2 and FMA.
+pub fn available() -> bool {
+    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+}
+
+/// The per-segment constants of the loops.
+struct Consts {
+    c0: __m256,
+    dc: __m256,
+    weight: __m256,
+    one: __m256,
+    top: __m256,
+    hi: __m256,
+    lanes: __m256,
+    /// `(lane)·width` for each lane.
+    lane_offsets: __m256i,
+}
+
+#[target_feature(enable = "avx2,fma")]
+fn consts(seg: &Segment, width: usize, hi: usize) -> Consts {
+    let w = width as i32;
+    Consts {
+        c0: _mm256_set1_ps(seg.c0),
+        dc: _mm256_set1_ps(seg.dc),
+        weight: _mm256_set1_ps(seg.weight),
+        one: _mm256_set1_ps(1.0),
+        top: _mm256_set1_ps((width - 1) as f32),
+        hi: _mm256_set1_ps(hi as f32),
+        lanes: _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
+        lane_offsets: _mm256_setr_epi32(0, w, 2 * w, 3 * w, 4 * w, 5 * w, 6 * w, 7 * w),
+    }
+}
+
+/// Samples `i .. i + 8` (`line_base` = (i − first)·width): the index of each pair's first value, the
+/// weights `(w0, w1)` and the mask of lanes below `hi` with a pixel. The other lanes get index 0 and
+/// zero weights.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn samples(k: &Consts, i: usize, line_base: i32) -> (__m256i, __m256, __m256, __m256) {
+    // i + lane and the products below are exact or rounded exactly as the scalar `sample` rounds them:
+    // t = (c0 + fi·dc) + 1 with separate roundings.
+    let fi = _mm256_add_ps(_mm256_set1_ps(i as f32), k.lanes);
+    let t = _mm256_add_ps(_mm256_add_ps(k.c0, _mm256_mul_ps(fi, k.dc)), k.one);
+    let inside = _mm256_and_ps(
+        _mm256_cmp_ps::<_CMP_GT_OQ>(t, _mm256_setzero_ps()),
+        _mm256_cmp_ps::<_CMP_LT_OQ>(t, k.top),
+    );
+    let valid = _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_LT_OQ>(fi, k.hi));
+    let tc = _mm256_and_ps(t, valid);
+    let j = _mm256_cvttps_epi32(tc);
+    let w1 = _mm256_mul_ps(_mm256_sub_ps(tc, _mm256_cvtepi32_ps(j)), k.weight);
+    let w0 = _mm256_and_ps(_mm256_sub_ps(k.weight, w1), valid);
+    let idx = _mm256_add_epi32(
+        _mm256_add_epi32(_mm256_set1_epi32(line_base), k.lane_offsets),
+        j,
+    );
+    (
+        _mm256_and_si256(idx, _mm256_castps_si256(valid)),
+        w0,
+        w1,
+        valid,
+    )
+}
+
+/// The pairs `(q[k_j], q[k_j + 1])` for the 8 indices of `k`, as two vectors in lane order: one
+/// 64-bit gather per 4 pairs.
+///
+/// # Safety
+/// `base + k_j` and `base + k_j + 1` must be readable for every j.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+unsafe fn gather_pairs(base: *const f32, k: __m256i) -> (__m256, __m256) {
+    let lo = _mm256_castsi256_si128(k);
+    let hi = _mm256_extracti128_si256::<1>(k);
+    // SAFETY: the caller guarantees both floats of every pair are readable (8-byte unaligned loads).
+    let (p0, p1) = unsafe {
+        (
+            _mm256_castpd_ps(_mm256_i32gather_pd::<4>(base as *const f64, lo)),
+            _mm256_castpd_ps(_mm256_i32gather_pd::<4>(base as *const f64, hi)),
+        )
+    };
+    // p0 = [a0 b0 a1 b1 | a2 b2 a3 b3], p1 = [a4 b4 a5 b5 | a6 b6 a7 b7].
+    let a = _mm256_shuffle_ps::<0b10_00_10_00>(p0, p1);
+    let b = _mm256_shuffle_ps::<0b11_01_11_01>(p0, p1);
+    // a = [a0 a1 a4 a5 | a2 a3 a6 a7]: swap the middle quarters back.
+    let order = _mm256_setr_epi32(0, 1, 4, 5, 2, 3, 6, 7);
+    (
+        _mm256_permutevar8x32_ps(a, order),
+        _mm256_permutevar8x32_ps(b, order),
+    )
+}
+
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn sum8(v: __m256) -> f32 {
+    let s = _mm_add_ps(_mm256_castps256_ps128(v), _mm256_extractf128_ps::<1>(v));
+    let s = _mm_add_ps(s, _mm_movehl_ps(s, s));
+    let s = _mm_add_ss(s, _mm_movehdup_ps(s));
+    _mm_cvtss_f32(s)
+}
+
+/// [`super::kernel2::Kernel::dot`] with AVX2.
+///
+/// # Safety
+/// AVX2 and FMA must be available; `2 ≤ width`, `first ≤ lo < hi`, `(hi − first)·width ≤ lines.len()`
+/// and `hi·width < i32::MAX`, `hi, width < 2²²` (what `kernel2::check` asserts).
+#[target_feature(enable = "avx2,fma")]
+pub unsafe fn dot(
+    lines: &[f32],
+    width: usize,
+    first: usize,
+    seg: &Segment,
+    lo: usize,
+    hi: usize,
+) -> f32 {
+    let k = consts(seg, width, hi);
+    let base = lines.as_ptr();
+    let step = 8 * width as i32;
+    let mut line_base = ((lo - first) * width) as i32;
+    let mut acc0 = _mm256_setzero_ps();
+    let mut acc1 = _mm256_setzero_ps();
+    let mut i = lo;
+    while i < hi {
+        let (idx, w0, w1, valid) = samples(&k, i, line_base);
+        // SAFETY: a lane below `hi` has t ∈ (0, width − 1), so its index is (i' − first)·width + j
+        // with j ≤ width − 2 and both values lie in its line, inside `lines`; other lanes read
+        // values 0 and 1 (width ≥ 2, one line at least).
+        let (a, b) = unsafe { gather_pairs(base, idx) };
+        // Lanes without a pixel add nothing, even where values 0 and 1 are not finite.
+        let (a, b) = (_mm256_and_ps(a, valid), _mm256_and_ps(b, valid));
+        acc0 = _mm256_fmadd_ps(w0, a, acc0);
+        acc1 = _mm256_fmadd_ps(w1, b, acc1);
+        i += 8;
+        line_base = line_base.wrapping_add(step);
+    }
+    sum8(_mm256_add_ps(acc0, acc1))
+}
+
+/// [`super::kernel2::Kernel::axpy`] with AVX2 positions and weights, scalar stores.
+///
+/// # Safety
+/// As [`dot`].
+#[target_feature(enable = "avx2,fma")]
+#[allow(clippy::too_many_arguments)]
+pub unsafe fn axpy(
+    lines: &mut [f32],
+    width: usize,
+    first: usize,
+    seg: &Segment,
+    lo: usize,
+    hi: usize,
+    alpha: f32,
+) {
+    let k = consts(seg, width, hi);
+    let va = _mm256_set1_ps(alpha);
+    let base = lines.as_mut_ptr();
+    let step = 8 * width as i32;
+    let mut line_base = ((lo - first) * width) as i32;
+    let mut idx = [0i32; 8];
+    let mut u = [0f32; 8];
+    let mut v = [0f32; 8];
+    let mut i = lo;
+    while i < hi {
+        let (p, w0, w1, valid) = samples(&k, i, line_base);
+        // Lanes without a pixel add exactly 0, whatever `alpha` is.
+        let du = _mm256_and_ps(_mm256_mul_ps(va, w0), valid);
+        let dv = _mm256_and_ps(_mm256_mul_ps(va, w1), valid);
+        // SAFETY: the arrays hold 8 values each (unaligned stores).
+        unsafe {
+            _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, p);
+            _mm256_storeu_ps(u.as_mut_ptr(), du);
+            _mm256_storeu_ps(v.as_mut_ptr(), dv);
+        }
+        for lane in 0..(hi - i).min(8) {
+            let q = idx[lane] as usize;
+            // SAFETY: as in `dot`, q and q + 1 index `lines` (lanes without a pixel add 0 to values
+            // 0 and 1); writes go one at a time through the raw pointer.
+            unsafe {
+                *base.add(q) += u[lane];
+                *base.add(q + 1) += v[lane];
+            }
+        }
+        i += 8;
+        line_base = line_base.wrapping_add(step);
+    }
+}
