@@ -5,9 +5,9 @@
 //! `cargo run --release --example iterative_curves` — the table;
 //! `cargo run --release --example iterative_curves -- cone` — one cone-beam SIRT×10 (128³ from 180
 //! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory;
-//! `cargo run --release --example iterative_curves -- projector [N]` — best of N (default 5) wall times
-//! of one forward and one back projection of 512² / 720 views / 725 detectors and of 256² / 360 / 363
-//! (parallel beam), and of SIRT×100 and CGLS×50 on the 256² case.
+//! `cargo run --release --example iterative_curves -- projector [N [only]]` — best of N (default 5)
+//! wall times of one forward and one back projection of 512² / 720 views / 725 detectors and of 256² /
+//! 360 / 363 (parallel beam), and (unless `only`) of SIRT×100 and CGLS×50 on the 256² case.
 
 use std::time::Instant;
 
@@ -45,7 +45,7 @@ fn parallel(n: usize, views: usize, det: usize) -> (ctrecon::recon::geometry::Vi
     (v, ImageGrid::square(n, 1.0))
 }
 
-fn projector(runs: usize) {
+fn projector(runs: usize, iterative: bool) {
     for (n, views, det) in [(512, 720, 725), (256, 360, 363)] {
         let (v, grid) = parallel(n, views, det);
         let image =
@@ -58,6 +58,9 @@ fn projector(runs: usize) {
             std::hint::black_box(back_2d(&v, sino.view(), &grid));
         });
         println!("projector {n}² {views} views {det} det: forward {f:.4} s, back {b:.4} s");
+    }
+    if !iterative {
+        return;
     }
     let (v2, grid) = parallel(256, 360, 363);
     let sino = Phantom2::from_table(Table2::ModifiedSheppLogan, 128.0).project(&v2);
@@ -146,7 +149,7 @@ fn main() {
             .nth(2)
             .and_then(|s| s.parse().ok())
             .unwrap_or(5);
-        projector(runs);
+        projector(runs, std::env::args().nth(3).as_deref() != Some("only"));
         return;
     }
     let n = 256;
