@@ -42,34 +42,53 @@ fn consts(seg: &Segment, width: usize, hi: usize) -> Consts {
     }
 }
 
-/// Samples `i .. i + 8` (`line_base` = (i − first)·width): the index of each pair's first value, the
-/// weights `(w0, w1)` and the mask of lanes below `hi` with a pixel. The other lanes get index 0 and
-/// zero weights.
+/// Samples `fi = i .. i + 8` (as f32) whose lines start at values `line_base` (`(i' − first)·width`
+/// per lane): the index of each pair's first value, the weights `(w0, w1)` and the mask of lanes with a
+/// pixel (and, when `TAIL`, below `hi`). The other lanes get index 0 and zero weights.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-fn samples(k: &Consts, i: usize, line_base: i32) -> (__m256i, __m256, __m256, __m256) {
-    // i + lane and the products below are exact or rounded exactly as the scalar `sample` rounds them:
-    // t = (c0 + fi·dc) + 1 with separate roundings.
-    let fi = _mm256_add_ps(_mm256_set1_ps(i as f32), k.lanes);
+fn samples<const TAIL: bool>(
+    k: &Consts,
+    fi: __m256,
+    line_base: __m256i,
+) -> (__m256i, __m256, __m256, __m256) {
+    // t = (c0 + fi·dc) + 1 with separate roundings, as the scalar `sample` computes it.
     let t = _mm256_add_ps(_mm256_add_ps(k.c0, _mm256_mul_ps(fi, k.dc)), k.one);
     let inside = _mm256_and_ps(
         _mm256_cmp_ps::<_CMP_GT_OQ>(t, _mm256_setzero_ps()),
         _mm256_cmp_ps::<_CMP_LT_OQ>(t, k.top),
     );
-    let valid = _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_LT_OQ>(fi, k.hi));
+    let valid = if TAIL {
+        _mm256_and_ps(inside, _mm256_cmp_ps::<_CMP_LT_OQ>(fi, k.hi))
+    } else {
+        inside
+    };
     let tc = _mm256_and_ps(t, valid);
     let j = _mm256_cvttps_epi32(tc);
     let w1 = _mm256_mul_ps(_mm256_sub_ps(tc, _mm256_cvtepi32_ps(j)), k.weight);
     let w0 = _mm256_and_ps(_mm256_sub_ps(k.weight, w1), valid);
-    let idx = _mm256_add_epi32(
-        _mm256_add_epi32(_mm256_set1_epi32(line_base), k.lane_offsets),
-        j,
-    );
+    let idx = _mm256_add_epi32(line_base, j);
     (
         _mm256_and_si256(idx, _mm256_castps_si256(valid)),
         w0,
         w1,
         valid,
+    )
+}
+
+/// The lane vectors of the first step from sample `lo`: `lo + lane` (f32, exact below 2²⁴) and
+/// `(lo − first + lane)·width`, and their increments per step.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn start(k: &Consts, width: usize, first: usize, lo: usize) -> (__m256, __m256i, __m256, __m256i) {
+    (
+        _mm256_add_ps(_mm256_set1_ps(lo as f32), k.lanes),
+        _mm256_add_epi32(
+            _mm256_set1_epi32(((lo - first) * width) as i32),
+            k.lane_offsets,
+        ),
+        _mm256_set1_ps(8.0),
+        _mm256_set1_epi32(8 * width as i32),
     )
 }
 
@@ -132,23 +151,33 @@ pub unsafe fn dot(
 ) -> f32 {
     let k = consts(seg, width, hi);
     let base = lines.as_ptr();
-    let step = 8 * width as i32;
-    let mut line_base = ((lo - first) * width) as i32;
+    let (mut fi, mut line_base, df, dl) = start(&k, width, first, lo);
     let mut acc0 = _mm256_setzero_ps();
     let mut acc1 = _mm256_setzero_ps();
+    // Full steps, then one masked step for the last 1–8 samples.
     let mut i = lo;
-    while i < hi {
-        let (idx, w0, w1, valid) = samples(&k, i, line_base);
+    loop {
+        let tail = i + 8 >= hi;
+        let (idx, w0, w1, valid) = if tail {
+            samples::<true>(&k, fi, line_base)
+        } else {
+            samples::<false>(&k, fi, line_base)
+        };
         // SAFETY: a lane below `hi` has t ∈ (0, width − 1), so its index is (i' − first)·width + j
-        // with j ≤ width − 2 and both values lie in its line, inside `lines`; other lanes read
-        // values 0 and 1 (width ≥ 2, one line at least).
+        // with j ≤ width − 2 and both values lie in its line, inside `lines`; other lanes (those
+        // past `hi` exist only in the tail step, which masks them) read values 0 and 1 (width ≥ 2,
+        // one line at least).
         let (a, b) = unsafe { load_pairs(base, idx) };
         // Lanes without a pixel add nothing, even where values 0 and 1 are not finite.
         let (a, b) = (_mm256_and_ps(a, valid), _mm256_and_ps(b, valid));
         acc0 = _mm256_fmadd_ps(w0, a, acc0);
         acc1 = _mm256_fmadd_ps(w1, b, acc1);
+        if tail {
+            break;
+        }
         i += 8;
-        line_base = line_base.wrapping_add(step);
+        fi = _mm256_add_ps(fi, df);
+        line_base = _mm256_add_epi32(line_base, dl);
     }
     sum8(_mm256_add_ps(acc0, acc1))
 }
@@ -172,12 +201,16 @@ pub unsafe fn axpy(
     let k = consts(seg, width, hi);
     let va = _mm256_set1_ps(alpha);
     let base = lines.as_mut_ptr();
-    let step = 8 * width as i32;
-    let mut line_base = ((lo - first) * width) as i32;
+    let (mut fi, mut line_base, df, dl) = start(&k, width, first, lo);
     let mut idx = [0i32; 8];
     let mut i = lo;
-    while i < hi {
-        let (p, w0, w1, valid) = samples(&k, i, line_base);
+    loop {
+        let tail = i + 8 >= hi;
+        let (p, w0, w1, valid) = if tail {
+            samples::<true>(&k, fi, line_base)
+        } else {
+            samples::<false>(&k, fi, line_base)
+        };
         // Lanes without a pixel add exactly 0 to values 0 and 1, whatever `alpha` is.
         let du = _mm256_and_ps(_mm256_mul_ps(va, w0), valid);
         let dv = _mm256_and_ps(_mm256_mul_ps(va, w1), valid);
@@ -205,7 +238,11 @@ pub unsafe fn axpy(
                 }
             }
         }
+        if tail {
+            break;
+        }
         i += 8;
-        line_base = line_base.wrapping_add(step);
+        fi = _mm256_add_ps(fi, df);
+        line_base = _mm256_add_epi32(line_base, dl);
     }
 }
