@@ -12,7 +12,7 @@ use super::{Kernel, Segment};
 use crate::recon::geometry::Ray2;
 use crate::recon::grid::ImageGrid;
 use crate::recon::projector::joseph2::Walk2;
-use crate::recon::projector::padded2::Layouts2;
+use crate::recon::projector::padded2::{Layouts2, Needs};
 
 fn grid() -> ImageGrid {
     ImageGrid {
@@ -70,7 +70,7 @@ fn forward_kernels_match_the_reference_walk() {
     let g = grid();
     let mut rng = StdRng::seed_from_u64(11);
     let image: Vec<f32> = (0..g.nx * g.ny).map(|_| rng.random::<f32>()).collect();
-    let layouts = Layouts2::from_image(&image, g.nx, g.ny);
+    let layouts = Layouts2::from_image(&image, g.nx, g.ny, Needs::BOTH);
     let mut checked = 0;
     for deg in angles(&mut rng) {
         for ray in rays(&g, deg, &mut rng) {
@@ -119,7 +119,7 @@ fn back_kernels_match_the_reference_walk() {
             w.axpy(alpha, &mut reference);
             let seg = Segment::of(&w);
             for k in kernels() {
-                let mut acc = Layouts2::zeros(g.nx, g.ny);
+                let mut acc = Layouts2::zeros(g.nx, g.ny, Needs::BOTH);
                 let lines = if w.along_x {
                     &mut acc.cols
                 } else {
@@ -152,7 +152,7 @@ fn lanes_without_a_pixel_add_nothing_even_for_infinite_values() {
     let g = grid();
     let mut image = vec![1.0f32; g.nx * g.ny];
     image[0] = f32::INFINITY;
-    let layouts = Layouts2::from_image(&image, g.nx, g.ny);
+    let layouts = Layouts2::from_image(&image, g.nx, g.ny, Needs::BOTH);
     // A horizontal ray along the top row never touches pixel [0][0], which sits at value 1 of the
     // column layout: the lanes past the ray's last sample that read it must not turn the sum to NaN.
     let ray = Ray2 {
@@ -171,7 +171,7 @@ fn lanes_without_a_pixel_add_nothing_even_for_infinite_values() {
 #[test]
 #[should_panic(expected = "kernel range outside the lines")]
 fn a_range_past_the_lines_is_refused() {
-    let l = Layouts2::zeros(4, 4);
+    let l = Layouts2::zeros(4, 4, Needs::BOTH);
     let seg = Segment {
         start: 0,
         end: 5,

@@ -1,9 +1,9 @@
 //! Forward and back projection of a subset of the views of a 2D geometry with the fast kernels of
 //! [`super::kernel2`] on padded line layouts ([`super::padded2`]).
 //!
-//! Forward: the image is copied once into both layouts; views run in parallel (each writes its own
+//! Forward: the image is copied once into the layouts its rays use (one for a parallel view); views run in parallel (each writes its own
 //! data row), and the rays of a view too when the subset has fewer views than threads (single-view
-//! SART). Back: one pair of accumulator layouts for all threads. Views go in chunks; for each chunk the
+//! SART). Back: one accumulator per layout the rays use, shared by all threads. Views go in chunks; for each chunk the
 //! rays' segments are computed in parallel, then the lines of each layout are cut into bands and the
 //! bands run in parallel, each adding the part of every ray of the chunk that lies on its lines (a ray
 //! writes only the line of each of its samples), so no two threads write the same value and no
@@ -16,11 +16,11 @@ use rayon::prelude::*;
 
 use super::joseph2::{self, Walk2};
 use super::kernel2::{Kernel, Segment};
-use super::padded2::{Layouts2, Lines};
+use super::padded2::{Layouts2, Lines, Needs};
 use super::{back_partitioned, forward_partitioned};
 use crate::recon::control::Cancel;
 use crate::recon::error::ReconError;
-use crate::recon::geometry::Views2;
+use crate::recon::geometry::{Source2, Views2};
 use crate::recon::grid::ImageGrid;
 
 /// Bytes of ray segments held per chunk of views during a back projection.
@@ -36,6 +36,32 @@ fn fits(grid: &ImageGrid) -> bool {
     Kernel::fits(grid.ny, grid.nx + 2) && Kernel::fits(grid.nx, grid.ny + 2)
 }
 
+/// The layouts the rays of `subset` use: the rays of a parallel view share its direction, so its
+/// dominant axis (decided as [`Walk2::new`] decides it); a fan view may use both.
+fn needs(views: &Views2, grid: &ImageGrid, subset: &[usize]) -> Needs {
+    let mut n = Needs {
+        rows: false,
+        cols: false,
+    };
+    for &view in subset {
+        match views.views[view].source {
+            Source2::Parallel { direction } => {
+                let (bx, by) = (direction[0] / grid.dx_mm, direction[1] / grid.dy_mm);
+                if bx.abs() >= by.abs() {
+                    n.cols = true;
+                } else {
+                    n.rows = true;
+                }
+            }
+            Source2::Point { .. } => return Needs::BOTH,
+        }
+        if n == Needs::BOTH {
+            break;
+        }
+    }
+    n
+}
+
 /// The dot product of ray `k` of `view` with the image held in `layouts`.
 #[inline]
 fn ray_dot(
@@ -43,13 +69,19 @@ fn ray_dot(
     view: usize,
     k: usize,
     grid: &ImageGrid,
+    image: &[f32],
     layouts: &Layouts2,
     kernel: Kernel,
 ) -> f32 {
     match Walk2::new(&views.ray(&views.views[view], k), grid) {
         Some(w) => {
             let l = layouts.lines(w.along_x);
-            kernel.dot(&l.data, l.width, 0, &Segment::of(&w), w.start, w.end)
+            if l.is_used() {
+                kernel.dot(&l.data, l.width, 0, &Segment::of(&w), w.start, w.end)
+            } else {
+                // Not reached: `needs` decides the dominant axis as the walk does.
+                w.dot(image)
+            }
         }
         None => 0.0,
     }
@@ -70,12 +102,12 @@ pub fn forward(
             joseph2::forward_view(views, view, grid, image, row)
         });
     }
-    let layouts = Layouts2::from_image(image, grid.nx, grid.ny);
+    let layouts = Layouts2::from_image(image, grid.nx, grid.ny, needs(views, grid, subset));
     let kernel = Kernel::detect();
     if subset.len() >= 2 * rayon::current_num_threads() {
         return forward_partitioned(m, subset, out, cancel, |view, row| {
             for (k, o) in row.iter_mut().enumerate() {
-                *o = ray_dot(views, view, k, grid, &layouts, kernel);
+                *o = ray_dot(views, view, k, grid, image, &layouts, kernel);
             }
         });
     }
@@ -85,7 +117,15 @@ pub fn forward(
             .enumerate()
             .for_each(|(c, part)| {
                 for (k, o) in part.iter_mut().enumerate() {
-                    *o = ray_dot(views, view, c * RAYS_PER_TASK + k, grid, &layouts, kernel);
+                    *o = ray_dot(
+                        views,
+                        view,
+                        c * RAYS_PER_TASK + k,
+                        grid,
+                        image,
+                        &layouts,
+                        kernel,
+                    );
                 }
             });
     }
@@ -154,7 +194,12 @@ pub fn back(
         );
     }
     let kernel = Kernel::detect();
-    let mut acc = Layouts2::zeros(grid.nx, grid.ny);
+    let none = Needs {
+        rows: false,
+        cols: false,
+    };
+    // Each layout is allocated when a ray first needs it.
+    let mut acc = Layouts2::zeros(grid.nx, grid.ny, none);
     let per_layout = 2 * rayon::current_num_threads();
     let chunk = (CHUNK_BYTES / (m.max(1) * std::mem::size_of::<(f32, Segment)>())).max(1);
     let pairs: Vec<(usize, &[f32])> = subset.iter().copied().zip(data.chunks_exact(m)).collect();
@@ -166,6 +211,12 @@ pub fn back(
                 Ok(ViewRays::new(views, view, grid, row))
             })
             .collect::<Result<_, ReconError>>()?;
+        if !acc.cols.is_used() && rays.iter().any(|r| !r.along_x.is_empty()) {
+            acc.cols = Lines::zeros(grid.nx, grid.ny, true);
+        }
+        if !acc.rows.is_used() && rays.iter().any(|r| !r.along_y.is_empty()) {
+            acc.rows = Lines::zeros(grid.ny, grid.nx, true);
+        }
         let mut tasks = bands(&mut acc.cols, true, per_layout);
         tasks.extend(bands(&mut acc.rows, false, per_layout));
         tasks.into_par_iter().for_each(|(along_x, first, band)| {
