@@ -102,17 +102,18 @@ fn start(k: &Consts, width: usize, first: usize, lo: usize) -> (__m256, __m256i,
 #[inline]
 unsafe fn load_pairs(base: *const f32, k: __m256i) -> (__m256, __m256) {
     let mut idx = [0i32; 8];
-    // SAFETY: `idx` holds 8 values; the caller guarantees every pair is readable (8-byte loads).
+    // SAFETY: `idx` holds 8 values; the caller guarantees every pair is readable; the 8-byte loads
+    // are unaligned ones (`_mm_loadu_si64`), the pairs being only 4-byte aligned.
     let (p0, p1) = unsafe {
         _mm256_storeu_si256(idx.as_mut_ptr() as *mut __m256i, k);
-        let at = |l: usize| base.add(idx[l] as usize) as *const f64;
-        let q0 = _mm_loadh_pd(_mm_load_sd(at(0)), at(1));
-        let q1 = _mm_loadh_pd(_mm_load_sd(at(2)), at(3));
-        let q2 = _mm_loadh_pd(_mm_load_sd(at(4)), at(5));
-        let q3 = _mm_loadh_pd(_mm_load_sd(at(6)), at(7));
+        let pair = |l: usize| _mm_loadu_si64(base.add(idx[l] as usize) as *const u8);
+        let q0 = _mm_unpacklo_epi64(pair(0), pair(1));
+        let q1 = _mm_unpacklo_epi64(pair(2), pair(3));
+        let q2 = _mm_unpacklo_epi64(pair(4), pair(5));
+        let q3 = _mm_unpacklo_epi64(pair(6), pair(7));
         (
-            _mm256_castpd_ps(_mm256_insertf128_pd::<1>(_mm256_castpd128_pd256(q0), q1)),
-            _mm256_castpd_ps(_mm256_insertf128_pd::<1>(_mm256_castpd128_pd256(q2), q3)),
+            _mm256_castsi256_ps(_mm256_inserti128_si256::<1>(_mm256_castsi128_si256(q0), q1)),
+            _mm256_castsi256_ps(_mm256_inserti128_si256::<1>(_mm256_castsi128_si256(q2), q3)),
         )
     };
     // p0 = [a0 b0 a1 b1 | a2 b2 a3 b3], p1 = [a4 b4 a5 b5 | a6 b6 a7 b7].
@@ -229,12 +230,12 @@ pub unsafe fn axpy(
             for (half, d) in [pair, _mm_movehl_ps(pair, pair)].into_iter().enumerate() {
                 let at = idx[2 * q + half] as usize;
                 // SAFETY: as in `dot`, values `at` and `at + 1` lie in `lines` (lanes past `hi` or
-                // without a pixel have index 0 and add zeros); one 8-byte unaligned load and store,
-                // one sample at a time through the raw pointer.
+                // without a pixel have index 0 and add zeros); one 8-byte unaligned load and store
+                // (the pair is only 4-byte aligned), one sample at a time through the raw pointer.
                 unsafe {
-                    let cell = base.add(at) as *mut f64;
-                    let cur = _mm_castpd_ps(_mm_load_sd(cell));
-                    _mm_store_sd(cell, _mm_castps_pd(_mm_add_ps(cur, d)));
+                    let cell = base.add(at) as *mut u8;
+                    let cur = _mm_castsi128_ps(_mm_loadu_si64(cell));
+                    _mm_storeu_si64(cell, _mm_castps_si128(_mm_add_ps(cur, d)));
                 }
             }
         }
