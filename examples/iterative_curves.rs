@@ -7,7 +7,8 @@
 //! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory;
 //! `cargo run --release --example iterative_curves -- projector [N [only]]` — best of N (default 5)
 //! wall times of one forward and one back projection of 512² / 720 views / 725 detectors and of 256² /
-//! 360 / 363 (parallel beam), and (unless `only`) of SIRT×100 and CGLS×50 on the 256² case.
+//! 360 / 363 (parallel beam) and of a cone beam (64³ from 90 projections of 96²), and (unless `only`)
+//! of SIRT×100 and CGLS×50 on the 256² case.
 
 use std::time::Instant;
 
@@ -19,7 +20,7 @@ use ctrecon::recon::geometry::{Angles, ConeBeam, Panel, ParallelBeam, Views};
 use ctrecon::recon::grid::{ImageGrid, Limits, VolumeGrid};
 use ctrecon::recon::metrics::{inscribed_disk, rmse};
 use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
-use ctrecon::recon::projector::{back_2d, forward_2d};
+use ctrecon::recon::projector::{back_2d, back_3d, forward_2d, forward_3d};
 use ndarray::Ix2;
 
 /// Best wall time (s) of `n` runs of `f`.
@@ -59,6 +60,16 @@ fn projector(runs: usize, iterative: bool) {
         });
         println!("projector {n}² {views} views {det} det: forward {f:.4} s, back {b:.4} s");
     }
+    let (grid3, v3) = cone_case(64, 90, 96);
+    let vol = Phantom3::from_table(Table3::ModifiedSheppLogan, 32.0).rasterize(&grid3, 1);
+    let proj = forward_3d(&v3, vol.view(), &grid3);
+    let f = best_of(runs, || {
+        std::hint::black_box(forward_3d(&v3, vol.view(), &grid3));
+    });
+    let b = best_of(runs, || {
+        std::hint::black_box(back_3d(&v3, proj.view(), &grid3));
+    });
+    println!("projector cone 64³ 90 views 96² det: forward {f:.4} s, back {b:.4} s");
     if !iterative {
         return;
     }
@@ -99,23 +110,30 @@ fn projector(runs: usize, iterative: bool) {
     }
 }
 
-fn cone() {
-    let grid = VolumeGrid::cube(128, 1.0);
+/// The cone-beam case at scale `n`³ from `views` projections of `det`² elements of 1.5·128/n mm
+/// (n = 128: the 128³ / 180 × 192² case).
+fn cone_case(n: usize, views: usize, det: usize) -> (VolumeGrid, ctrecon::recon::geometry::Views3) {
+    let pitch = 1.5 * 128.0 / n as f64;
     let v3 = ConeBeam {
-        angles: Angles::uniform(180, 360.0),
-        dso_mm: 500.0,
-        dsd_mm: 750.0,
+        angles: Angles::uniform(views, 360.0),
+        dso_mm: 500.0 * n as f64 / 128.0,
+        dsd_mm: 750.0 * n as f64 / 128.0,
         detector: Panel {
-            nu: 192,
-            nv: 192,
-            du_mm: 1.5,
-            dv_mm: 1.5,
+            nu: det,
+            nv: det,
+            du_mm: pitch,
+            dv_mm: pitch,
             offset_u_mm: 0.0,
             offset_v_mm: 0.0,
         },
     }
     .to_views()
     .expect("valid geometry");
+    (VolumeGrid::cube(n, 1.0), v3)
+}
+
+fn cone() {
+    let (grid, v3) = cone_case(128, 180, 192);
     let phantom = Phantom3::from_table(Table3::ModifiedSheppLogan, 64.0);
     let proj = phantom.project(&v3);
     let views = Views::D3(v3);

@@ -16,6 +16,7 @@
 //! races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
 //! `[view][v][u]`.
 
+pub mod footprint3;
 pub mod joseph2;
 pub mod joseph3;
 pub mod kernel2;
