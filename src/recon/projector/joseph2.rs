@@ -22,6 +22,8 @@ pub struct Walk2 {
     pub stride_a: usize,
     pub stride_c: usize,
     pub n_c: usize,
+    /// True when the dominant axis is x (samples on image columns, interpolation along y).
+    pub along_x: bool,
 }
 
 impl Walk2 {
@@ -33,7 +35,8 @@ impl Walk2 {
         let ay = (ray.origin[1] - y0) / grid.dy_mm;
         let by = ray.direction[1] / grid.dy_mm;
         // Dominant axis: the one the ray crosses fastest in index space.
-        let (a0, ba, c, bc, n_a, n_c, stride_a, stride_c) = if bx.abs() >= by.abs() {
+        let along_x = bx.abs() >= by.abs();
+        let (a0, ba, c, bc, n_a, n_c, stride_a, stride_c) = if along_x {
             (ax, bx, ay, by, grid.nx, grid.ny, 1, grid.nx)
         } else {
             (ay, by, ax, bx, grid.ny, grid.nx, grid.nx, 1)
@@ -68,6 +71,7 @@ impl Walk2 {
             stride_a,
             stride_c,
             n_c,
+            along_x,
         })
     }
 

@@ -4,6 +4,7 @@
 //! Forward and back projection enumerate exactly the same (voxel, weight) pairs through
 //! [`Walk3::visit`], which makes the pair an exact adjoint (up to f32 rounding).
 
+use super::footprint3::footprint;
 use crate::recon::geometry::{Ray3, Views3};
 use crate::recon::grid::VolumeGrid;
 
@@ -148,7 +149,39 @@ impl Walk3 {
     }
 }
 
-/// Forward-project `volume` (flat `[z][y][x]`) along every element of `view` into `out` (`[v][u]`).
+/// [`Walk3::dot`] without bounds checks.
+///
+/// # Safety
+/// `walk` must be `Walk3::new(_, grid)` unchanged, and `volume.len() ≥ nx·ny·nz` of that grid: every
+/// voxel index `visit` yields is then below nx·ny·nz (sample planes `i < end ≤ n_a`, in-plane indices
+/// `kc − 1 < n_c`, `ke − 1 < n_e`, strides 1, nx, nx·ny in some order).
+#[inline]
+unsafe fn dot_unchecked(walk: &Walk3, volume: &[f32]) -> f32 {
+    let mut acc = 0.0f32;
+    // SAFETY: the caller's contract above bounds every p.
+    walk.visit(|p, w| acc += unsafe { *volume.get_unchecked(p) } * w);
+    acc
+}
+
+/// [`Walk3::axpy`] without bounds checks.
+///
+/// # Safety
+/// As [`dot_unchecked`].
+#[inline]
+unsafe fn axpy_unchecked(walk: &Walk3, alpha: f32, volume: &mut [f32]) {
+    // SAFETY: the caller's contract bounds every p.
+    walk.visit(|p, w| unsafe { *volume.get_unchecked_mut(p) += alpha * w });
+}
+
+fn voxels(grid: &VolumeGrid) -> usize {
+    grid.nx * grid.ny * grid.nz
+}
+
+/// Forward-project `volume` (flat `[z][y][x]`) along every element of `view` into `out` (`[v][u]`);
+/// elements outside the grid's [`footprint`] get 0 without building their walk.
+///
+/// # Panics
+/// If `volume` holds fewer than nx·ny·nz values.
 pub fn forward_view(
     views: &Views3,
     view: usize,
@@ -156,26 +189,168 @@ pub fn forward_view(
     volume: &[f32],
     out: &mut [f32],
 ) {
+    assert!(volume.len() >= voxels(grid), "volume smaller than its grid");
     let v = &views.views[view];
     let nu = views.detector.nu;
-    for (idx, o) in out.iter_mut().enumerate() {
-        *o = match Walk3::new(&views.ray(v, idx / nu, idx % nu), grid) {
-            Some(w) => w.dot(volume),
-            None => 0.0,
-        };
+    let (rows, cols) = footprint(views, v, grid);
+    out.fill(0.0);
+    for r in rows {
+        for c in cols.clone() {
+            if let Some(w) = Walk3::new(&views.ray(v, r, c), grid) {
+                // SAFETY: a fresh walk on `grid`, and the length was asserted above.
+                out[r * nu + c] = unsafe { dot_unchecked(&w, volume) };
+            }
+        }
     }
 }
 
-/// Add the back projection of one view's data (`[v][u]`) to `acc` (flat `[z][y][x]`).
+/// Add the back projection of one view's data (`[v][u]`) to `acc` (flat `[z][y][x]`); elements
+/// outside the grid's [`footprint`] are skipped.
+///
+/// # Panics
+/// If `acc` holds fewer than nx·ny·nz values.
 pub fn back_view(views: &Views3, view: usize, grid: &VolumeGrid, data: &[f32], acc: &mut [f32]) {
+    assert!(acc.len() >= voxels(grid), "volume smaller than its grid");
     let v = &views.views[view];
     let nu = views.detector.nu;
-    for (idx, &r) in data.iter().enumerate() {
-        if r == 0.0 {
-            continue;
+    let (rows, cols) = footprint(views, v, grid);
+    for row in rows {
+        for c in cols.clone() {
+            let r = data[row * nu + c];
+            if r == 0.0 {
+                continue;
+            }
+            if let Some(w) = Walk3::new(&views.ray(v, row, c), grid) {
+                // SAFETY: a fresh walk on `grid`, and the length was asserted above.
+                unsafe { axpy_unchecked(&w, r, acc) };
+            }
         }
-        if let Some(w) = Walk3::new(&views.ray(v, idx / nu, idx % nu), grid) {
-            w.axpy(r, acc);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    //! The unchecked loops against the checked ones ([`Walk3::dot`], [`Walk3::axpy`]): same pairs in
+    //! the same order, so equal bit for bit, on random volumes, rays through the interior, along the
+    //! faces and edges of the grid (grazing) and at 0°, 45°, 90°, 135° about each axis.
+    use rand::rngs::StdRng;
+    use rand::{Rng, SeedableRng};
+
+    use super::*;
+
+    #[test]
+    fn unchecked_loops_equal_the_checked_ones() {
+        let grid = VolumeGrid {
+            nx: 13,
+            ny: 9,
+            nz: 7,
+            spacing_mm: [1.0, 1.1, 1.3],
+            centre_mm: [0.5, -0.5, 1.0],
+        };
+        let mut rng = StdRng::seed_from_u64(3);
+        let n = voxels(&grid);
+        let volume: Vec<f32> = (0..n).map(|_| rng.random()).collect();
+        let half = [6.5, 9.0 * 1.1 / 2.0, 7.0 * 1.3 / 2.0];
+        let mut checked = 0;
+        for axis in 0..3 {
+            for deg in [0.0f64, 45.0, 90.0, 135.0, rng.random_range(0.0..180.0)] {
+                let (a, b) = ((axis + 1) % 3, (axis + 2) % 3);
+                let mut dir = [0.0; 3];
+                dir[a] = deg.to_radians().cos();
+                dir[b] = deg.to_radians().sin();
+                dir[axis] = rng.random_range(-0.3..0.3);
+                let norm = (dir[0] * dir[0] + dir[1] * dir[1] + dir[2] * dir[2]).sqrt();
+                let dir = dir.map(|d| d / norm);
+                let mut offsets: Vec<[f64; 3]> = (0..40)
+                    .map(|_| [0, 1, 2].map(|k| rng.random_range(-half[k] - 1.0..half[k] + 1.0)))
+                    .collect();
+                // Through faces and edges of the grid.
+                offsets.extend([
+                    [half[0], 0.0, 0.0],
+                    [0.0, -half[1], 0.0],
+                    [0.0, 0.0, half[2]],
+                    [half[0], half[1], 0.0],
+                    [-half[0], 0.0, -half[2]],
+                ]);
+                for o in offsets {
+                    let origin = [0, 1, 2].map(|k| grid.centre_mm[k] + o[k] - 50.0 * dir[k]);
+                    let ray = Ray3 {
+                        origin,
+                        direction: dir,
+                    };
+                    let Some(w) = Walk3::new(&ray, &grid) else {
+                        continue;
+                    };
+                    // SAFETY: a fresh walk on `grid`; `volume` holds its voxels.
+                    assert_eq!(unsafe { dot_unchecked(&w, &volume) }, w.dot(&volume));
+                    let mut a = vec![0.0f32; n];
+                    let mut b = vec![0.0f32; n];
+                    w.axpy(0.7, &mut a);
+                    // SAFETY: as above.
+                    unsafe { axpy_unchecked(&w, 0.7, &mut b) };
+                    assert_eq!(a, b);
+                    checked += 1;
+                }
+            }
         }
+        assert!(checked > 200, "{checked}");
+    }
+
+    #[test]
+    fn the_footprint_skips_only_rays_without_samples() {
+        use crate::recon::geometry::{Angles, ConeBeam, Panel};
+        let grid = VolumeGrid {
+            nx: 12,
+            ny: 10,
+            nz: 8,
+            spacing_mm: [1.0, 1.2, 0.9],
+            centre_mm: [1.5, -1.0, 0.5],
+        };
+        let views = ConeBeam {
+            angles: Angles::uniform(16, 360.0),
+            dso_mm: 40.0,
+            dsd_mm: 70.0,
+            detector: Panel {
+                nu: 48,
+                nv: 40,
+                du_mm: 1.0,
+                dv_mm: 0.8,
+                offset_u_mm: 2.0,
+                offset_v_mm: -1.5,
+            },
+        }
+        .to_views()
+        .unwrap();
+        let mut rng = StdRng::seed_from_u64(4);
+        let n = voxels(&grid);
+        let volume: Vec<f32> = (0..n).map(|_| rng.random()).collect();
+        let (nv, nu) = (views.detector.nv, views.detector.nu);
+        let data: Vec<f32> = (0..nv * nu).map(|_| rng.random::<f32>() - 0.3).collect();
+        let mut culled = 0;
+        for view in 0..views.views.len() {
+            let v = &views.views[view];
+            let (rows, cols) = footprint(&views, v, &grid);
+            culled += nv * nu - rows.len() * cols.len();
+            let mut got = vec![f32::NAN; nv * nu];
+            forward_view(&views, view, &grid, &volume, &mut got);
+            let mut got_back = vec![0.0f32; n];
+            back_view(&views, view, &grid, &data, &mut got_back);
+            let mut want_back = vec![0.0f32; n];
+            for r in 0..nv {
+                for c in 0..nu {
+                    let w = Walk3::new(&views.ray(v, r, c), &grid);
+                    let want = w.map_or(0.0, |w| w.dot(&volume));
+                    assert_eq!(got[r * nu + c], want, "view {view} [{r}][{c}]");
+                    if !(rows.contains(&r) && cols.contains(&c)) {
+                        assert_eq!(want, 0.0, "a skipped ray has samples");
+                    }
+                    if let Some(w) = w {
+                        w.axpy(data[r * nu + c], &mut want_back);
+                    }
+                }
+            }
+            assert_eq!(got_back, want_back, "view {view}");
+        }
+        assert!(culled > 16 * nv * nu / 8, "only {culled} rays skipped");
     }
 }

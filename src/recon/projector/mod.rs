@@ -8,13 +8,22 @@
 //!
 //! The back projector is the exact transpose: it enumerates the same (pixel, weight) pairs
 //! ([`joseph2::Walk2::visit`], [`joseph3::Walk3::visit`]), so ⟨A x, y⟩ = ⟨x, Aᵀ y⟩ up to f32 rounding.
-//! Forward projection runs views in parallel (each view writes its own rows); back projection partitions
-//! the views between threads, each accumulating into its own image buffer, and sums the buffers: no
-//! write races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
+//! In 2D the whole-view passes run the kernels of [`kernel2`] (AVX2 where the CPU has it), which
+//! compute the pairs and weights of [`joseph2::Walk2`] bit for bit on padded line layouts
+//! ([`padded2`]); see [`operator2`] for how they share the work between threads. In 3D forward
+//! projection runs views in parallel (each view writes its own rows); back projection partitions the
+//! views between threads, each accumulating into its own volume buffer, and sums the buffers: no write
+//! races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
 //! `[view][v][u]`.
 
+pub mod footprint3;
 pub mod joseph2;
 pub mod joseph3;
+pub mod kernel2;
+pub mod operator2;
+pub mod padded2;
+#[cfg(target_arch = "x86_64")]
+mod simd2;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
 use rayon::prelude::*;
@@ -59,9 +68,11 @@ pub trait Operator: Sync {
     fn ray_norm2(&self, view: usize, element: usize) -> f32;
 }
 
-/// Number of image buffers a back projection allocates: one per thread.
+/// Number of image-sized buffers a projection allocates at most: one volume per thread for a cone-beam
+/// back projection; in 2D the two padded layouts of [`padded2::Layouts2`] (at most 3 images for grids
+/// of 4 × 4 pixels or more) and a fixed 256 KiB of ray segments.
 pub fn back_buffers() -> usize {
-    rayon::current_num_threads().max(1)
+    rayon::current_num_threads().max(3)
 }
 
 /// Run `per_view(view, data row, acc)` over `subset` with one accumulator per thread, then sum the
@@ -157,9 +168,7 @@ impl Operator for Projector2<'_> {
         out: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        forward_partitioned(self.view_len(), subset, out, cancel, |view, row| {
-            joseph2::forward_view(self.views, view, self.grid, image, row)
-        })
+        operator2::forward(self.views, self.grid, image, subset, out, cancel)
     }
     fn back(
         &self,
@@ -168,10 +177,7 @@ impl Operator for Projector2<'_> {
         image: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        let (n, m) = (self.image_len(), self.view_len());
-        back_partitioned(n, m, data, subset, image, cancel, |view, row, acc| {
-            joseph2::back_view(self.views, view, self.grid, row, acc)
-        })
+        operator2::back(self.views, self.grid, data, subset, image, cancel)
     }
     fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
         let ray = self.views.ray(&self.views.views[view], element);
