@@ -24,6 +24,8 @@ pub mod geometry;
 pub mod grid;
 pub mod iterative;
 pub mod metrics;
+#[cfg(target_arch = "x86_64")]
+mod pairs;
 pub mod phantom;
 pub mod projector;
 

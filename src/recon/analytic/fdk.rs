@@ -4,9 +4,10 @@
 //! Virtual detector at the isocentre, coordinates (p, ζ) = (u, v)·D/DSD: pre-weight D/√(D² + p² + ζ²)
 //! (times the redundancy weight of the in-plane fan angle), ramp along detector rows only (h/2, the ½ of
 //! a full turn), backproject Σ Δβ D²/lc² Q(u′, v′) with lc the distance from the source along the central
-//! ray. The volume is accumulated view by view in batches of one projection per thread: filter the batch
-//! (one projection per thread), backproject it into every slice (slices in parallel), drop it. Memory:
-//! the volume plus one filtered projection per thread.
+//! ray. The volume is accumulated in batches of [`VIEWS_PER_THREAD`] projections per thread: filter the batch
+//! (projections in parallel), backproject it into every slice (slices in parallel), drop it. Memory: the
+//! volume plus a few filtered projections per thread; each pass reads and writes the volume once, so larger
+//! batches mean fewer passes.
 
 use ndarray::{Array3, ArrayView3, Axis};
 use rayon::prelude::*;
@@ -61,7 +62,7 @@ pub fn fdk(
     };
     let filter = RowFilter::new(ne, kernel, 0.5, params)?;
     let (width, rows) = (ne + 2 * PAD, nv + 2 * PAD);
-    let batch = rayon::current_num_threads().max(1);
+    let batch = rayon::current_num_threads().max(1) * VIEWS_PER_THREAD;
     let mut volume = Array3::<f32>::zeros(grid.shape());
     let mut panels = vec![0.0f32; batch * width * rows];
     let ticker = Ticker::new(ctl, "fdk", views.views.len());
@@ -135,6 +136,10 @@ pub fn fdk(
     Ok(volume)
 }
 
+/// Filtered projections held per worker thread: each pass over the volume adds this many views per thread,
+/// so the volume is read and written once per `threads × VIEWS_PER_THREAD` views.
+pub const VIEWS_PER_THREAD: usize = 4;
+
 /// Detector sampling (du, dv, offset_u, offset_v, base_u, base_v): stored column =
 /// (u − offset_u)/du + (nu − 1)/2 + PAD + lo, with `lo` zero columns added on the left.
 fn det_map(det: &crate::recon::geometry::Detector2, lo: usize) -> [f64; 6] {
@@ -172,7 +177,8 @@ fn volume_row(f: &Frame, grid: &VolumeGrid, y: usize, z: usize) -> RowLine {
     }
 }
 
-/// Bytes FDK allocates: the volume, one filtered projection per thread and per-thread filter buffers.
+/// Bytes FDK allocates: the volume, [`VIEWS_PER_THREAD`] filtered projections per thread and per-thread
+/// filter buffers.
 pub fn estimate_bytes(views: &Views3, grid: &VolumeGrid, params: &FbpParams) -> u64 {
     let d = views.detector;
     // Offset panels are extended up to twice their width before filtering.
@@ -184,6 +190,7 @@ pub fn estimate_bytes(views: &Views3, grid: &VolumeGrid, params: &FbpParams) -> 
         .unwrap_or(0);
     let threads = rayon::current_num_threads() as u64;
     let per_thread = panel
+        .saturating_mul(VIEWS_PER_THREAD as u64)
         .saturating_add(padded.saturating_mul(8 * 4))
         .saturating_add((grid.nx as u64) * 4);
     grid.voxels()

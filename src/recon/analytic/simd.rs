@@ -1,8 +1,12 @@
-//! AVX2 + FMA backprojection kernels, 8 pixels at a time with gathers, selected at run time by
+//! AVX2 + FMA backprojection kernels, 8 pixels at a time (each pixel's pair of detector samples by a 64-bit
+//! gather in 2D, where neighbouring pixels read neighbouring samples, and by one 64-bit load each in 3D, where
+//! they do not: the faster choice for each on the development machine), selected at run time by
 //! [`super::backproject`]; the scalar forms there are the reference and handle the tails. Tested against
 //! the safe reference in `backproject`'s tests (which run these kernels on any AVX2 machine).
 
 use std::arch::x86_64::*;
+
+use crate::recon::pairs::load_pairs;
 
 use super::backproject::{
     MIN_DEPTH, Panel, RowLine, cone_row_scalar, fan_row_scalar, parallel_row_scalar,
@@ -163,7 +167,7 @@ pub unsafe fn cone_row(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [
         let k = _mm256_add_epi32(_mm256_mullo_epi32(iv, vw), iu);
         // SAFETY: iu ≤ width − 2 and iv ≤ rows − 2, so k + width + 1 ≤ rows·width − 1 < q.len().
         let ((q00, q01), (q10, q11)) =
-            unsafe { (gather_pairs(base, k), gather_pairs(base.add(width), k)) };
+            unsafe { (load_pairs(base, k), load_pairs(base.add(width), k)) };
         let top = _mm256_fmadd_ps(fu, _mm256_sub_ps(q01, q00), q00);
         let bottom = _mm256_fmadd_ps(fu, _mm256_sub_ps(q11, q10), q10);
         let v = _mm256_fmadd_ps(fv, _mm256_sub_ps(bottom, top), top);
