@@ -196,6 +196,96 @@ fn sart_os_sart_art_and_tv_approach_the_solution() {
 }
 
 #[test]
+fn box_constraints_hold_every_value_within_bounds_and_a_true_box_does_not_hurt() {
+    let (views, grid, truth, b) = small();
+    let (lo, hi) = truth
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| {
+            (l.min(v), h.max(v))
+        });
+    assert!(lo >= -1e-6 && hi <= 1.0 + 1e-6, "phantom in [{lo}, {hi}]");
+    // A box tighter than the truth clamps; the box of the truth, [0, 1], fits it no worse than no box.
+    let boxed = |upper: Option<f64>| {
+        [
+            AlgorithmSpec::Sirt(SirtParams {
+                iterations: 40,
+                nonnegative: true,
+                upper,
+                ..SirtParams::default()
+            }),
+            AlgorithmSpec::Sart(SartParams {
+                iterations: 5,
+                nonnegative: true,
+                upper,
+                ..SartParams::default()
+            }),
+            AlgorithmSpec::Art(ArtParams {
+                iterations: 5,
+                nonnegative: true,
+                upper,
+                ..ArtParams::default()
+            }),
+            AlgorithmSpec::Tv(TvParams {
+                iterations: 10,
+                upper,
+                ..TvParams::default()
+            }),
+        ]
+    };
+    for spec in boxed(Some(0.5)) {
+        let (x, _) = solve_with(&spec, &views, &grid, &b);
+        let (l, h) = x
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(l, h), &v| {
+                (l.min(v), h.max(v))
+            });
+        assert!(
+            l >= 0.0 && h <= 0.5,
+            "{}: values in [{l}, {h}]",
+            spec.name()
+        );
+        // TV ends each iteration with its smoothing step, which may stay below the bound.
+        if spec.name() != "tv" {
+            assert!(h == 0.5, "{}: the bound is reached ({h})", spec.name());
+        }
+    }
+    for (with_box, free) in boxed(Some(1.0)).iter().zip(boxed(None)) {
+        let e_box = rel_error(&solve_with(with_box, &views, &grid, &b).0, &truth);
+        let e_free = rel_error(&solve_with(&free, &views, &grid, &b).0, &truth);
+        println!(
+            "{}: [0, 1] box {e_box:.4}, [0, ∞) {e_free:.4}",
+            with_box.name()
+        );
+        assert!(
+            e_box <= e_free * 1.001,
+            "{}: {e_box} > {e_free}",
+            with_box.name()
+        );
+    }
+    // Bounds that cannot hold are refused before any work.
+    for upper in [-1.0, 0.0, f64::INFINITY] {
+        let spec = AlgorithmSpec::Sirt(SirtParams {
+            nonnegative: true,
+            upper: Some(upper),
+            ..SirtParams::default()
+        });
+        let e = reconstruct(
+            &spec,
+            &views,
+            b.view().into_dyn(),
+            &OutputGrid::Image(grid),
+            &Limits::default(),
+            unattended(),
+        )
+        .unwrap_err();
+        assert!(
+            matches!(e, ReconError::InvalidParameter { .. }),
+            "{upper}: {e:?}"
+        );
+    }
+}
+
+#[test]
 fn a_tolerance_stops_early() {
     let (views, grid, _, b) = small();
     let spec = AlgorithmSpec::Cgls(CglsParams {

@@ -7,9 +7,6 @@ use crate::recon::ReconError;
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, check_grid, estimate_bytes};
 use crate::recon::geometry::Views;
 use crate::recon::grid::Limits;
-use crate::recon::iterative::params::{
-    check_iterations, check_relaxation, check_subsets, check_tolerance,
-};
 use crate::recon::phantom::MAX_BODIES;
 
 use super::model::{Dataset, DatasetKind, JobRequest, SimulationRequest};
@@ -43,42 +40,8 @@ pub fn check_algorithm(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconE
                 return Err(ReconError::param("padded_len", "must be in 1..=4194304"));
             }
         }
-        AlgorithmSpec::Art(p) => {
-            check_iterations(p.iterations)?;
-            check_relaxation(p.relaxation)?;
-        }
-        AlgorithmSpec::Sart(p) | AlgorithmSpec::OsSart(p) => {
-            check_iterations(p.iterations)?;
-            check_relaxation(p.relaxation)?;
-            check_subsets(p.subsets, n_views)?;
-            check_tolerance(p.tolerance)?;
-        }
-        AlgorithmSpec::Sirt(p) => {
-            check_iterations(p.iterations)?;
-            check_relaxation(p.relaxation)?;
-            check_tolerance(p.tolerance)?;
-        }
-        AlgorithmSpec::Cgls(p) => {
-            check_iterations(p.iterations)?;
-            check_tolerance(p.tolerance)?;
-        }
-        AlgorithmSpec::Mlem(p) => {
-            check_iterations(p.iterations)?;
-            check_subsets(p.subsets, n_views)?;
-            check_tolerance(p.tolerance)?;
-        }
-        AlgorithmSpec::Tv(p) => {
-            check_iterations(p.iterations)?;
-            if !(p.tv_weight.is_finite() && p.tv_weight >= 0.0) {
-                return Err(ReconError::param(
-                    "tv_weight",
-                    format!("must be finite and non-negative, got {}", p.tv_weight),
-                ));
-            }
-            if p.tv_iterations == 0 || p.tv_iterations > 10_000 {
-                return Err(ReconError::param("tv_iterations", "must be in 1..=10000"));
-            }
-        }
+        // The iterative family: the core's own checks (ranges, subsets against the views, box bounds).
+        _ => crate::recon::iterative::validate(spec, n_views)?,
     }
     Ok(())
 }

@@ -39,7 +39,7 @@ pub fn art(
         *v = if n2 > 0.0 { 1.0 / n2 } else { 0.0 };
     }
     let lambda = p.relaxation as f32;
-    constrain(x, p.nonnegative);
+    constrain(x, p.bounds());
     for k in 1..=p.iterations {
         let mut sum2 = 0.0f64;
         for (c, &i) in order.iter().enumerate() {
@@ -55,7 +55,7 @@ pub fn art(
             sum2 += r as f64 * r as f64;
             op.ray_axpy(view, e, lambda * r * inv_norm2[i], x);
         }
-        constrain(x, p.nonnegative);
+        constrain(x, p.bounds());
         report(ctl, "art", k, p.iterations, sum2.sqrt());
     }
     Ok(())

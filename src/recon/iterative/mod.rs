@@ -40,7 +40,8 @@ pub fn validate(spec: &AlgorithmSpec, views: usize) -> Result<(), ReconError> {
         AlgorithmSpec::Sart(p) => {
             params::check_iterations(p.iterations)?;
             params::check_relaxation(p.relaxation)?;
-            params::check_tolerance(p.tolerance)
+            params::check_tolerance(p.tolerance)?;
+            params::check_upper(p.upper, p.nonnegative)
         }
         AlgorithmSpec::OsSart(p) => p.validate(views),
         AlgorithmSpec::Sirt(p) => p.validate(),

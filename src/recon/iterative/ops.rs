@@ -3,6 +3,7 @@
 
 use rayon::prelude::*;
 
+use super::params::Bounds;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::projector::Operator;
@@ -58,10 +59,10 @@ pub fn safe_reciprocal(v: &mut [f32]) {
         .for_each(|x| *x = if *x > floor { 1.0 / *x } else { 0.0 });
 }
 
-/// Clamp below at 0 when `nonnegative`.
-pub fn constrain(x: &mut [f32], nonnegative: bool) {
-    if nonnegative {
-        x.par_iter_mut().for_each(|v| *v = v.max(0.0));
+/// Clamp every value into `bounds`.
+pub fn constrain(x: &mut [f32], bounds: Bounds) {
+    if !bounds.is_none() {
+        x.par_iter_mut().for_each(|v| *v = bounds.clamp(*v));
     }
 }
 

@@ -40,6 +40,9 @@ pub struct ArtParams {
     pub shuffle: bool,
     #[serde(default)]
     pub nonnegative: bool,
+    /// Upper bound of a box constraint (default none); with `nonnegative` the box is [0, upper].
+    #[serde(default)]
+    pub upper: Option<f64>,
     #[serde(default)]
     pub initial: InitialImage,
 }
@@ -68,6 +71,9 @@ pub struct SartParams {
     pub subsets: usize,
     #[serde(default)]
     pub nonnegative: bool,
+    /// Upper bound of a box constraint (default none); with `nonnegative` the box is [0, upper].
+    #[serde(default)]
+    pub upper: Option<f64>,
     #[serde(default)]
     pub initial: InitialImage,
     /// Stop when the relative residual ‖Ax − b‖/‖b‖ drops below this (default: never).
@@ -93,6 +99,9 @@ pub struct SirtParams {
     pub relaxation: f64,
     #[serde(default)]
     pub nonnegative: bool,
+    /// Upper bound of a box constraint (default none); with `nonnegative` the box is [0, upper].
+    #[serde(default)]
+    pub upper: Option<f64>,
     #[serde(default)]
     pub initial: InitialImage,
     #[serde(default)]
@@ -154,11 +163,54 @@ pub struct TvParams {
     pub subsets: usize,
     #[serde(default = "yes")]
     pub nonnegative: bool,
+    /// Upper bound of a box constraint (default none); with `nonnegative` the box is [0, upper].
+    #[serde(default)]
+    pub upper: Option<f64>,
     #[serde(default)]
     pub initial: InitialImage,
 }
 fn tv_inner() -> usize {
     20
+}
+
+/// The box every iterate is clamped into: `[0, upper]` with non-negativity, `(−∞, upper]` without.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct Bounds {
+    pub lower: Option<f32>,
+    pub upper: Option<f32>,
+}
+
+impl Bounds {
+    pub fn new(nonnegative: bool, upper: Option<f64>) -> Self {
+        Self {
+            lower: nonnegative.then_some(0.0),
+            upper: upper.map(|u| u as f32),
+        }
+    }
+
+    pub fn is_none(&self) -> bool {
+        self.lower.is_none() && self.upper.is_none()
+    }
+
+    pub fn clamp(&self, v: f32) -> f32 {
+        let v = self.lower.map_or(v, |l| v.max(l));
+        self.upper.map_or(v, |u| v.min(u))
+    }
+}
+
+/// An upper bound must be finite and, with non-negativity, positive.
+pub fn check_upper(upper: Option<f64>, nonnegative: bool) -> Result<(), ReconError> {
+    match upper {
+        Some(u) if !u.is_finite() => Err(ReconError::param(
+            "upper",
+            format!("must be finite, got {u}"),
+        )),
+        Some(u) if nonnegative && u <= 0.0 => Err(ReconError::param(
+            "upper",
+            format!("must be above the lower bound 0 of `nonnegative`, got {u}"),
+        )),
+        _ => Ok(()),
+    }
 }
 
 pub fn check_iterations(n: usize) -> Result<(), ReconError> {
@@ -218,7 +270,8 @@ defaults_from_json!(
 impl ArtParams {
     pub fn validate(&self) -> Result<(), ReconError> {
         check_iterations(self.iterations)?;
-        check_relaxation(self.relaxation)
+        check_relaxation(self.relaxation)?;
+        check_upper(self.upper, self.nonnegative)
     }
 }
 
@@ -228,7 +281,8 @@ impl SartParams {
         check_iterations(self.iterations)?;
         check_relaxation(self.relaxation)?;
         check_subsets(self.subsets, views)?;
-        check_tolerance(self.tolerance)
+        check_tolerance(self.tolerance)?;
+        check_upper(self.upper, self.nonnegative)
     }
 }
 
@@ -236,7 +290,8 @@ impl SirtParams {
     pub fn validate(&self) -> Result<(), ReconError> {
         check_iterations(self.iterations)?;
         check_relaxation(self.relaxation)?;
-        check_tolerance(self.tolerance)
+        check_tolerance(self.tolerance)?;
+        check_upper(self.upper, self.nonnegative)
     }
 }
 
@@ -260,6 +315,7 @@ impl TvParams {
     pub fn validate(&self, views: usize) -> Result<(), ReconError> {
         check_iterations(self.iterations)?;
         check_subsets(self.subsets.min(views), views)?;
+        check_upper(self.upper, self.nonnegative)?;
         if !(self.tv_weight.is_finite() && self.tv_weight >= 0.0) {
             return Err(ReconError::param(
                 "tv_weight",
@@ -278,3 +334,15 @@ impl TvParams {
         Ok(())
     }
 }
+
+macro_rules! bounded {
+    ($($t:ty),*) => {$(
+        impl $t {
+            /// The box constraint of these parameters.
+            pub fn bounds(&self) -> Bounds {
+                Bounds::new(self.nonnegative, self.upper)
+            }
+        }
+    )*};
+}
+bounded!(ArtParams, SartParams, SirtParams, TvParams);

@@ -10,7 +10,7 @@ use super::ops::{
     axpy_scaled, column_sums, constrain, converged, gather, norm, report, residual_in_place,
     row_sums, safe_reciprocal, subsets,
 };
-use super::params::SartParams;
+use super::params::{Bounds, SartParams};
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::projector::Operator;
@@ -71,7 +71,7 @@ impl Sweep {
         b: &[f32],
         x: &mut [f32],
         lambda: f32,
-        nonnegative: bool,
+        bounds: Bounds,
         ctl: &Control<'_>,
     ) -> Result<f64, ReconError> {
         let m = op.view_len();
@@ -100,7 +100,7 @@ impl Sweep {
                     axpy_scaled(x, lambda, &c, &bp);
                 }
             }
-            constrain(x, nonnegative);
+            constrain(x, bounds);
         }
         Ok(sum2.sqrt())
     }
@@ -119,9 +119,9 @@ pub fn sart(
 ) -> Result<(), ReconError> {
     let sweep = Sweep::new(op, subsets, ctl)?;
     let b_norm = norm(b);
-    constrain(x, p.nonnegative);
+    constrain(x, p.bounds());
     for k in 1..=p.iterations {
-        let res = sweep.run(op, b, x, p.relaxation as f32, p.nonnegative, ctl)?;
+        let res = sweep.run(op, b, x, p.relaxation as f32, p.bounds(), ctl)?;
         report(ctl, stage, k, p.iterations, res);
         if converged(p.tolerance, res, b_norm) {
             break;

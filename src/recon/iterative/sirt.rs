@@ -26,7 +26,7 @@ pub fn sirt(
     let b_norm = norm(b);
     let mut r = vec![0.0f32; b.len()];
     let mut bp = vec![0.0f32; x.len()];
-    constrain(x, p.nonnegative);
+    constrain(x, p.bounds());
     op.forward(x, &all, &mut r, ctl.cancel)?;
     residual_in_place(&mut r, b);
     let lambda = p.relaxation as f32;
@@ -37,7 +37,7 @@ pub fn sirt(
         }
         op.back(&r, &all, &mut bp, ctl.cancel)?;
         axpy_scaled(x, lambda, &c_weight, &bp);
-        constrain(x, p.nonnegative);
+        constrain(x, p.bounds());
         op.forward(x, &all, &mut r, ctl.cancel)?;
         residual_in_place(&mut r, b);
         let res = norm(&r);

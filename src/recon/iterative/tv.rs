@@ -6,7 +6,7 @@
 
 use rayon::prelude::*;
 
-use super::ops::report;
+use super::ops::{constrain, report};
 use super::params::TvParams;
 use super::sart::Sweep;
 use crate::recon::control::Control;
@@ -184,13 +184,14 @@ pub fn tv(
     let sweep = Sweep::new(op, p.subsets, ctl)?;
     let mut w = p.tv_weight as f32;
     for k in 1..=p.iterations {
-        let res = sweep.run(op, b, x, 1.0, p.nonnegative, ctl)?;
+        let res = sweep.run(op, b, x, 1.0, p.bounds(), ctl)?;
         if k == 1 && p.tv_weight == 0.0 {
             w = (AUTO_WEIGHT_FRACTION * robust_max(x) as f64) as f32;
         }
         ctl.check()?;
         let y = prox_tv(x, shape, w, p.tv_iterations, p.nonnegative);
         x.copy_from_slice(&y);
+        constrain(x, p.bounds());
         report(ctl, "tv", k, p.iterations, res);
     }
     Ok(())
