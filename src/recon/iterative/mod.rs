@@ -88,12 +88,18 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
         AlgorithmSpec::Fbp(_) | AlgorithmSpec::Fdk(_) => (0, 0, 0),
     };
     let buffers = back_buffers() as u64 + 2;
+    // 2D operators keep the walk of every ray.
+    let table = match views {
+        Views::D2(v) => Projector2::table_bytes(v),
+        Views::D3(_) => 0,
+    };
     Limits::f32_bytes(
         (images + buffers)
             .saturating_mul(n)
             .saturating_add(weights)
             .saturating_add(data.saturating_mul(m)),
     )
+    .saturating_add(table)
 }
 
 /// Run the iterative algorithm of `spec` on `data`, starting from `initial` (or zero).
@@ -125,7 +131,7 @@ pub fn solve(
         (Views::D2(v), OutputGrid::Image(g)) => {
             g.validate()?;
             (
-                Box::new(Projector2 { views: v, grid: g }),
+                Box::new(Projector2::with_walk_table(v, g)),
                 g.shape().to_vec(),
                 Shape3 {
                     nz: 1,

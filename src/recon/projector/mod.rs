@@ -145,10 +145,40 @@ fn forward_partitioned(
 }
 
 /// The Joseph projector pair of a 2D geometry on an image grid.
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone)]
 pub struct Projector2<'a> {
     pub views: &'a Views2,
     pub grid: &'a ImageGrid,
+    /// Every ray's walk, view after view ([`operator2::all_walks`]), or empty to compute walks as needed.
+    /// Iterative methods apply the same operator many times and keep the table.
+    pub walks: Vec<Option<joseph2::Walk2>>,
+}
+
+impl<'a> Projector2<'a> {
+    /// Walks computed as needed (one application).
+    pub fn new(views: &'a Views2, grid: &'a ImageGrid) -> Self {
+        Self {
+            views,
+            grid,
+            walks: Vec::new(),
+        }
+    }
+
+    /// With the table of every ray's walk (for many applications; [`Projector2::table_bytes`] of memory).
+    pub fn with_walk_table(views: &'a Views2, grid: &'a ImageGrid) -> Self {
+        Self {
+            views,
+            grid,
+            walks: operator2::all_walks(views, grid),
+        }
+    }
+
+    /// Bytes of the walk table of `views`.
+    pub fn table_bytes(views: &Views2) -> u64 {
+        (views.views.len() as u64)
+            .saturating_mul(views.detector.count as u64)
+            .saturating_mul(std::mem::size_of::<Option<joseph2::Walk2>>() as u64)
+    }
 }
 
 impl Operator for Projector2<'_> {
@@ -168,7 +198,15 @@ impl Operator for Projector2<'_> {
         out: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        operator2::forward(self.views, self.grid, image, subset, out, cancel)
+        operator2::forward(
+            self.views,
+            self.grid,
+            &self.walks,
+            image,
+            subset,
+            out,
+            cancel,
+        )
     }
     fn back(
         &self,
@@ -177,7 +215,15 @@ impl Operator for Projector2<'_> {
         image: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        operator2::back(self.views, self.grid, data, subset, image, cancel)
+        operator2::back(
+            self.views,
+            self.grid,
+            &self.walks,
+            data,
+            subset,
+            image,
+            cancel,
+        )
     }
     fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
         let ray = self.views.ray(&self.views.views[view], element);
@@ -315,7 +361,7 @@ fn apply_all<D: ndarray::Dimension>(
 pub fn forward_2d(views: &Views2, image: ArrayView2<'_, f32>, grid: &ImageGrid) -> Array2<f32> {
     assert_eq!(image.shape(), grid.shape(), "image shape must match grid");
     apply_all(
-        &Projector2 { views, grid },
+        &Projector2::new(views, grid),
         Direction::Forward,
         &contiguous(&image),
         Array2::<f32>::zeros(views.shape()),
@@ -333,7 +379,7 @@ pub fn back_2d(views: &Views2, sinogram: ArrayView2<'_, f32>, grid: &ImageGrid) 
         "sinogram shape must match views"
     );
     apply_all(
-        &Projector2 { views, grid },
+        &Projector2::new(views, grid),
         Direction::Back,
         &contiguous(&sinogram),
         Array2::<f32>::zeros(grid.shape()),

@@ -62,18 +62,10 @@ fn needs(views: &Views2, grid: &ImageGrid, subset: &[usize]) -> Needs {
     n
 }
 
-/// The dot product of ray `k` of `view` with the image held in `layouts`.
+/// The dot product of a ray (its walk) with the image held in `layouts`.
 #[inline]
-fn ray_dot(
-    views: &Views2,
-    view: usize,
-    k: usize,
-    grid: &ImageGrid,
-    image: &[f32],
-    layouts: &Layouts2,
-    kernel: Kernel,
-) -> f32 {
-    match Walk2::new(&views.ray(&views.views[view], k), grid) {
+fn ray_dot(walk: Option<Walk2>, image: &[f32], layouts: &Layouts2, kernel: Kernel) -> f32 {
+    match walk {
         Some(w) => {
             let l = layouts.lines(w.along_x);
             if l.is_used() {
@@ -87,10 +79,38 @@ fn ray_dot(
     }
 }
 
-/// `out[s·m ..]` = A_view image for each `view = subset[s]` (m detector elements).
+/// The walk of ray `k` of `view`: from `walks` (every ray of every view, view after view) when it is not
+/// empty, else computed.
+#[inline]
+fn walk(
+    views: &Views2,
+    grid: &ImageGrid,
+    walks: &[Option<Walk2>],
+    view: usize,
+    k: usize,
+) -> Option<Walk2> {
+    if walks.is_empty() {
+        Walk2::new(&views.ray(&views.views[view], k), grid)
+    } else {
+        walks[view * views.detector.count + k]
+    }
+}
+
+/// The walks of every ray of every view, view after view (what `walks` holds in [`forward`] and [`back`]).
+pub fn all_walks(views: &Views2, grid: &ImageGrid) -> Vec<Option<Walk2>> {
+    let m = views.detector.count;
+    (0..views.views.len() * m)
+        .into_par_iter()
+        .map(|i| Walk2::new(&views.ray(&views.views[i / m], i % m), grid))
+        .collect()
+}
+
+/// `out[s·m ..]` = A_view image for each `view = subset[s]` (m detector elements). `walks`: every ray's walk
+/// ([`all_walks`]), or empty to compute them as needed.
 pub fn forward(
     views: &Views2,
     grid: &ImageGrid,
+    walks: &[Option<Walk2>],
     image: &[f32],
     subset: &[usize],
     out: &mut [f32],
@@ -107,7 +127,7 @@ pub fn forward(
     if subset.len() >= 2 * rayon::current_num_threads() {
         return forward_partitioned(m, subset, out, cancel, |view, row| {
             for (k, o) in row.iter_mut().enumerate() {
-                *o = ray_dot(views, view, k, grid, image, &layouts, kernel);
+                *o = ray_dot(walk(views, grid, walks, view, k), image, &layouts, kernel);
             }
         });
     }
@@ -117,15 +137,8 @@ pub fn forward(
             .enumerate()
             .for_each(|(c, part)| {
                 for (k, o) in part.iter_mut().enumerate() {
-                    *o = ray_dot(
-                        views,
-                        view,
-                        c * RAYS_PER_TASK + k,
-                        grid,
-                        image,
-                        &layouts,
-                        kernel,
-                    );
+                    let w = walk(views, grid, walks, view, c * RAYS_PER_TASK + k);
+                    *o = ray_dot(w, image, &layouts, kernel);
                 }
             });
     }
@@ -140,14 +153,19 @@ struct ViewRays {
 }
 
 impl ViewRays {
-    fn new(views: &Views2, view: usize, grid: &ImageGrid, row: &[f32]) -> Self {
-        let v = &views.views[view];
+    fn new(
+        views: &Views2,
+        view: usize,
+        grid: &ImageGrid,
+        walks: &[Option<Walk2>],
+        row: &[f32],
+    ) -> Self {
         let mut out = Self::default();
         for (k, &r) in row.iter().enumerate() {
             if r == 0.0 {
                 continue;
             }
-            if let Some(w) = Walk2::new(&views.ray(v, k), grid) {
+            if let Some(w) = walk(views, grid, walks, view, k) {
                 let list = if w.along_x {
                     &mut out.along_x
                 } else {
@@ -176,6 +194,7 @@ fn bands(lines: &mut Lines, along_x: bool, per_layout: usize) -> Vec<(bool, usiz
 pub fn back(
     views: &Views2,
     grid: &ImageGrid,
+    walks: &[Option<Walk2>],
     data: &[f32],
     subset: &[usize],
     image: &mut [f32],
@@ -208,7 +227,7 @@ pub fn back(
             .par_iter()
             .map(|&(view, row)| {
                 cancel.check()?;
-                Ok(ViewRays::new(views, view, grid, row))
+                Ok(ViewRays::new(views, view, grid, walks, row))
             })
             .collect::<Result<_, ReconError>>()?;
         if !acc.cols.is_used() && rays.iter().any(|r| !r.along_x.is_empty()) {
@@ -304,9 +323,15 @@ mod tests {
             let (nv, m) = (views.views.len(), views.detector.count);
             let mut subsets: Vec<Vec<usize>> = vec![(0..nv).collect(), vec![nv / 2]];
             subsets.extend((0..nv).map(|v| vec![v]));
-            for subset in subsets {
+            // Walks computed as needed, and taken from the table of every ray.
+            let table = all_walks(&views, &grid);
+            let modes: [&[Option<Walk2>]; 2] = [&[], &table];
+            for (walks, subset) in modes
+                .iter()
+                .flat_map(|&w| subsets.iter().map(move |s| (w, s.clone())))
+            {
                 let mut got = vec![0.0f32; subset.len() * m];
-                forward(&views, &grid, &image, &subset, &mut got, &cancel).unwrap();
+                forward(&views, &grid, walks, &image, &subset, &mut got, &cancel).unwrap();
                 let mut want = vec![0.0f32; subset.len() * m];
                 for (row, &v) in want.chunks_mut(m).zip(&subset) {
                     joseph2::forward_view(&views, v, &grid, &image, row);
@@ -323,7 +348,7 @@ mod tests {
                     })
                     .collect();
                 let mut got = vec![f32::NAN; image.len()];
-                back(&views, &grid, &data, &subset, &mut got, &cancel).unwrap();
+                back(&views, &grid, walks, &data, &subset, &mut got, &cancel).unwrap();
                 let mut want = vec![0.0f32; image.len()];
                 for (row, &v) in data.chunks(m).zip(&subset) {
                     joseph2::back_view(&views, v, &grid, row, &mut want);
@@ -338,7 +363,7 @@ mod tests {
         let grid = ImageGrid::square(8, 1.0);
         let views = &geometries()[0];
         let mut image = vec![1.0f32; 64];
-        back(views, &grid, &[], &[], &mut image, &Cancel::new()).unwrap();
+        back(views, &grid, &[], &[], &[], &mut image, &Cancel::new()).unwrap();
         assert!(image.iter().all(|&v| v == 0.0));
     }
 }
