@@ -195,6 +195,22 @@ impl Db {
         sqlx::query("SELECT 1").execute(&self.pool).await.is_ok()
     }
 
+    /// Begin the transaction that creates resource `id`, claiming `key` (if any) in it first; `Err` with the
+    /// earlier resource when the key was used before.
+    async fn begin_claimed(
+        &self,
+        key: Option<&IdempotencyKey>,
+        id: &str,
+    ) -> Result<Result<sqlx::Transaction<'static, sqlx::Sqlite>, Inserted>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        if let Some(key) = key
+            && let existing @ Inserted::Existing { .. } = Self::claim_key(&mut tx, key, id).await?
+        {
+            return Ok(Err(existing));
+        }
+        Ok(Ok(tx))
+    }
+
     /// Claim `key` for a new resource inside `tx`; `Existing` when the key was used before.
     async fn claim_key(
         tx: &mut sqlx::SqliteConnection,
@@ -250,13 +266,10 @@ impl Db {
         d: &Dataset,
         key: Option<&IdempotencyKey>,
     ) -> Result<Inserted, DbError> {
-        let mut tx = self.pool.begin().await?;
-        if let Some(key) = key
-            && let existing @ Inserted::Existing { .. } =
-                Self::claim_key(&mut tx, key, &d.id.to_string()).await?
-        {
-            return Ok(existing);
-        }
+        let mut tx = match self.begin_claimed(key, &d.id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
         sqlx::query(
             "INSERT INTO datasets (id, kind, geometry, shape, dtype, bytes, sha256, phantom, noise, created_us)
              VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
@@ -290,13 +303,10 @@ impl Db {
         j: &Job,
         key: Option<&IdempotencyKey>,
     ) -> Result<Inserted, DbError> {
-        let mut tx = self.pool.begin().await?;
-        if let Some(key) = key
-            && let existing @ Inserted::Existing { .. } =
-                Self::claim_key(&mut tx, key, &j.id.to_string()).await?
-        {
-            return Ok(existing);
-        }
+        let mut tx = match self.begin_claimed(key, &j.id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
         sqlx::query(
             "INSERT INTO jobs (id, kind, status, progress, stage, spec, dataset_id, estimate_bytes,
                                attempts, created_us)
@@ -567,13 +577,10 @@ impl Db {
         series: &[SeriesRecord],
         key: Option<&IdempotencyKey>,
     ) -> Result<Inserted, DbError> {
-        let mut tx = self.pool.begin().await?;
-        if let Some(key) = key
-            && let existing @ Inserted::Existing { .. } =
-                Self::claim_key(&mut tx, key, &id.to_string()).await?
-        {
-            return Ok(existing);
-        }
+        let mut tx = match self.begin_claimed(key, &id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
         let now = now_us();
         sqlx::query(
             "INSERT INTO uploads (id, status, instances, bytes, outcome, created_us, completed_us)
@@ -598,13 +605,10 @@ impl Db {
         id: UploadId,
         key: Option<&IdempotencyKey>,
     ) -> Result<Inserted, DbError> {
-        let mut tx = self.pool.begin().await?;
-        if let Some(key) = key
-            && let existing @ Inserted::Existing { .. } =
-                Self::claim_key(&mut tx, key, &id.to_string()).await?
-        {
-            return Ok(existing);
-        }
+        let mut tx = match self.begin_claimed(key, &id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
         sqlx::query("INSERT INTO uploads (id, status, created_us) VALUES (?, 'open', ?)")
             .bind(id.to_string())
             .bind(now_us())

@@ -133,6 +133,42 @@ fn smallest_spacing(vol: &Volume) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// Samples along one ray combined by a [`ProjectionKind`] (maximum, minimum or mean).
+struct Combine {
+    kind: ProjectionKind,
+    acc: Option<f32>,
+    n: u32,
+}
+
+impl Combine {
+    fn new(kind: ProjectionKind) -> Self {
+        Self {
+            kind,
+            acc: None,
+            n: 0,
+        }
+    }
+
+    #[inline]
+    fn add(&mut self, s: f32) {
+        self.n += 1;
+        self.acc = Some(match (self.acc, self.kind) {
+            (None, _) => s,
+            (Some(a), ProjectionKind::Max) => a.max(s),
+            (Some(a), ProjectionKind::Min) => a.min(s),
+            (Some(a), ProjectionKind::Mean) => a + s,
+        });
+    }
+
+    /// The combined value; `None` when no sample was added.
+    fn value(&self) -> Option<f32> {
+        self.acc.map(|a| match self.kind {
+            ProjectionKind::Mean => a / self.n as f32,
+            _ => a,
+        })
+    }
+}
+
 /// Combine samples along offsets `offsets` at every pixel of `plane`; pixels with no sample inside get `fill`.
 fn render(
     vol: &Volume,
@@ -183,27 +219,15 @@ fn render(
                 }
                 let start = offsets.partition_point(|&o| o < lo);
                 let end = offsets.partition_point(|&o| o <= hi);
-                let mut acc: Option<f32> = None;
-                let mut n = 0u32;
+                let mut acc = Combine::new(kind);
                 for &o in &offsets[start..end.max(start)] {
                     let idx = [i0[0] + o * d[0], i0[1] + o * d[1], i0[2] + o * d[2]];
-                    let Some(s) = trilinear(&data, idx) else {
-                        continue;
-                    };
-                    n += 1;
-                    acc = Some(match (acc, kind) {
-                        (None, _) => s,
-                        (Some(a), ProjectionKind::Max) => a.max(s),
-                        (Some(a), ProjectionKind::Min) => a.min(s),
-                        (Some(a), ProjectionKind::Mean) => a + s,
-                    });
+                    if let Some(s) = trilinear(&data, idx) {
+                        acc.add(s);
+                    }
                 }
-                if let Some(a) = acc {
-                    *px = if kind == ProjectionKind::Mean {
-                        a / n as f32
-                    } else {
-                        a
-                    };
+                if let Some(v) = acc.value() {
+                    *px = v;
                 }
             }
         });
@@ -406,7 +430,7 @@ fn rotating_axis_aligned(
                     .collect()
             };
             let at = |j: usize, i: usize| plane[j.min(ny - 1) * nx + i.min(nx - 1)] as f64;
-            for (v, (view, u)) in views.iter().enumerate() {
+            for (v_index, (view, u)) in views.iter().enumerate() {
                 for c in 0..w {
                     let cu = (c as f64 - (w as f64 - 1.0) / 2.0) * rays.pixel;
                     // Index (j, i) of the ray's point at offset 0 and its step per mm of offset.
@@ -435,8 +459,7 @@ fn rotating_axis_aligned(
                     }
                     let start = rays.offsets.partition_point(|&o| o < lo);
                     let end = rays.offsets.partition_point(|&o| o <= hi).max(start);
-                    let mut acc: Option<f32> = None;
-                    let mut n = 0u32;
+                    let mut acc = Combine::new(kind);
                     for &o in &rays.offsets[start..end] {
                         let (j, i) = (p0[0] + o * d[0], p0[1] + o * d[1]);
                         if !(j > -eps && j < last[0] + eps && i > -eps && i < last[1] + eps) {
@@ -450,21 +473,10 @@ fn rotating_axis_aligned(
                         );
                         let top = at(j0, i0) + (at(j0, i0 + 1) - at(j0, i0)) * fi;
                         let bottom = at(j0 + 1, i0) + (at(j0 + 1, i0 + 1) - at(j0 + 1, i0)) * fi;
-                        let s = (top + (bottom - top) * fj) as f32;
-                        n += 1;
-                        acc = Some(match (acc, kind) {
-                            (None, _) => s,
-                            (Some(a), ProjectionKind::Max) => a.max(s),
-                            (Some(a), ProjectionKind::Min) => a.min(s),
-                            (Some(a), ProjectionKind::Mean) => a + s,
-                        });
+                        acc.add((top + (bottom - top) * fj) as f32);
                     }
-                    if let Some(a) = acc {
-                        out[v * w + c] = if kind == ProjectionKind::Mean {
-                            a / n as f32
-                        } else {
-                            a
-                        };
+                    if let Some(v) = acc.value() {
+                        out[v_index * w + c] = v;
                     }
                 }
             }
