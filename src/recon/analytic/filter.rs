@@ -248,7 +248,7 @@ impl RowFilter {
         }
         // The imaginary parts of the DC and Nyquist bins are zero for a real input times a real response.
         s.fine_freq[0].im = 0.0;
-        if self.padded % 2 == 0 {
+        if self.padded.is_multiple_of(2) {
             s.fine_freq[self.padded / 2].im = 0.0;
         }
         let _ = self
