@@ -36,8 +36,10 @@ pub fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
     }
     #[cfg(target_arch = "x86_64")]
     if super::simd::available(q.len()) {
-        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
-        unsafe { super::simd::parallel_row(acc, q, pos0, dpos) };
+        let wide = super::simd::wide_available();
+        // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time, and
+        // q.len() fits an i32 index.
+        unsafe { super::simd::parallel_row(acc, q, pos0, dpos, wide) };
         return;
     }
     parallel_row_scalar(acc, q, pos0, dpos);
@@ -75,8 +77,10 @@ pub fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
     }
     #[cfg(target_arch = "x86_64")]
     if super::simd::available(q.len()) {
-        // SAFETY: AVX2 and FMA are present (checked at run time) and q.len() fits an i32 index.
-        unsafe { super::simd::fan_row(acc, q, line, a, b) };
+        let wide = super::simd::wide_available();
+        // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time, and
+        // q.len() fits an i32 index.
+        unsafe { super::simd::fan_row(acc, q, line, a, b, wide) };
         return;
     }
     fan_row_scalar(acc, q, line, a, b);
@@ -164,6 +168,59 @@ mod tests {
         q[i] as f64 * (1.0 - f) + q[i + 1] as f64 * f
     }
 
+    type ParallelKernel = Box<dyn Fn(&mut [f32], &[f32], f32, f32)>;
+    type FanKernel = Box<dyn Fn(&mut [f32], &[f32], &RowLine, f32, f32)>;
+
+    /// The public kernel, the scalar reference and, on this CPU, the AVX2 kernel with 16-sample windows
+    /// and (with AVX-512F) the one with 32/64-sample windows, so that every path runs whichever the
+    /// public kernel picks.
+    fn parallel_kernels() -> Vec<(&'static str, ParallelKernel)> {
+        let mut kernels: Vec<(&'static str, ParallelKernel)> = vec![
+            ("public", Box::new(parallel_row)),
+            ("scalar", Box::new(parallel_row_scalar)),
+        ];
+        #[cfg(target_arch = "x86_64")]
+        for wide in [false, true] {
+            if super::super::simd::available(1 << 20)
+                && (!wide || super::super::simd::wide_available())
+            {
+                let name = if wide { "avx-512" } else { "avx2" };
+                kernels.push((
+                    name,
+                    Box::new(move |acc, q, pos0, dpos| {
+                        // SAFETY: the features were checked above; the tests' rows are short.
+                        unsafe { super::super::simd::parallel_row(acc, q, pos0, dpos, wide) }
+                    }),
+                ));
+            }
+        }
+        kernels
+    }
+
+    /// As [`parallel_kernels`], for [`fan_row`].
+    fn fan_kernels() -> Vec<(&'static str, FanKernel)> {
+        let mut kernels: Vec<(&'static str, FanKernel)> = vec![
+            ("public", Box::new(fan_row)),
+            ("scalar", Box::new(fan_row_scalar)),
+        ];
+        #[cfg(target_arch = "x86_64")]
+        for wide in [false, true] {
+            if super::super::simd::available(1 << 20)
+                && (!wide || super::super::simd::wide_available())
+            {
+                let name = if wide { "avx-512" } else { "avx2" };
+                kernels.push((
+                    name,
+                    Box::new(move |acc, q, line, a, b| {
+                        // SAFETY: the features were checked above; the tests' rows are short.
+                        unsafe { super::super::simd::fan_row(acc, q, line, a, b, wide) }
+                    }),
+                ));
+            }
+        }
+        kernels
+    }
+
     fn padded_row(n: usize, seed: u32) -> Vec<f32> {
         let mut q = vec![0.0f32; n + 2 * PAD];
         for (k, v) in q[PAD..PAD + n].iter_mut().enumerate() {
@@ -175,12 +232,83 @@ mod tests {
     #[test]
     fn parallel_kernel_matches_the_safe_reference_inside_and_outside_the_detector() {
         let q = padded_row(50, 7);
-        for kernel in [parallel_row, parallel_row_scalar] {
+        for (name, kernel) in parallel_kernels() {
             let mut acc = vec![0.5f32; 83];
             kernel(&mut acc, &q, -12.3, 0.91);
             for (i, a) in acc.iter().enumerate() {
                 let want = 0.5 + reference_at(&q, -12.3 + i as f64 * 0.91);
-                assert!((*a as f64 - want).abs() < 1e-5, "{i}: {a} vs {want}");
+                assert!((*a as f64 - want).abs() < 1e-5, "{name} {i}: {a} vs {want}");
+            }
+        }
+    }
+
+    /// Steps small enough for the vector kernels' 16-sample windows and too large for them, rising
+    /// and falling, rows that start or end outside the detector (clamped positions) and rows longer
+    /// than the detector, so that every path of the kernels (window, gather, tails) is compared.
+    #[test]
+    fn parallel_kernel_matches_the_reference_for_every_step_and_direction() {
+        let q = padded_row(300, 11);
+        for (name, kernel) in parallel_kernels() {
+            for dpos in [0.0, 0.3, -0.3, 1.0, -1.5, 1.99, 2.01, -2.6, 4.7, -6.1, 9.5] {
+                for pos0 in [-5.0, 0.0, 3.25, 21.7, 44.0, 150.0, 290.0] {
+                    let mut acc = vec![0.25f32; 77];
+                    kernel(&mut acc, &q, pos0, dpos);
+                    for (i, a) in acc.iter().enumerate() {
+                        let pos = pos0 as f64 + i as f64 * dpos as f64;
+                        let want = 0.25 + reference_at(&q, pos);
+                        // f32 positions carry ~1e-7 of the terms' size in error; samples differ by ≤ 2.
+                        let size = pos0.abs() as f64 + (i as f64 * dpos as f64).abs();
+                        assert!(
+                            (*a as f64 - want).abs() < 1e-5 * (1.0 + size / 20.0),
+                            "{name}: dpos {dpos}, pos0 {pos0}, {i}: {a} vs {want}"
+                        );
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn fan_kernel_matches_the_reference_in_front_of_the_source_for_every_step() {
+        let q = padded_row(300, 5);
+        // (lc0, dlc, lat0, dlat, a, b): rows moving up to 1, 3 and 6 samples per pixel (the 16- and
+        // 32-sample windows and gathers), converging and diverging, in both directions, starting or
+        // ending off the detector; all points in front of the source.
+        let cases = [
+            (40.0, 0.02, -3.0, 0.05, 30.0, 153.5),
+            (40.0, -0.2, 5.0, -0.11, 30.0, 133.5),
+            (25.0, 0.1, -10.0, 0.6, 40.0, 130.0),
+            (60.0, -0.3, 20.0, -0.9, 35.0, 134.0),
+            (30.0, 0.0, -1.0, 0.0, 30.0, 20.0),
+            (20.0, 0.0, -8.0, 0.5, 120.0, 60.0),
+            (20.0, 0.01, 9.0, -0.5, 120.0, 240.0),
+            (20.0, 0.0, -8.0, 1.0, 120.0, 10.0),
+        ];
+        for (lc0, dlc, lat0, dlat, a, b) in cases {
+            let line = RowLine {
+                lc0,
+                dlc,
+                lat0,
+                dlat,
+                latv0: 0.0,
+                dlatv: 0.0,
+            };
+            for (name, kernel) in fan_kernels() {
+                let mut acc = vec![0.0f32; 93];
+                kernel(&mut acc, &q, &line, a, b);
+                for (i, got) in acc.iter().enumerate() {
+                    let x = i as f64;
+                    let lc = lc0 as f64 + dlc as f64 * x;
+                    let lat = lat0 as f64 + dlat as f64 * x;
+                    let pos = a as f64 * lat / lc + b as f64;
+                    let want = reference_at(&q, pos) / (lc * lc);
+                    // Samples differ by at most 2 per sample and f32 positions carry ~1e-6 relative
+                    // error; a wrong sample would be off by ~0.1/lc² or more.
+                    assert!(
+                        (*got as f64 - want).abs() < 2e-6 * (1.0 + pos.abs()) / (lc * lc),
+                        "{name}: {line:?}, {i}: {got} vs {want}"
+                    );
+                }
             }
         }
     }
@@ -196,7 +324,7 @@ mod tests {
             latv0: 0.0,
             dlatv: 0.0,
         };
-        for kernel in [fan_row, fan_row_scalar] {
+        for (name, kernel) in fan_kernels() {
             let mut acc = vec![0.0f32; 90];
             kernel(&mut acc, &q, &line, 40.0, 33.5);
             for (i, a) in acc.iter().enumerate() {
@@ -209,7 +337,7 @@ mod tests {
                 };
                 assert!(
                     (*a as f64 - want).abs() < 1e-5 * (1.0 + want.abs()),
-                    "{i}: {a} vs {want}"
+                    "{name} {i}: {a} vs {want}"
                 );
                 assert!(a.is_finite());
             }
@@ -217,41 +345,51 @@ mod tests {
     }
 
     #[test]
-    fn cone_kernel_matches_the_safe_bilinear_reference() {
+    fn cone_kernel_matches_the_safe_bilinear_reference_in_front_of_and_behind_the_source() {
         let (w, h) = (20 + 2 * PAD, 12 + 2 * PAD);
         let mut q = vec![0.0f32; w * h];
         for r in PAD..h - PAD {
             let row = padded_row(20, r as u32);
             q[r * w..(r + 1) * w].copy_from_slice(&row);
         }
-        let line = RowLine {
-            lc0: 10.0,
-            dlc: 0.1,
-            lat0: -6.0,
-            dlat: 0.3,
-            latv0: 2.0,
-            dlatv: -0.2,
-        };
-        for kernel in [cone_row, cone_row_scalar] {
-            let mut acc = vec![0.0f32; 61];
-            let panel = Panel {
-                q: &q,
-                width: w,
-                rows: h,
+        // The second row crosses the source plane at x = 50.
+        for (lc0, dlc) in [(10.0f32, 0.1f32), (5.0, -0.1)] {
+            let line = RowLine {
+                lc0,
+                dlc,
+                lat0: -6.0,
+                dlat: 0.3,
+                latv0: 2.0,
+                dlatv: -0.2,
             };
-            kernel(&mut acc, panel, &line, [15.0, 12.0, 9.0, 8.0]);
-            for (i, a) in acc.iter().enumerate() {
-                let x = i as f64;
-                let lc = 10.0 + 0.1 * x;
-                let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
-                let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
-                let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
-                let (fu, fv) = (pu - iu as f64, pv - iv as f64);
-                let at = |r: usize, c: usize| q[r * w + c] as f64;
-                let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
-                let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
-                let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
-                assert!((*a as f64 - want).abs() < 1e-6, "{i}: {a} vs {want}");
+            for kernel in [cone_row, cone_row_scalar] {
+                let mut acc = vec![0.0f32; 61];
+                let panel = Panel {
+                    q: &q,
+                    width: w,
+                    rows: h,
+                };
+                kernel(&mut acc, panel, &line, [15.0, 12.0, 9.0, 8.0]);
+                for (i, a) in acc.iter().enumerate() {
+                    let x = i as f64;
+                    let lc = lc0 as f64 + dlc as f64 * x;
+                    if lc <= MIN_DEPTH as f64 {
+                        assert_eq!(*a, 0.0, "{i}: behind the source");
+                        continue;
+                    }
+                    let pu = ((-6.0 + 0.3 * x) / lc * 15.0 + 12.0).clamp(0.0, (w - 2) as f64);
+                    let pv = ((2.0 - 0.2 * x) / lc * 9.0 + 8.0).clamp(0.0, (h - 2) as f64);
+                    let (iu, iv) = (pu.floor() as usize, pv.floor() as usize);
+                    let (fu, fv) = (pu - iu as f64, pv - iv as f64);
+                    let at = |r: usize, c: usize| q[r * w + c] as f64;
+                    let top = at(iv, iu) * (1.0 - fu) + at(iv, iu + 1) * fu;
+                    let bottom = at(iv + 1, iu) * (1.0 - fu) + at(iv + 1, iu + 1) * fu;
+                    let want = (top * (1.0 - fv) + bottom * fv) / (lc * lc);
+                    assert!(
+                        (*a as f64 - want).abs() < 1e-6 * (1.0 + 1.0 / (lc * lc)),
+                        "lc0 {lc0}, {i}: {a} vs {want}"
+                    );
+                }
             }
         }
     }

@@ -108,6 +108,10 @@ pub fn fdk(
             )?;
         ctl.check()?;
         let batch_frames = &frames[first..last];
+        let maps: Vec<[f32; 4]> = batch_frames
+            .iter()
+            .map(|f| panel_map(f, &det_map(&det, lo)))
+            .collect();
         let panels = &panels;
         volume
             .axis_iter_mut(Axis(0))
@@ -117,14 +121,13 @@ pub fn fdk(
                 let mut acc = vec![0.0f32; grid.nx];
                 for y in 0..grid.ny {
                     acc.fill(0.0);
-                    for (b, f) in batch_frames.iter().enumerate() {
+                    for (b, (f, map)) in batch_frames.iter().zip(&maps).enumerate() {
                         let panel = Panel {
                             q: &panels[b * width * rows..(b + 1) * width * rows],
                             width,
                             rows,
                         };
-                        let map = panel_map(f, &det_map(&det, lo));
-                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), map);
+                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), *map);
                     }
                     for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
                         *o += *a;
