@@ -222,6 +222,53 @@ fn row_line(f: &Frame, grid: &ImageGrid, j: usize) -> RowLine {
     }
 }
 
+/// Catmull–Rom interpolation at one position of a row: four neighbouring samples and their weights
+/// (zero for samples outside the row, whose indices are clamped into it).
+#[derive(Debug, Clone, Copy)]
+struct Taps {
+    index: [u32; 4],
+    weight: [f64; 4],
+}
+
+impl Taps {
+    /// The taps at sample position `p` of a row of `len` samples (zero outside), times `scale`.
+    fn catmull_rom(p: f64, len: usize, scale: f64) -> Self {
+        let mut taps = Taps {
+            index: [0; 4],
+            weight: [0.0; 4],
+        };
+        if !(p > -2.0 && p < len as f64 + 1.0) || len == 0 {
+            return taps;
+        }
+        let i = p.floor();
+        let t = p - i;
+        let (t2, t3) = (t * t, t * t * t);
+        let w = [
+            0.5 * (-t + 2.0 * t2 - t3),
+            0.5 * (2.0 - 5.0 * t2 + 3.0 * t3),
+            0.5 * (t + 4.0 * t2 - 3.0 * t3),
+            0.5 * (t3 - t2),
+        ];
+        for (r, wr) in w.iter().enumerate() {
+            let at = i as i64 - 1 + r as i64;
+            if at >= 0 && (at as usize) < len {
+                taps.index[r] = at as u32;
+                taps.weight[r] = wr * scale;
+            }
+        }
+        taps
+    }
+
+    /// The interpolated value; `row` must hold the `len` samples the taps were made for.
+    fn apply(&self, row: &[f64]) -> f64 {
+        self.index
+            .iter()
+            .zip(&self.weight)
+            .map(|(&i, &w)| row.get(i as usize).map_or(0.0, |v| v * w))
+            .sum()
+    }
+}
+
 fn fan_fbp(
     views: &Views2,
     sino: ArrayView2<'_, f32>,
@@ -266,11 +313,12 @@ fn fan_fbp(
             ctl,
             |k, input| {
                 let f = &frames[k];
+                let measured = sino.row(k);
                 for (i, o) in input.iter_mut().enumerate() {
                     let u = coord(i) + f.u0;
                     let pre = f.dsd / f.dsd.hypot(u);
                     let w = redundancy.weight(f.angle_rad, (u / f.dsd).atan());
-                    *o = sample(i, sino.row(k)) * pre * w;
+                    *o = sample(i, measured) * pre * w;
                 }
             },
             |k, row, out| {
@@ -314,13 +362,19 @@ fn fan_fbp(
             let t = t_lo + j as f64 * dt;
             (t.atan() - u0 - coord(0)) / det.spacing
         };
-        let positions: Vec<f64> = (0..m).map(|j| position(j, f0.u0)).collect();
         let stretch: Vec<f64> = (0..m)
             .map(|j| {
                 let t = t_lo + j as f64 * dt;
                 1.0 / (1.0 + t * t)
             })
             .collect();
+        // Views whose central ray meets the detector where the first view's does (the usual case) share
+        // one table of interpolation taps, with the stretch factor folded in.
+        let shared: Vec<Taps> = (0..m)
+            .map(|j| Taps::catmull_rom(position(j, f0.u0) * up as f64, nf, stretch[j]))
+            .collect();
+        // cos γ of each element for the same views.
+        let cosines: Vec<f64> = (0..ne).map(|i| (coord(i) + f0.u0).cos()).collect();
         let filtered = filter_views(
             count,
             &filter,
@@ -328,46 +382,27 @@ fn fan_fbp(
             ctl,
             |k, input| {
                 let f = &frames[k];
+                let same = (f.u0 - f0.u0).abs() <= 1e-12;
+                let measured = sino.row(k);
                 for (i, o) in input.iter_mut().enumerate() {
                     let g = coord(i) + f.u0;
-                    *o = sample(i, sino.row(k))
-                        * f.dso
-                        * g.cos()
-                        * redundancy.weight(f.angle_rad, g);
+                    let cos = if same { cosines[i] } else { g.cos() };
+                    *o = sample(i, measured) * f.dso * cos * redundancy.weight(f.angle_rad, g);
                 }
             },
             |k, row, out| {
                 let f = &frames[k];
                 let same = (f.u0 - f0.u0).abs() <= 1e-12;
-                // Catmull–Rom interpolation of the filtered row at element position p (zero outside).
-                let get = |i: i64| {
-                    if i >= 0 && (i as usize) < nf {
-                        row[i as usize]
-                    } else {
-                        0.0
+                let out = &mut out[PAD..PAD + m];
+                if same {
+                    for (o, taps) in out.iter_mut().zip(&shared) {
+                        *o = (taps.apply(row) * steps[k]) as f32;
                     }
-                };
-                let at = |p: f64| -> f64 {
-                    let p = p * up as f64;
-                    if !(p > -2.0 && p < nf as f64 + 1.0) {
-                        return 0.0;
+                } else {
+                    for (j, o) in out.iter_mut().enumerate() {
+                        let taps = Taps::catmull_rom(position(j, f.u0) * up as f64, nf, stretch[j]);
+                        *o = (taps.apply(row) * steps[k]) as f32;
                     }
-                    let i = p.floor();
-                    let t = p - i;
-                    let i = i as i64;
-                    let (a, b, c, d) = (get(i - 1), get(i), get(i + 1), get(i + 2));
-                    b + 0.5
-                        * t
-                        * (c - a
-                            + t * (2.0 * a - 5.0 * b + 4.0 * c - d + t * (3.0 * (b - c) + d - a)))
-                };
-                for (j, o) in out[PAD..PAD + m].iter_mut().enumerate() {
-                    let p = if same {
-                        positions[j]
-                    } else {
-                        position(j, f.u0)
-                    };
-                    *o = (at(p) * stretch[j] * steps[k]) as f32;
                 }
             },
         )?;
