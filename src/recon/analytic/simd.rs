@@ -43,6 +43,14 @@ fn split(p: __m256, hi: __m256) -> (__m256i, __m256) {
     (i, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i)))
 }
 
+/// [`split`] for positions known to lie inside the row.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn split_inside(p: __m256) -> (__m256i, __m256) {
+    let i = _mm256_cvttps_epi32(p);
+    (i, _mm256_sub_ps(p, _mm256_cvtepi32_ps(i)))
+}
+
 /// The pairs `(q[k_j], q[k_j + 1])` for the 8 indices of `k`, as two vectors in index order: one
 /// 64-bit gather per 4 pairs (half the gathered elements of two 32-bit gathers).
 ///
@@ -161,7 +169,8 @@ unsafe fn window64_pairs(base: *const f32, start: usize, rel: __m256i) -> (__m25
 /// gathers on the development machine; otherwise, or with `W = GATHER`, by gathers.
 ///
 /// # Safety
-/// `len = q.len()` of the row at `base`; every `k_j` must lie in `[0, len − 2]`.
+/// `len = q.len()` of the row at `base`, `2 ≤ len < i32::MAX`; with `W = GATHER` every `k_j` must lie in
+/// `[0, len − 2]` (with a window, indices outside are clamped).
 #[target_feature(enable = "avx2,fma")]
 #[inline]
 unsafe fn window_pairs<const W: usize>(
@@ -172,9 +181,9 @@ unsafe fn window_pairs<const W: usize>(
     if W == 16 || W == 32 || W == 64 {
         let first = _mm256_cvtsi256_si32(k);
         let last = _mm256_extract_epi32::<7>(k);
-        // `start ≥ 0` by the caller's contract; the samples [start, start + W] must be inside the row.
+        // The samples [start, start + W] must be inside the row.
         let start = first.min(last);
-        if start as usize + W < len {
+        if start >= 0 && start as usize + W < len {
             let rel = _mm256_sub_epi32(k, _mm256_set1_epi32(start));
             // Every pair (rel, rel + 1) must fall in 0..W: rel in [0, W − 2].
             let outside = _mm256_or_si256(
@@ -204,7 +213,16 @@ unsafe fn window_pairs<const W: usize>(
             }
         }
     }
-    // SAFETY: every k_j ≤ len − 2 (caller), so k_j and k_j + 1 are readable.
+    // Callers with windows may pass positions they did not clamp (known to be inside the row up to
+    // rounding): clamp here, on the rare vectors that miss the window.
+    let k = if W == GATHER {
+        k
+    } else {
+        let top = _mm256_set1_epi32(len as i32 - 2);
+        _mm256_min_epi32(_mm256_max_epi32(k, _mm256_setzero_si256()), top)
+    };
+    // SAFETY: every k_j is in [0, len − 2] (clamped here or by the caller), so k_j and k_j + 1 are
+    // readable.
     unsafe { gather_pairs(base, k) }
 }
 
@@ -212,13 +230,21 @@ unsafe fn window_pairs<const W: usize>(
 /// AVX2 and FMA must be available, and AVX-512F too where `wide`; `2 ≤ q.len() < i32::MAX`.
 #[target_feature(enable = "avx2,fma")]
 pub unsafe fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32, wide: bool) {
-    // SAFETY: the caller's contract, passed on.
+    // Positions are affine along the row: when both ends lie a sample inside it, every one does and
+    // they need no clamping.
+    let last = acc.len().saturating_sub(1) as f64;
+    let (p0, p1) = (pos0 as f64, pos0 as f64 + last * dpos as f64);
+    let inside = p0.min(p1) >= 1.0 && p0.max(p1) <= q.len() as f64 - 3.0;
+    // SAFETY: the caller's contract, passed on; unclamped positions only with a window.
     unsafe {
-        match window_for(dpos, wide) {
-            16 => parallel_row_in::<16>(acc, q, pos0, dpos),
-            32 => parallel_row_in_wide::<32>(acc, q, pos0, dpos),
-            64 => parallel_row_in_wide::<64>(acc, q, pos0, dpos),
-            _ => parallel_row_in::<GATHER>(acc, q, pos0, dpos),
+        match (window_for(dpos, wide), inside) {
+            (16, true) => parallel_row_in::<16, false>(acc, q, pos0, dpos),
+            (16, false) => parallel_row_in::<16, true>(acc, q, pos0, dpos),
+            (32, true) => parallel_row_in_wide::<32, false>(acc, q, pos0, dpos),
+            (32, false) => parallel_row_in_wide::<32, true>(acc, q, pos0, dpos),
+            (64, true) => parallel_row_in_wide::<64, false>(acc, q, pos0, dpos),
+            (64, false) => parallel_row_in_wide::<64, true>(acc, q, pos0, dpos),
+            _ => parallel_row_in::<GATHER, true>(acc, q, pos0, dpos),
         }
     }
 }
@@ -238,11 +264,12 @@ macro_rules! with_wide_variant {
 }
 
 with_wide_variant! {
-    /// [`parallel_row`] reading samples through [`window_pairs::<W>`] (W = 32 and 64 only in the wide form).
+    /// [`parallel_row`] reading samples through [`window_pairs::<W>`] (W = 32 and 64 only in the wide form);
+    /// without `CLAMP` the positions are not clamped into the row (W must then be a window).
     ///
     /// # Safety
     /// As [`parallel_row`]; the wide form needs AVX-512F.
-    unsafe fn parallel_row_in / parallel_row_in_wide<const W: usize>(
+    unsafe fn parallel_row_in / parallel_row_in_wide<const W: usize, const CLAMP: bool>(
         acc: &mut [f32],
         q: &[f32],
         pos0: f32,
@@ -256,8 +283,10 @@ with_wide_variant! {
         let mut x = lanes(0);
         let mut i = 0;
         while i + 8 <= n {
-            let (k, f) = split(_mm256_fmadd_ps(x, vd, vp0), hi);
-            // SAFETY: `split` clamps every index to [0, len − 2].
+            let pos = _mm256_fmadd_ps(x, vd, vp0);
+            let (k, f) = if CLAMP { split(pos, hi) } else { split_inside(pos) };
+            // SAFETY: `split` clamps every index to [0, len − 2] with CLAMP; without it W is a window,
+            // which bounds its own reads.
             let (a, b) = unsafe { window_pairs::<W>(base, q.len(), k) };
             let v = _mm256_fmadd_ps(f, _mm256_sub_ps(b, a), a);
             // SAFETY: i + 8 ≤ acc.len().
@@ -297,24 +326,38 @@ pub unsafe fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32
     // pixel of the row is in front of the source.
     if depth > MIN_DEPTH {
         let c = line.dlat * line.lc0 - line.lat0 * line.dlc;
-        match window_for(a * c / (depth * depth), wide) {
-            16 => unsafe { fan_row_in::<16, false>(acc, q, line, a, b) },
-            32 => unsafe { fan_row_in_wide::<32, false>(acc, q, line, a, b) },
-            64 => unsafe { fan_row_in_wide::<64, false>(acc, q, line, a, b) },
-            _ => unsafe { fan_row_in::<GATHER, false>(acc, q, line, a, b) },
+        // The position is monotonic along such a row: when both ends lie a sample inside the row,
+        // every pixel does and the positions need no clamping.
+        let at = |x: f32| {
+            let x = x as f64;
+            a as f64 * (line.lat0 as f64 + x * line.dlat as f64)
+                / (line.lc0 as f64 + x * line.dlc as f64)
+                + b as f64
+        };
+        let (p0, p1) = (at(0.0), at(last));
+        let inside = p0.min(p1) >= 1.0 && p0.max(p1) <= q.len() as f64 - 3.0;
+        match (window_for(a * c / (depth * depth), wide), inside) {
+            (16, true) => unsafe { fan_row_in::<16, false, false>(acc, q, line, a, b) },
+            (16, false) => unsafe { fan_row_in::<16, false, true>(acc, q, line, a, b) },
+            (32, true) => unsafe { fan_row_in_wide::<32, false, false>(acc, q, line, a, b) },
+            (32, false) => unsafe { fan_row_in_wide::<32, false, true>(acc, q, line, a, b) },
+            (64, true) => unsafe { fan_row_in_wide::<64, false, false>(acc, q, line, a, b) },
+            (64, false) => unsafe { fan_row_in_wide::<64, false, true>(acc, q, line, a, b) },
+            _ => unsafe { fan_row_in::<GATHER, false, true>(acc, q, line, a, b) },
         }
     } else {
-        unsafe { fan_row_in::<GATHER, true>(acc, q, line, a, b) }
+        unsafe { fan_row_in::<GATHER, true, true>(acc, q, line, a, b) }
     }
 }
 
 with_wide_variant! {
-    /// [`fan_row`] reading samples through [`window_pairs::<W>`] (W = 32 and 64 only in the wide form); `MASK`
-    /// drops pixels at or behind the source (without it every pixel must have lc > [`MIN_DEPTH`]).
+    /// [`fan_row`] reading samples through [`window_pairs::<W>`] (W = 32 and 64 only in the wide form);
+    /// `MASK` drops pixels at or behind the source (without it every pixel must have lc > [`MIN_DEPTH`]);
+    /// without `CLAMP` the positions are not clamped into the row (W must then be a window).
     ///
     /// # Safety
     /// As [`fan_row`]; the wide form needs AVX-512F.
-    unsafe fn fan_row_in / fan_row_in_wide<const W: usize, const MASK: bool>(
+    unsafe fn fan_row_in / fan_row_in_wide<const W: usize, const MASK: bool, const CLAMP: bool>(
         acc: &mut [f32],
         q: &[f32],
         line: &RowLine,
@@ -341,8 +384,10 @@ with_wide_variant! {
                 _mm256_mul_ps(r, _mm256_fnmadd_ps(lc, r, two))
             };
             let lat = _mm256_fmadd_ps(x, dlat, lat0);
-            let (k, f) = split(_mm256_fmadd_ps(lat, inv, vb), hi);
-            // SAFETY: indices clamped to [0, len − 2].
+            let pos = _mm256_fmadd_ps(lat, inv, vb);
+            let (k, f) = if CLAMP { split(pos, hi) } else { split_inside(pos) };
+            // SAFETY: indices clamped to [0, len − 2] with CLAMP; without it W is a window, which
+            // bounds its own reads (every position is inside [1, len − 3] up to rounding then).
             let (qa, qb) = unsafe { window_pairs::<W>(base, q.len(), k) };
             let v = _mm256_fmadd_ps(f, _mm256_sub_ps(qb, qa), qa);
             let w = _mm256_mul_ps(inv, inv);
