@@ -171,29 +171,36 @@ mod tests {
     type ParallelKernel = Box<dyn Fn(&mut [f32], &[f32], f32, f32)>;
     type FanKernel = Box<dyn Fn(&mut [f32], &[f32], &RowLine, f32, f32)>;
 
-    /// The public kernel, the scalar reference and, on this CPU, the AVX2 kernel with 16-sample windows
-    /// and (with AVX-512F) the one with 32/64-sample windows, so that every path runs whichever the
-    /// public kernel picks.
-    fn parallel_kernels() -> Vec<(&'static str, ParallelKernel)> {
-        let mut kernels: Vec<(&'static str, ParallelKernel)> = vec![
-            ("public", Box::new(parallel_row)),
-            ("scalar", Box::new(parallel_row_scalar)),
-        ];
+    /// The vector forms this CPU runs, made by `form(wide)`: the AVX2 kernel with 16-sample windows and,
+    /// with AVX-512F, the one with 32/64-sample windows.
+    fn simd_forms<K>(form: impl Fn(bool) -> K) -> Vec<(&'static str, K)> {
+        let mut forms = Vec::new();
         #[cfg(target_arch = "x86_64")]
         for wide in [false, true] {
             if super::super::simd::available(1 << 20)
                 && (!wide || super::super::simd::wide_available())
             {
-                let name = if wide { "avx-512" } else { "avx2" };
-                kernels.push((
-                    name,
-                    Box::new(move |acc, q, pos0, dpos| {
-                        // SAFETY: the features were checked above; the tests' rows are short.
-                        unsafe { super::super::simd::parallel_row(acc, q, pos0, dpos, wide) }
-                    }),
-                ));
+                forms.push((if wide { "avx-512" } else { "avx2" }, form(wide)));
             }
         }
+        #[cfg(not(target_arch = "x86_64"))]
+        let _ = form;
+        forms
+    }
+
+    /// The public kernel, the scalar reference and every vector form, so that every path runs
+    /// whichever the public kernel picks.
+    fn parallel_kernels() -> Vec<(&'static str, ParallelKernel)> {
+        let mut kernels: Vec<(&'static str, ParallelKernel)> = vec![
+            ("public", Box::new(parallel_row)),
+            ("scalar", Box::new(parallel_row_scalar)),
+        ];
+        kernels.extend(simd_forms(|wide| -> ParallelKernel {
+            Box::new(move |acc, q, pos0, dpos| {
+                // SAFETY: `simd_forms` checked the features; the tests' rows are short.
+                unsafe { super::super::simd::parallel_row(acc, q, pos0, dpos, wide) }
+            })
+        }));
         kernels
     }
 
@@ -203,21 +210,12 @@ mod tests {
             ("public", Box::new(fan_row)),
             ("scalar", Box::new(fan_row_scalar)),
         ];
-        #[cfg(target_arch = "x86_64")]
-        for wide in [false, true] {
-            if super::super::simd::available(1 << 20)
-                && (!wide || super::super::simd::wide_available())
-            {
-                let name = if wide { "avx-512" } else { "avx2" };
-                kernels.push((
-                    name,
-                    Box::new(move |acc, q, line, a, b| {
-                        // SAFETY: the features were checked above; the tests' rows are short.
-                        unsafe { super::super::simd::fan_row(acc, q, line, a, b, wide) }
-                    }),
-                ));
-            }
-        }
+        kernels.extend(simd_forms(|wide| -> FanKernel {
+            Box::new(move |acc, q, line, a, b| {
+                // SAFETY: `simd_forms` checked the features; the tests' rows are short.
+                unsafe { super::super::simd::fan_row(acc, q, line, a, b, wide) }
+            })
+        }));
         kernels
     }
 

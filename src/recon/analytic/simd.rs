@@ -301,17 +301,40 @@ with_wide_variant! {
     }
 }
 
-/// 1/lc where lc > MIN_DEPTH, else 0 (relative error below 1e-6).
+/// `acc[i..i + 8] += inv² · v`, the divergent-beam distance weight times the interpolated values.
+///
+/// # Safety
+/// `i + 8 ≤ acc.len()`.
 #[target_feature(enable = "avx2,fma")]
 #[inline]
-fn inverse_depth(lc: __m256) -> __m256 {
+unsafe fn add_weighted(acc: &mut [f32], i: usize, inv: __m256, v: __m256) {
+    let w = _mm256_mul_ps(inv, inv);
+    // SAFETY: the caller guarantees the 8 floats from i are inside acc.
+    unsafe {
+        let out = acc.as_mut_ptr().add(i);
+        _mm256_storeu_ps(out, _mm256_fmadd_ps(w, v, _mm256_loadu_ps(out)));
+    }
+}
+
+/// 1/x by the reciprocal estimate (12 bits) refined by one Newton step: ~23 bits, cheaper than a
+/// division (relative error below 1e-6).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn reciprocal(x: __m256) -> __m256 {
+    let r = _mm256_rcp_ps(x);
+    _mm256_mul_ps(r, _mm256_fnmadd_ps(x, r, _mm256_set1_ps(2.0)))
+}
+
+/// 1/lc; with `MASK`, 0 where lc ≤ MIN_DEPTH (without it every lc must be above MIN_DEPTH).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+fn inverse_depth<const MASK: bool>(lc: __m256) -> __m256 {
+    if !MASK {
+        return reciprocal(lc);
+    }
     let min = _mm256_set1_ps(MIN_DEPTH);
     let valid = _mm256_cmp_ps::<_CMP_GT_OQ>(lc, min);
-    // Reciprocal estimate (12 bits) refined by one Newton step: ~23 bits, cheaper than a division.
-    let x = _mm256_max_ps(lc, min);
-    let r = _mm256_rcp_ps(x);
-    let inv = _mm256_mul_ps(r, _mm256_fnmadd_ps(x, r, _mm256_set1_ps(2.0)));
-    _mm256_and_ps(inv, valid)
+    _mm256_and_ps(reciprocal(_mm256_max_ps(lc, min)), valid)
 }
 
 /// # Safety
@@ -370,19 +393,13 @@ with_wide_variant! {
         let (lc0, dlc) = (_mm256_set1_ps(line.lc0), _mm256_set1_ps(line.dlc));
         // a·lat, so that the position is one multiply-add from it.
         let (lat0, dlat) = (_mm256_set1_ps(a * line.lat0), _mm256_set1_ps(a * line.dlat));
-        let (two, eight) = (_mm256_set1_ps(2.0), _mm256_set1_ps(8.0));
+        let eight = _mm256_set1_ps(8.0);
         let base = q.as_ptr();
         let mut x = lanes(0);
         let mut i = 0;
         while i + 8 <= n {
             let lc = _mm256_fmadd_ps(x, dlc, lc0);
-            let inv = if MASK {
-                inverse_depth(lc)
-            } else {
-                // Reciprocal estimate refined by one Newton step, as in `inverse_depth`.
-                let r = _mm256_rcp_ps(lc);
-                _mm256_mul_ps(r, _mm256_fnmadd_ps(lc, r, two))
-            };
+            let inv = inverse_depth::<MASK>(lc);
             let lat = _mm256_fmadd_ps(x, dlat, lat0);
             let pos = _mm256_fmadd_ps(lat, inv, vb);
             let (k, f) = if CLAMP { split(pos, hi) } else { split_inside(pos) };
@@ -390,12 +407,8 @@ with_wide_variant! {
             // bounds its own reads (every position is inside [1, len − 3] up to rounding then).
             let (qa, qb) = unsafe { window_pairs::<W>(base, q.len(), k) };
             let v = _mm256_fmadd_ps(f, _mm256_sub_ps(qb, qa), qa);
-            let w = _mm256_mul_ps(inv, inv);
             // SAFETY: i + 8 ≤ acc.len().
-            unsafe {
-                let out = acc.as_mut_ptr().add(i);
-                _mm256_storeu_ps(out, _mm256_fmadd_ps(w, v, _mm256_loadu_ps(out)));
-            }
+            unsafe { add_weighted(acc, i, inv, v) };
             x = _mm256_add_ps(x, eight);
             i += 8;
         }
@@ -450,20 +463,14 @@ unsafe fn cone_row_in<const MASK: bool>(
         _mm256_set1_ps(av * line.latv0),
         _mm256_set1_ps(av * line.dlatv),
     );
-    let (two, eight) = (_mm256_set1_ps(2.0), _mm256_set1_ps(8.0));
+    let eight = _mm256_set1_ps(8.0);
     let vw = _mm256_set1_epi32(width as i32);
     let base = q.as_ptr();
     let mut x = lanes(0);
     let mut i = 0;
     while i + 8 <= n {
         let lc = _mm256_fmadd_ps(x, dlc, lc0);
-        let inv = if MASK {
-            inverse_depth(lc)
-        } else {
-            // Reciprocal estimate refined by one Newton step, as in `inverse_depth`.
-            let r = _mm256_rcp_ps(lc);
-            _mm256_mul_ps(r, _mm256_fnmadd_ps(lc, r, two))
-        };
+        let inv = inverse_depth::<MASK>(lc);
         let lat = _mm256_fmadd_ps(x, dlat, lat0);
         let latv = _mm256_fmadd_ps(x, dlatv, latv0);
         let (iu, fu) = split(_mm256_fmadd_ps(lat, inv, vbu), hu);
@@ -475,12 +482,8 @@ unsafe fn cone_row_in<const MASK: bool>(
         let top = _mm256_fmadd_ps(fu, _mm256_sub_ps(q01, q00), q00);
         let bottom = _mm256_fmadd_ps(fu, _mm256_sub_ps(q11, q10), q10);
         let v = _mm256_fmadd_ps(fv, _mm256_sub_ps(bottom, top), top);
-        let w = _mm256_mul_ps(inv, inv);
         // SAFETY: i + 8 ≤ acc.len().
-        unsafe {
-            let out = acc.as_mut_ptr().add(i);
-            _mm256_storeu_ps(out, _mm256_fmadd_ps(w, v, _mm256_loadu_ps(out)));
-        }
+        unsafe { add_weighted(acc, i, inv, v) };
         x = _mm256_add_ps(x, eight);
         i += 8;
     }
