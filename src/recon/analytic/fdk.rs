@@ -66,6 +66,7 @@ pub fn fdk(
     let mut volume = Array3::<f32>::zeros(grid.shape());
     let mut panels = vec![0.0f32; batch * width * rows];
     let ticker = Ticker::new(ctl, "fdk", views.views.len());
+    let sampling = det_map(&det, lo);
     for first in (0..views.views.len()).step_by(batch) {
         let last = (first + batch).min(views.views.len());
         panels[..(last - first) * width * rows]
@@ -110,7 +111,7 @@ pub fn fdk(
         let batch_frames = &frames[first..last];
         let maps: Vec<[f32; 4]> = batch_frames
             .iter()
-            .map(|f| panel_map(f, &det_map(&det, lo)))
+            .map(|f| panel_map(f, &sampling))
             .collect();
         let panels = &panels;
         volume
