@@ -10,7 +10,10 @@
 //! ([`joseph2::Walk2::visit`], [`joseph3::Walk3::visit`]), so ⟨A x, y⟩ = ⟨x, Aᵀ y⟩ up to f32 rounding.
 //! In 2D the whole-view passes run the kernels of [`kernel2`] (AVX2 where the CPU has it), which
 //! compute the pairs and weights of [`joseph2::Walk2`] bit for bit on padded line layouts
-//! ([`padded2`]); see [`operator2`] for how they share the work between threads. In 3D forward
+//! ([`padded2`]); see [`operator2`] for how they share the work between threads. Parallel-beam views
+//! whose ray step along a line lies between 0.6 and 1.85 pixels run the line-driven kernels of
+//! [`parallel2`] instead (8 or 16 rays or pixels per vector, windows instead of gathers), which
+//! enumerate the same pairs in forward and back and differ from the walks by f32 rounding. In 3D forward
 //! projection runs views in parallel (each view writes its own rows); back projection partitions the
 //! views between threads, each accumulating into its own volume buffer, and sums the buffers: no write
 //! races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
@@ -22,6 +25,7 @@ pub mod joseph3;
 pub mod kernel2;
 pub mod operator2;
 pub mod padded2;
+pub mod parallel2;
 #[cfg(target_arch = "x86_64")]
 mod simd2;
 

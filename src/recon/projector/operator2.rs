@@ -17,6 +17,7 @@ use rayon::prelude::*;
 use super::joseph2::{self, Walk2};
 use super::kernel2::{Kernel, Segment};
 use super::padded2::{Layouts2, Lines, Needs};
+use super::parallel2::{self, LineView, WideLines};
 use super::{back_partitioned, forward_partitioned};
 use crate::recon::control::Cancel;
 use crate::recon::error::ReconError;
@@ -122,17 +123,53 @@ pub fn forward(
             joseph2::forward_view(views, view, grid, image, row)
         });
     }
-    let layouts = Layouts2::from_image(image, grid.nx, grid.ny, needs(views, grid, subset));
+    let plans = line_plans(views, grid, subset);
+    let others: Vec<usize> = subset
+        .iter()
+        .zip(&plans)
+        .filter(|(_, p)| p.is_none())
+        .map(|(&v, _)| v)
+        .collect();
+    let layouts = Layouts2::from_image(image, grid.nx, grid.ny, needs(views, grid, &others));
+    let wide = |along_x: bool| {
+        plans
+            .iter()
+            .flatten()
+            .any(|p| p.along_x == along_x)
+            .then(|| WideLines::from_image(image, grid.nx, grid.ny, along_x))
+    };
+    let (wide_rows, wide_cols) = (wide(false), wide(true));
+    let line_forward = |lv: &LineView, row: &mut [f32]| {
+        let lines = if lv.along_x { &wide_cols } else { &wide_rows };
+        if let Some(lines) = lines {
+            parallel2::forward_view(lines, lv, row);
+        }
+    };
     let kernel = Kernel::detect();
     if subset.len() >= 2 * rayon::current_num_threads() {
-        return forward_partitioned(m, subset, out, cancel, |view, row| {
-            for (k, o) in row.iter_mut().enumerate() {
-                *o = ray_dot(walk(views, grid, walks, view, k), image, &layouts, kernel);
-            }
-        });
+        return out
+            .par_chunks_mut(m)
+            .zip(subset.par_iter().zip(plans.par_iter()))
+            .try_for_each(|(row, (&view, plan))| {
+                cancel.check()?;
+                match plan {
+                    Some(lv) => line_forward(lv, row),
+                    None => {
+                        for (k, o) in row.iter_mut().enumerate() {
+                            *o =
+                                ray_dot(walk(views, grid, walks, view, k), image, &layouts, kernel);
+                        }
+                    }
+                }
+                Ok(())
+            });
     }
-    for (row, &view) in out.chunks_mut(m).zip(subset) {
+    for ((row, &view), plan) in out.chunks_mut(m).zip(subset).zip(&plans) {
         cancel.check()?;
+        if let Some(lv) = plan {
+            line_forward(lv, row);
+            continue;
+        }
         row.par_chunks_mut(RAYS_PER_TASK)
             .enumerate()
             .for_each(|(c, part)| {
@@ -143,6 +180,18 @@ pub fn forward(
             });
     }
     Ok(())
+}
+
+/// The line-kernel plans of the views of `subset` (see [`parallel2`]); all `None` where the CPU
+/// does not run the line kernels.
+fn line_plans(views: &Views2, grid: &ImageGrid, subset: &[usize]) -> Vec<Option<LineView>> {
+    if !parallel2::available() {
+        return vec![None; subset.len()];
+    }
+    subset
+        .par_iter()
+        .map(|&v| LineView::plan(views, v, grid))
+        .collect()
 }
 
 /// The rays of one view that carry data, by dominant axis, with their data values.
@@ -212,6 +261,56 @@ pub fn back(
             |view, row, acc| joseph2::back_view(views, view, grid, row, acc),
         );
     }
+    let plans = line_plans(views, grid, subset);
+    let mut rest = Vec::new();
+    let (mut rows, mut cols) = (Vec::new(), Vec::new());
+    for ((&view, row), plan) in subset.iter().zip(data.chunks_exact(m)).zip(&plans) {
+        match plan {
+            Some(lv) if lv.along_x => cols.push((lv, row)),
+            Some(lv) => rows.push((lv, row)),
+            None => rest.push((view, row)),
+        }
+    }
+    back_rays(views, grid, walks, &rest, image, cancel)?;
+    if !rows.is_empty() {
+        parallel2::back_lines(&rows, grid.ny, grid.nx, image, cancel)?;
+    }
+    if !cols.is_empty() {
+        let mut lines = vec![0.0f32; image.len()];
+        parallel2::back_lines(&cols, grid.nx, grid.ny, &mut lines, cancel)?;
+        add_transposed(&lines, grid.nx, grid.ny, image);
+    }
+    Ok(())
+}
+
+/// `image[y][x] += lines[x][y]` (`nx` lines of `ny` values).
+fn add_transposed(lines: &[f32], nx: usize, ny: usize, image: &mut [f32]) {
+    const ROWS_PER_TASK: usize = 16;
+    image
+        .par_chunks_mut(nx * ROWS_PER_TASK)
+        .enumerate()
+        .for_each(|(task, block)| {
+            let y0 = task * ROWS_PER_TASK;
+            for x in 0..nx {
+                let col = &lines[x * ny + y0..];
+                for (k, row) in block.chunks_exact_mut(nx).enumerate() {
+                    row[x] += col[k];
+                }
+            }
+        });
+}
+
+/// `image` = Σ A_viewᵀ row over `pairs` (view, data row) with the ray-driven kernels (overwrites
+/// `image`).
+fn back_rays(
+    views: &Views2,
+    grid: &ImageGrid,
+    walks: &[Option<Walk2>],
+    pairs: &[(usize, &[f32])],
+    image: &mut [f32],
+    cancel: &Cancel,
+) -> Result<(), ReconError> {
+    let m = views.detector.count;
     let kernel = Kernel::detect();
     let none = Needs {
         rows: false,
@@ -221,7 +320,6 @@ pub fn back(
     let mut acc = Layouts2::zeros(grid.nx, grid.ny, none);
     let per_layout = 2 * rayon::current_num_threads();
     let chunk = (CHUNK_BYTES / (m.max(1) * std::mem::size_of::<(f32, Segment)>())).max(1);
-    let pairs: Vec<(usize, &[f32])> = subset.iter().copied().zip(data.chunks_exact(m)).collect();
     for part in pairs.chunks(chunk) {
         let rays: Vec<ViewRays> = part
             .par_iter()
@@ -281,7 +379,15 @@ mod tests {
             detector,
             centre_mm: [1.0, -0.5],
         };
+        // Detector elements of 0.6 mm (two rays per pixel on some lines) and of 1.6 mm (the
+        // steepest views left to the ray kernels) for the line kernels of `parallel2`.
+        let spaced = |spacing_mm| ParallelBeam {
+            det_spacing_mm: spacing_mm,
+            ..parallel.clone()
+        };
         vec![
+            spaced(0.6).to_views().unwrap(),
+            spaced(1.6).to_views().unwrap(),
             parallel.to_views().unwrap(),
             fan(FanDetector::Arc {
                 count: 71,
@@ -319,6 +425,12 @@ mod tests {
         let mut rng = StdRng::seed_from_u64(5);
         let image: Vec<f32> = (0..grid.nx * grid.ny).map(|_| rng.random()).collect();
         let cancel = Cancel::new();
+        // Both spaced geometries mix views of the line kernels and of the ray kernels.
+        for views in &geometries()[..2] {
+            let all: Vec<usize> = (0..views.views.len()).collect();
+            let planned = line_plans(views, &grid, &all).iter().flatten().count();
+            assert!(!parallel2::available() || (0 < planned && planned < all.len()));
+        }
         for views in geometries() {
             let (nv, m) = (views.views.len(), views.detector.count);
             let mut subsets: Vec<Vec<usize>> = vec![(0..nv).collect(), vec![nv / 2]];
