@@ -88,10 +88,11 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
         AlgorithmSpec::Fbp(_) | AlgorithmSpec::Fdk(_) => (0, 0, 0),
     };
     let buffers = back_buffers() as u64 + 2;
-    // 2D operators keep the walk of every ray.
-    let table = match views {
-        Views::D2(v) => Projector2::table_bytes(v),
-        Views::D3(_) => 0,
+    // 2D operators keep the walk of every ray, and their line kernels (parallel views) copy the data
+    // of a back projection in ray order (one more data-sized array, plus a few values per view).
+    let (table, data) = match views {
+        Views::D2(v) => (Projector2::table_bytes(v), data + 1),
+        Views::D3(_) => (0, data),
     };
     Limits::f32_bytes(
         (images + buffers)

@@ -74,7 +74,9 @@ pub trait Operator: Sync {
 
 /// Number of image-sized buffers a projection allocates at most: one volume per thread for a cone-beam
 /// back projection; in 2D the two padded layouts of [`padded2::Layouts2`] (at most 3 images for grids
-/// of 4 × 4 pixels or more) and a fixed 256 KiB of ray segments.
+/// of 4 × 4 pixels or more) and a fixed 256 KiB of ray segments, or the two line layouts of
+/// [`parallel2::WideLines`] (at most 3 images for grids of 100 × 100 pixels or more) and one image of
+/// line sums. The line back projection's copy of the data is counted by the callers.
 pub fn back_buffers() -> usize {
     rayon::current_num_threads().max(3)
 }
