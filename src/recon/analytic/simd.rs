@@ -20,9 +20,7 @@ use super::backproject::{
 
 /// True when the CPU has AVX2 and FMA and indices below `len` fit an i32.
 pub fn available(len: usize) -> bool {
-    len < i32::MAX as usize
-        && std::arch::is_x86_feature_detected!("avx2")
-        && std::arch::is_x86_feature_detected!("fma")
+    len < i32::MAX as usize && crate::recon::cpu::avx2_fma()
 }
 
 #[target_feature(enable = "avx2,fma")]
@@ -96,7 +94,7 @@ pub const GATHER: usize = 0;
 
 /// True when the CPU also has AVX-512F, for the 32-sample windows.
 pub fn wide_available() -> bool {
-    std::arch::is_x86_feature_detected!("avx512f")
+    crate::recon::cpu::avx512f()
 }
 
 /// The window width that holds the pairs of 8 neighbouring pixels whose positions are at most `step`

@@ -47,26 +47,12 @@ const MAX_EXTENT: usize = 1 << 22;
 
 /// True when the CPU runs the line kernels (AVX2 and FMA).
 pub fn available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    crate::recon::cpu::avx2_fma()
 }
 
 /// True when the CPU also has AVX-512F, for the 16-pixel back kernel.
 fn wide_available() -> bool {
-    #[cfg(target_arch = "x86_64")]
-    {
-        available() && std::arch::is_x86_feature_detected!("avx512f")
-    }
-    #[cfg(not(target_arch = "x86_64"))]
-    {
-        false
-    }
+    crate::recon::cpu::avx512f()
 }
 
 /// The sample positions of one parallel view (see the module docs).

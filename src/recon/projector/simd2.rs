@@ -13,7 +13,7 @@ use super::kernel2::Segment;
 
 /// True when the CPU has AVX2 and FMA.
 pub fn available() -> bool {
-    std::arch::is_x86_feature_detected!("avx2") && std::arch::is_x86_feature_detected!("fma")
+    crate::recon::cpu::avx2_fma()
 }
 
 /// The per-segment constants of the loops.
