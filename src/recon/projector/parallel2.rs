@@ -10,13 +10,15 @@
 //!   neighbouring values of the line, so they are picked by permutes from one window instead of being
 //!   gathered. The lines carry zero margins ([`WideLines`]), so a sample half or wholly outside the
 //!   image reads zeros and needs no mask.
-//! - The back pass runs 8 neighbouring pixels per vector along each line. Pixel `q` collects `w0` from
+//! - The back pass runs 8 neighbouring pixels per vector along each line (16 with AVX-512F, whose
+//!   two-register permute picks from 32 data values). Pixel `q` collects `w0` from
 //!   the rays with `⌊t⌋ = q` and `w1` from those with `⌊t⌋ = q − 1`; it finds them from `K(q)`, the first
 //!   ray with `t ≥ q` (estimated by a division, then settled by comparing the exact positions), and picks
 //!   their data values from a window of the data row. It enumerates the same (pixel, weight) pairs as
 //!   the forward pass, bit for bit, so the two are exact adjoints up to the order of the sums.
 //!
-//! A step `s ∈ [S_MIN, S_MAX]` keeps every window within 16 values and at most two rays per pixel;
+//! A step `s ∈ [S_MIN, S_MAX]` keeps every window within its 16 (or 32) values and at most two rays
+//! per pixel;
 //! views outside it (detectors much finer or coarser than the pixels), fan views and CPUs without AVX2
 //! use the ray-driven kernels of [`super::kernel2`]. The positions come from the view's geometry once
 //! per line instead of once per ray, so they differ from those of [`super::joseph2::Walk2`] by f32
