@@ -35,6 +35,10 @@ use crate::recon::grid::ImageGrid;
 pub const S_MIN: f32 = 0.6;
 pub const S_MAX: f32 = 1.85;
 
+/// Steps from which no pixel holds two rays: consecutive positions differ by the step within 2 ulp of
+/// positions below 2·MAX_POS (2⁻⁶ pixel), so by more than one pixel.
+const ONE_RAY: f32 = 1.02;
+
 /// Zero values before, between and after the lines of a [`WideLines`]: more than a vector of rays
 /// reaches past the last pixel that one of them touches (7·S_MAX + 2 values), plus the window.
 const PAD: usize = 40;
@@ -318,10 +322,20 @@ fn back_lines_with(
                     // step + padded values, `r` holds count + 40, and the plan's step lies in
                     // [S_MIN, S_MAX].
                     unsafe {
-                        if wide {
-                            simd::back_line16(&mut scratch, padded, r, lv, lv.b[i]);
-                        } else {
-                            simd::back_line(&mut scratch, padded, r, lv, lv.b[i]);
+                        let b = lv.b[i];
+                        match (wide, lv.s < ONE_RAY) {
+                            (true, true) => {
+                                simd::back_line16::<true>(&mut scratch, padded, r, lv, b)
+                            }
+                            (true, false) => {
+                                simd::back_line16::<false>(&mut scratch, padded, r, lv, b)
+                            }
+                            (false, true) => {
+                                simd::back_line::<true>(&mut scratch, padded, r, lv, b)
+                            }
+                            (false, false) => {
+                                simd::back_line::<false>(&mut scratch, padded, r, lv, b)
+                            }
                         }
                     }
                 }
@@ -449,9 +463,16 @@ mod simd {
     ///
     /// # Safety
     /// AVX2 and FMA must be available; `acc.len() ≥ 8 + n8`, `n8` a multiple of 8,
-    /// `r.len() ≥ lv.count + 24`, and `lv.s ∈ [S_MIN, S_MAX]`.
+    /// `r.len() ≥ lv.count + 24`, and `lv.s ∈ [S_MIN, S_MAX]`. Results: exact only with `TWO` (a
+    /// second ray per pixel) where `lv.s <` [`super::ONE_RAY`].
     #[target_feature(enable = "avx2,fma")]
-    pub(super) unsafe fn back_line(acc: &mut [f32], n8: usize, r: &[f32], lv: &LineView, b: f32) {
+    pub(super) unsafe fn back_line<const TWO: bool>(
+        acc: &mut [f32],
+        n8: usize,
+        r: &[f32],
+        lv: &LineView,
+        b: f32,
+    ) {
         let count = lv.count as i32;
         let (vb, vs, vw) = (
             _mm256_set1_ps(b),
@@ -459,50 +480,41 @@ mod simd {
             _mm256_set1_ps(lv.weight),
         );
         let inv_s = _mm256_set1_ps(1.0 / lv.s);
-        let one = _mm256_set1_epi32(1);
-        let next_lane = _mm256_setr_epi32(1, 2, 3, 4, 5, 6, 7, 0);
-        let prev_lane = _mm256_setr_epi32(7, 0, 1, 2, 3, 4, 5, 6);
+        let (one, onef) = (_mm256_set1_epi32(1), _mm256_set1_ps(1.0));
         let eight = _mm256_set1_ps(8.0);
+        let prev_lane = _mm256_setr_epi32(7, 0, 1, 2, 3, 4, 5, 6);
         let rp = r.as_ptr();
         let ap = acc.as_mut_ptr();
+        // Pixels −8 … −1 first: their bins' w1 reach pixel 0.
         let mut q = _mm256_add_ps(_mm256_set1_ps(-8.0), lanes());
-        let (mut k_cur, mut t_cur) = first_rays(q, vb, vs, inv_s, count);
         let mut c_prev = _mm256_setzero_ps();
         for at in (0..=n8).step_by(8) {
-            let q_next = _mm256_add_ps(q, eight);
-            let (k_next, t_next) = first_rays(q_next, vb, vs, inv_s, count);
-            // K(q + 1) for the 8 pixels.
-            let k_after = _mm256_blend_epi32::<0b1000_0000>(
-                _mm256_permutevar8x32_epi32(k_cur, next_lane),
-                _mm256_permutevar8x32_epi32(k_next, _mm256_setzero_si256()),
-            );
-            // The rays of pixel q's bin (⌊t⌋ = q) are K(q) .. K(q + 1): none, one, or two.
-            let rays = _mm256_sub_epi32(k_after, k_cur);
-            let any = _mm256_castsi256_ps(_mm256_cmpgt_epi32(rays, _mm256_setzero_si256()));
+            let (k, t) = first_rays(q, vb, vs, inv_s, count);
+            // Bin q (⌊t⌋ = q) holds ray K(q) when t_K < q + 1 (and a second ray only where TWO).
+            let q1 = _mm256_add_ps(q, onef);
+            let any = _mm256_cmp_ps::<_CMP_LT_OQ>(t, q1);
             // K grows with q and lies in [−1, count]: the vector's rays (and the second rays) lie in
             // r[base + 1 ..][0 .. 16], since 8 pixels hold at most ⌊7/S_MIN⌋ + 2 of them.
-            let base = _mm256_cvtsi256_si32(k_cur);
+            let base = _mm256_cvtsi256_si32(k);
             debug_assert!((-1..=count).contains(&base));
-            let rel = _mm256_sub_epi32(k_cur, _mm256_set1_epi32(base));
+            let rel = _mm256_sub_epi32(k, _mm256_set1_epi32(base));
             // SAFETY: `first_rays` clamps K to [−1, count], so base + 1 ∈ [0, count + 1], and r
             // holds count + 24 values.
             let (lo, hi) = unsafe {
                 let p = rp.add((base + 1) as usize);
                 (_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8)))
             };
+            // Clamped K (−1 or count) picks one of the zeros around the data.
             let rv = _mm256_and_ps(select16(lo, hi, rel), any);
-            let w1 = _mm256_mul_ps(_mm256_sub_ps(t_cur, q), vw);
+            let w1 = _mm256_mul_ps(_mm256_sub_ps(t, q), vw);
             let w0 = _mm256_sub_ps(vw, w1);
             let mut a = _mm256_mul_ps(rv, w0);
             let mut c = _mm256_mul_ps(rv, w1);
-            let two = _mm256_cmpgt_epi32(rays, one);
-            if _mm256_movemask_ps(_mm256_castsi256_ps(two)) != 0 {
-                let k2 = _mm256_add_epi32(k_cur, one);
+            if TWO {
+                let k2 = _mm256_add_epi32(k, one);
                 let t2 = _mm256_add_ps(vb, _mm256_mul_ps(_mm256_cvtepi32_ps(k2), vs));
-                let r2 = _mm256_and_ps(
-                    select16(lo, hi, _mm256_add_epi32(rel, one)),
-                    _mm256_castsi256_ps(two),
-                );
+                let in_bin = _mm256_cmp_ps::<_CMP_LT_OQ>(t2, q1);
+                let r2 = _mm256_and_ps(select16(lo, hi, _mm256_add_epi32(rel, one)), in_bin);
                 let w1 = _mm256_mul_ps(_mm256_sub_ps(t2, q), vw);
                 let w0 = _mm256_sub_ps(vw, w1);
                 a = _mm256_fmadd_ps(r2, w0, a);
@@ -522,9 +534,7 @@ mod simd {
                 );
             }
             c_prev = c;
-            k_cur = k_next;
-            t_cur = t_next;
-            q = q_next;
+            q = _mm256_add_ps(q, eight);
         }
     }
 
@@ -564,9 +574,9 @@ mod simd {
     ///
     /// # Safety
     /// AVX2, FMA and AVX-512F must be available; `acc.len() ≥ 16 + n16`, `n16` a multiple of 16,
-    /// `r.len() ≥ lv.count + 40`, and `lv.s ∈ [S_MIN, S_MAX]`.
+    /// `r.len() ≥ lv.count + 40`, and `lv.s ∈ [S_MIN, S_MAX]`; `TWO` as in [`back_line`].
     #[target_feature(enable = "avx2,fma,avx512f")]
-    pub(super) unsafe fn back_line16(
+    pub(super) unsafe fn back_line16<const TWO: bool>(
         acc: &mut [f32],
         n16: usize,
         r: &[f32],
@@ -580,7 +590,7 @@ mod simd {
             _mm512_set1_ps(lv.weight),
         );
         let inv_s = _mm512_set1_ps(1.0 / lv.s);
-        let one = _mm512_set1_epi32(1);
+        let (one, onef) = (_mm512_set1_epi32(1), _mm512_set1_ps(1.0));
         let sixteen = _mm512_set1_ps(16.0);
         let rp = r.as_ptr();
         let ap = acc.as_mut_ptr();
@@ -588,32 +598,29 @@ mod simd {
             0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
         );
         let mut q = _mm512_add_ps(_mm512_set1_ps(-16.0), lanes16);
-        let (mut k_cur, mut t_cur) = first_rays16(q, vb, vs, inv_s, count);
         let mut c_prev = _mm512_setzero_si512();
         for at in (0..=n16).step_by(16) {
-            let q_next = _mm512_add_ps(q, sixteen);
-            let (k_next, t_next) = first_rays16(q_next, vb, vs, inv_s, count);
-            let k_after = _mm512_alignr_epi32::<1>(k_next, k_cur);
-            let rays = _mm512_sub_epi32(k_after, k_cur);
-            let any = _mm512_cmpgt_epi32_mask(rays, _mm512_setzero_si512());
-            let two = _mm512_cmpgt_epi32_mask(rays, one);
+            let (k, t) = first_rays16(q, vb, vs, inv_s, count);
+            let q1 = _mm512_add_ps(q, onef);
+            let any = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t, q1);
             // 16 pixels hold at most ⌊15/S_MIN⌋ + 2 = 27 rays: all in r[base + 1 ..][0 .. 32].
-            let base = _mm_cvtsi128_si32(_mm512_castsi512_si128(k_cur));
+            let base = _mm_cvtsi128_si32(_mm512_castsi512_si128(k));
             debug_assert!((-1..=count).contains(&base));
-            let rel = _mm512_sub_epi32(k_cur, _mm512_set1_epi32(base));
+            let rel = _mm512_sub_epi32(k, _mm512_set1_epi32(base));
             // SAFETY: base + 1 ∈ [0, count + 1] and r holds count + 40 values.
             let (lo, hi) = unsafe {
                 let p = rp.add((base + 1) as usize);
                 (_mm512_loadu_ps(p), _mm512_loadu_ps(p.add(16)))
             };
             let rv = _mm512_maskz_permutex2var_ps(any, lo, rel, hi);
-            let w1 = _mm512_mul_ps(_mm512_sub_ps(t_cur, q), vw);
+            let w1 = _mm512_mul_ps(_mm512_sub_ps(t, q), vw);
             let mut a = _mm512_mul_ps(rv, _mm512_sub_ps(vw, w1));
             let mut c = _mm512_mul_ps(rv, w1);
-            if two != 0 {
-                let k2 = _mm512_add_epi32(k_cur, one);
+            if TWO {
+                let k2 = _mm512_add_epi32(k, one);
                 let t2 = _mm512_add_ps(vb, _mm512_mul_ps(_mm512_cvtepi32_ps(k2), vs));
-                let r2 = _mm512_maskz_permutex2var_ps(two, lo, _mm512_add_epi32(rel, one), hi);
+                let in_bin = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t2, q1);
+                let r2 = _mm512_maskz_permutex2var_ps(in_bin, lo, _mm512_add_epi32(rel, one), hi);
                 let w1 = _mm512_mul_ps(_mm512_sub_ps(t2, q), vw);
                 a = _mm512_fmadd_ps(r2, _mm512_sub_ps(vw, w1), a);
                 c = _mm512_fmadd_ps(r2, w1, c);
@@ -629,9 +636,7 @@ mod simd {
                 );
             }
             c_prev = c;
-            k_cur = k_next;
-            t_cur = t_next;
-            q = q_next;
+            q = _mm512_add_ps(q, sixteen);
         }
     }
 }
