@@ -1,7 +1,7 @@
 //! DICOM: the only module that imports dicom-rs — reading CT series and writing derived results.
 //!
 //! - [`read_bytes`] / [`read_path`]: one Part 10 file into an [`Instance`] whose frames are
-//!   [`series::Slice`]s (stored values plus placement and rescale); native, deflated and the compressed transfer
+//!   [`crate::series::Slice`]s (stored values plus placement and rescale); native, deflated and the compressed transfer
 //!   syntaxes dicom-pixeldata decodes (JPEG baseline/lossless, RLE, JPEG 2000), implicit VR and big endian,
 //!   multi-frame Enhanced CT with functional groups, signed/unsigned pixels and pixel padding.
 //! - [`unpack`]: an upload body (a single file or a ZIP, with bomb limits; names inside the ZIP are labels,

@@ -39,7 +39,7 @@ fn noisy(p: f32, i0: f64, rng: &mut StdRng) -> f32 {
 /// Deterministic for a given `seed`, independent of the number of threads: each index along the first
 /// axis (a view) draws from its own generator seeded from `seed` and that index.
 ///
-/// Errors: `incident_photons` not positive, not finite or above [`MAX_INCIDENT_PHOTONS`]
+/// Errors: `incident_photons` not positive, not finite or above `MAX_INCIDENT_PHOTONS`
 /// (`InvalidParameter`); a non-finite projection value (`NonFinite`), checked before anything changes.
 pub fn poisson_noise<D: Dimension + RemoveAxis>(
     mut projections: ArrayViewMut<f32, D>,

@@ -101,7 +101,7 @@ impl Walk2 {
         }
     }
 
-    /// Σ image[p]·w over the ray.
+    /// Σ `image[p]·w` over the ray.
     #[inline]
     pub fn dot(&self, image: &[f32]) -> f32 {
         let mut acc = 0.0f32;
@@ -109,7 +109,7 @@ impl Walk2 {
         acc
     }
 
-    /// image[p] += alpha·w over the ray.
+    /// `image[p] += alpha·w` over the ray.
     #[inline]
     pub fn axpy(&self, alpha: f32, image: &mut [f32]) {
         self.visit(|p, w| image[p] += alpha * w);

@@ -134,7 +134,7 @@ impl Walk3 {
         }
     }
 
-    /// Σ volume[p]·w over the ray.
+    /// Σ `volume[p]·w` over the ray.
     #[inline]
     pub fn dot(&self, volume: &[f32]) -> f32 {
         let mut acc = 0.0f32;
@@ -142,7 +142,7 @@ impl Walk3 {
         acc
     }
 
-    /// volume[p] += alpha·w over the ray.
+    /// `volume[p] += alpha·w` over the ray.
     #[inline]
     pub fn axpy(&self, alpha: f32, volume: &mut [f32]) {
         self.visit(|p, w| volume[p] += alpha * w);

@@ -6,7 +6,7 @@
 //! [`Walk2::visit`], so each kernel enumerates the (pixel, weight) pairs of the reference walk, bit for
 //! bit; only the order of the sums differs. A sample whose pair is half outside the grid uses the zero
 //! (forward) or discarded (back) border value instead of a branch. [`Kernel::Avx2`] runs 8 samples per
-//! step ([`super::simd2`]); [`Kernel::Scalar`] is the portable form.
+//! step (`simd2`); [`Kernel::Scalar`] is the portable form.
 
 use super::joseph2::Walk2;
 
