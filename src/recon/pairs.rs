@@ -1,7 +1,31 @@
-//! Loading the 8 pairs `(q[k], q[k + 1])` that linear interpolation at 8 positions needs, shared by the AVX2
-//! kernels of the projectors and of the analytic backprojection.
+//! Loading the 8 pairs `(q[k], q[k + 1])` that linear interpolation at 8 positions needs, and picking
+//! values from a 16-value window, shared by the AVX2 kernels of the projectors and of the analytic
+//! backprojection.
 
 use std::arch::x86_64::*;
+
+/// `start + j` in lane `j`.
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+pub(crate) fn lanes(start: f32) -> __m256 {
+    _mm256_add_ps(
+        _mm256_set1_ps(start),
+        _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
+    )
+}
+
+/// Lanes 0–7 of `idx` pick from the 16 floats `lo ++ hi` (bits 0–2 of each index choose the float,
+/// bit 3 the half; other bits are ignored).
+#[target_feature(enable = "avx2,fma")]
+#[inline]
+pub(crate) fn select16(lo: __m256, hi: __m256, idx: __m256i) -> __m256 {
+    let upper = _mm256_castsi256_ps(_mm256_slli_epi32::<28>(idx));
+    _mm256_blendv_ps(
+        _mm256_permutevar8x32_ps(lo, idx),
+        _mm256_permutevar8x32_ps(hi, idx),
+        upper,
+    )
+}
 
 /// The pairs `(q[k_j], q[k_j + 1])` for the 8 indices of `k`, as two vectors in lane order, with
 /// eight 64-bit loads (faster here than two 64-bit gathers of 4 lanes: 1.2–1.3× on the whole forward

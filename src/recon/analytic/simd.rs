@@ -12,7 +12,7 @@
 
 use std::arch::x86_64::*;
 
-use crate::recon::pairs::load_pairs;
+use crate::recon::pairs::{lanes, load_pairs, select16};
 
 use super::backproject::{
     MIN_DEPTH, Panel, RowLine, cone_row_scalar, fan_row_scalar, parallel_row_scalar,
@@ -21,15 +21,6 @@ use super::backproject::{
 /// True when the CPU has AVX2 and FMA and indices below `len` fit an i32.
 pub fn available(len: usize) -> bool {
     len < i32::MAX as usize && crate::recon::cpu::avx2_fma()
-}
-
-#[target_feature(enable = "avx2,fma")]
-#[inline]
-fn lanes(i: usize) -> __m256 {
-    _mm256_add_ps(
-        _mm256_set1_ps(i as f32),
-        _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
-    )
 }
 
 /// Clamp to [0, hi] (NaN → 0) and split into index and fraction.
@@ -73,18 +64,6 @@ unsafe fn gather_pairs(base: *const f32, k: __m256i) -> (__m256, __m256) {
     (
         _mm256_permutevar8x32_ps(a, order),
         _mm256_permutevar8x32_ps(b, order),
-    )
-}
-
-/// Lanes 0–7 of `idx` pick from the 16 floats `lo ++ hi` (bits 0–2 of each index choose the float,
-/// `upper` — bit 3 moved to the sign bit — the half).
-#[target_feature(enable = "avx2,fma")]
-#[inline]
-fn select16(lo: __m256, hi: __m256, idx: __m256i, upper: __m256) -> __m256 {
-    _mm256_blendv_ps(
-        _mm256_permutevar8x32_ps(lo, idx),
-        _mm256_permutevar8x32_ps(hi, idx),
-        upper,
     )
 }
 
@@ -197,7 +176,6 @@ unsafe fn window_pairs<const W: usize>(
                 if W == 64 {
                     return unsafe { window64_pairs(base, start as usize, rel) };
                 }
-                let upper = _mm256_castsi256_ps(_mm256_slli_epi32::<28>(rel));
                 // SAFETY: start + 16 < len, so the loads at start, start + 1, start + 8 and
                 // start + 9 (8 floats each, the last ending at start + 16) are inside the row.
                 let (a, b) = unsafe {
@@ -205,7 +183,7 @@ unsafe fn window_pairs<const W: usize>(
                     let (lo, hi) = (_mm256_loadu_ps(p), _mm256_loadu_ps(p.add(8)));
                     let (lo1, hi1) = (_mm256_loadu_ps(p.add(1)), _mm256_loadu_ps(p.add(9)));
                     // The second sample of each pair is the same pick from the window one further on.
-                    (select16(lo, hi, rel, upper), select16(lo1, hi1, rel, upper))
+                    (select16(lo, hi, rel), select16(lo1, hi1, rel))
                 };
                 return (a, b);
             }
@@ -278,7 +256,7 @@ with_wide_variant! {
         let (vp0, vd) = (_mm256_set1_ps(pos0), _mm256_set1_ps(dpos));
         let eight = _mm256_set1_ps(8.0);
         let base = q.as_ptr();
-        let mut x = lanes(0);
+        let mut x = lanes(0.0);
         let mut i = 0;
         while i + 8 <= n {
             let pos = _mm256_fmadd_ps(x, vd, vp0);
@@ -393,7 +371,7 @@ with_wide_variant! {
         let (lat0, dlat) = (_mm256_set1_ps(a * line.lat0), _mm256_set1_ps(a * line.dlat));
         let eight = _mm256_set1_ps(8.0);
         let base = q.as_ptr();
-        let mut x = lanes(0);
+        let mut x = lanes(0.0);
         let mut i = 0;
         while i + 8 <= n {
             let lc = _mm256_fmadd_ps(x, dlc, lc0);
@@ -464,7 +442,7 @@ unsafe fn cone_row_in<const MASK: bool>(
     let eight = _mm256_set1_ps(8.0);
     let vw = _mm256_set1_epi32(width as i32);
     let base = q.as_ptr();
-    let mut x = lanes(0);
+    let mut x = lanes(0.0);
     let mut i = 0;
     while i + 8 <= n {
         let lc = _mm256_fmadd_ps(x, dlc, lc0);

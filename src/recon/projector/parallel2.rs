@@ -361,25 +361,7 @@ mod simd {
     use std::arch::x86_64::*;
 
     use super::{LineView, PAD, WideLines};
-
-    /// Lanes 0–7 of `idx` pick from the 16 floats `lo ++ hi` (bits 0–2 choose the float, bit 3 the
-    /// half; other bits are ignored).
-    #[target_feature(enable = "avx2,fma")]
-    #[inline]
-    fn select16(lo: __m256, hi: __m256, idx: __m256i) -> __m256 {
-        let upper = _mm256_castsi256_ps(_mm256_slli_epi32::<28>(idx));
-        _mm256_blendv_ps(
-            _mm256_permutevar8x32_ps(lo, idx),
-            _mm256_permutevar8x32_ps(hi, idx),
-            upper,
-        )
-    }
-
-    #[target_feature(enable = "avx2,fma")]
-    #[inline]
-    fn lanes() -> __m256 {
-        _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0)
-    }
+    use crate::recon::pairs::{lanes, select16};
 
     /// # Safety
     /// AVX2 and FMA must be available; `lines` and `lv` must agree and `out.len() == lv.count`.
@@ -393,7 +375,7 @@ mod simd {
         let (lowest, highest) = (-(PAD as isize), (lines.len + PAD - 17) as isize);
         let mut sums = [0.0f32; 8];
         for first in (0..m).step_by(8) {
-            let ks = _mm256_mul_ps(_mm256_add_ps(_mm256_set1_ps(first as f32), lanes()), vs);
+            let ks = _mm256_mul_ps(lanes(first as f32), vs);
             let (lo, hi) = lv.group_lines(first);
             let mut acc0 = _mm256_setzero_ps();
             let mut acc1 = _mm256_setzero_ps();
@@ -486,7 +468,7 @@ mod simd {
         let rp = r.as_ptr();
         let ap = acc.as_mut_ptr();
         // Pixels −8 … −1 first: their bins' w1 reach pixel 0.
-        let mut q = _mm256_add_ps(_mm256_set1_ps(-8.0), lanes());
+        let mut q = lanes(-8.0);
         let mut c_prev = _mm256_setzero_ps();
         for at in (0..=n8).step_by(8) {
             let (k, t) = first_rays(q, vb, vs, inv_s, count);
