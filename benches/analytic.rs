@@ -35,6 +35,7 @@ fn fan(detector: FanDetector) -> Views2 {
 }
 
 fn bench(c: &mut Criterion) {
+    ctrecon::config::limit_simd_from_env();
     let params = FbpParams::default();
     let grid = ImageGrid::square(512, 0.5);
     let mut g = c.benchmark_group("fbp_512");

@@ -11,6 +11,7 @@ use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
 use std::hint::black_box;
 
 fn bench_2d(c: &mut Criterion) {
+    ctrecon::config::limit_simd_from_env();
     let grid = ImageGrid::square(256, 1.0);
     let v2 = ParallelBeam {
         angles: Angles::uniform(360, 180.0),
@@ -61,6 +62,7 @@ fn bench_2d(c: &mut Criterion) {
 }
 
 fn bench_cone(c: &mut Criterion) {
+    ctrecon::config::limit_simd_from_env();
     if std::env::var("CTRECON_BENCH_CONE").as_deref() != Ok("1") {
         return;
     }

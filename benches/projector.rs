@@ -21,6 +21,7 @@ fn setup(n: usize, views: usize, det: usize) -> (Views2, ImageGrid) {
 }
 
 fn bench(c: &mut Criterion) {
+    ctrecon::config::limit_simd_from_env();
     let mut g = c.benchmark_group("projector");
     g.sample_size(10);
     for (n, views, det) in [(512, 720, 725), (256, 360, 363)] {

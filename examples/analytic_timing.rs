@@ -60,6 +60,7 @@ fn cone(n: usize) -> (ConeBeam, VolumeGrid) {
 }
 
 fn main() {
+    ctrecon::config::limit_simd_from_env();
     let args: Vec<String> = std::env::args().collect();
     let case = args.get(1).map(String::as_str).unwrap_or("parallel");
     let runs: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);

@@ -123,6 +123,7 @@ pub fn seed_experiment_with(spacing_deg: f64, projector: Projector) -> (f64, f64
 
 #[allow(dead_code)]
 fn main() {
+    ctrecon::config::limit_simd_from_env();
     for projector in [Projector::Pixels, Projector::Joseph] {
         println!("{projector:?} forward projection of the slice:");
         for spacing in [2.0, 1.0, 0.25] {

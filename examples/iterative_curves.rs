@@ -158,6 +158,7 @@ fn cone() {
 }
 
 fn main() {
+    ctrecon::config::limit_simd_from_env();
     if std::env::args().nth(1).as_deref() == Some("cone") {
         cone();
         return;

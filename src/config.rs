@@ -18,11 +18,21 @@
 //! | `mu_water_per_mm` | `CTRECON_MU_WATER_PER_MM` | 0.0192 (HU conversion of presets) |
 //! | `request_timeout_secs` | `CTRECON_REQUEST_TIMEOUT_SECS` | 30 (uploads: `upload_timeout_secs`, 600) |
 //! | `progress_interval_ms` | `CTRECON_PROGRESS_INTERVAL_MS` | 500: most one progress write per job per interval |
+//!
+//! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
+//! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
 use serde::Deserialize;
+
+/// Cap the reconstruction kernels as `CTRECON_SIMD` says (see [`crate::recon::cpu`]); call before any
+/// reconstruction. Returns whether the cap took effect.
+pub fn limit_simd_from_env() -> bool {
+    let value = std::env::var("CTRECON_SIMD").ok();
+    crate::recon::cpu::limit(crate::recon::cpu::Simd::parse(value.as_deref()))
+}
 
 /// Everything `ctrecon serve` can be told.
 #[derive(Debug, Clone, Deserialize)]

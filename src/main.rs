@@ -4,6 +4,7 @@ use clap::Parser;
 use ctrecon::cli::{Cli, Command};
 
 fn main() -> std::process::ExitCode {
+    ctrecon::config::limit_simd_from_env();
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve(args) => ctrecon::cli::serve::run(args),

@@ -3,16 +3,56 @@
 //! `is_x86_feature_detected!("avx512f")` was seen reading the environment on every call with the
 //! standard library used here (about 5 % of a fan-beam reconstruction that asked once per image row),
 //! so the answers are kept here.
+//!
+//! A program may cap the kernels before their first use ([`limit`]), to measure or check the paths
+//! another CPU would take: the `ctrecon` binary, the examples and the benchmarks read the cap from the
+//! environment variable `CTRECON_SIMD` (`avx2`: leave AVX-512F unused; `scalar`: no vector kernels).
 
 use std::sync::OnceLock;
 
-/// True when the CPU has AVX2 and FMA.
+/// The widest kernels the process may use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum Simd {
+    /// The portable kernels only.
+    Scalar,
+    /// AVX2 + FMA kernels, never AVX-512F.
+    Avx2,
+    /// Whatever the CPU has.
+    Any,
+}
+
+impl Simd {
+    /// Parse a cap as `CTRECON_SIMD` spells it: `scalar` (or `none`), `avx2`; anything else (and
+    /// nothing) caps nothing.
+    pub fn parse(value: Option<&str>) -> Self {
+        match value.map(|v| v.trim().to_ascii_lowercase()).as_deref() {
+            Some("scalar") | Some("none") => Simd::Scalar,
+            Some("avx2") => Simd::Avx2,
+            _ => Simd::Any,
+        }
+    }
+}
+
+static CAP: OnceLock<Simd> = OnceLock::new();
+
+/// Cap the kernels for the rest of the process. Only the first cap counts, and only before the first
+/// kernel asked for the features; returns whether this one took effect.
+pub fn limit(cap: Simd) -> bool {
+    CAP.set(cap).is_ok()
+}
+
+fn cap() -> Simd {
+    *CAP.get_or_init(|| Simd::Any)
+}
+
+/// True when the CPU has AVX2 and FMA (and the cap allows them).
 pub fn avx2_fma() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
     *FLAG.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            std::arch::is_x86_feature_detected!("avx2")
+            cap() >= Simd::Avx2
+                && std::arch::is_x86_feature_detected!("avx2")
                 && std::arch::is_x86_feature_detected!("fma")
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -22,17 +62,40 @@ pub fn avx2_fma() -> bool {
     })
 }
 
-/// True when the CPU has AVX2, FMA and AVX-512F.
+/// True when the CPU has AVX2, FMA and AVX-512F (and the cap allows AVX-512F).
 pub fn avx512f() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
     *FLAG.get_or_init(|| {
         #[cfg(target_arch = "x86_64")]
         {
-            avx2_fma() && std::arch::is_x86_feature_detected!("avx512f")
+            cap() >= Simd::Any && avx2_fma() && std::arch::is_x86_feature_detected!("avx512f")
         }
         #[cfg(not(target_arch = "x86_64"))]
         {
             false
         }
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn caps_are_parsed_case_insensitively_and_unknown_values_cap_nothing() {
+        assert_eq!(Simd::parse(None), Simd::Any);
+        assert_eq!(Simd::parse(Some("AVX2")), Simd::Avx2);
+        assert_eq!(Simd::parse(Some(" scalar ")), Simd::Scalar);
+        assert_eq!(Simd::parse(Some("none")), Simd::Scalar);
+        assert_eq!(Simd::parse(Some("avx512")), Simd::Any);
+        assert_eq!(Simd::parse(Some("")), Simd::Any);
+    }
+
+    #[test]
+    fn the_first_question_fixes_the_cap_and_avx512f_implies_avx2() {
+        let _ = avx2_fma();
+        // The features were asked for, so the cap is fixed (to `Any` unless a test set it first).
+        assert!(!limit(Simd::Scalar));
+        assert!(!avx512f() || avx2_fma());
+    }
 }

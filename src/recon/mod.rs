@@ -19,7 +19,7 @@
 pub mod algorithm;
 pub mod analytic;
 pub mod control;
-mod cpu;
+pub mod cpu;
 pub mod error;
 pub mod geometry;
 pub mod grid;
