@@ -48,33 +48,38 @@ fn cap() -> Simd {
 /// True when the CPU has AVX2 and FMA (and the cap allows them).
 pub fn avx2_fma() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
-    *FLAG.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        {
-            cap() >= Simd::Avx2
-                && std::arch::is_x86_feature_detected!("avx2")
-                && std::arch::is_x86_feature_detected!("fma")
-        }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            false
-        }
-    })
+    *FLAG.get_or_init(|| cap() >= Simd::Avx2 && has(Feature::Avx2) && has(Feature::Fma))
 }
 
 /// True when the CPU has AVX2, FMA and AVX-512F (and the cap allows AVX-512F).
 pub fn avx512f() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
-    *FLAG.get_or_init(|| {
-        #[cfg(target_arch = "x86_64")]
-        {
-            cap() >= Simd::Any && avx2_fma() && std::arch::is_x86_feature_detected!("avx512f")
+    *FLAG.get_or_init(|| cap() >= Simd::Any && avx2_fma() && has(Feature::Avx512f))
+}
+
+/// The x86-64 features the kernels use.
+#[derive(Debug, Clone, Copy)]
+enum Feature {
+    Avx2,
+    Fma,
+    Avx512f,
+}
+
+/// Whether the CPU has `feature` (never off x86-64).
+fn has(feature: Feature) -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        match feature {
+            Feature::Avx2 => std::arch::is_x86_feature_detected!("avx2"),
+            Feature::Fma => std::arch::is_x86_feature_detected!("fma"),
+            Feature::Avx512f => std::arch::is_x86_feature_detected!("avx512f"),
         }
-        #[cfg(not(target_arch = "x86_64"))]
-        {
-            false
-        }
-    })
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        let _ = feature;
+        false
+    }
 }
 
 #[cfg(test)]
