@@ -62,7 +62,6 @@ fn bench_2d(c: &mut Criterion) {
 }
 
 fn bench_cone(c: &mut Criterion) {
-    ctrecon::config::limit_simd_from_env();
     if std::env::var("CTRECON_BENCH_CONE").as_deref() != Ok("1") {
         return;
     }
