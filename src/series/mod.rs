@@ -5,7 +5,8 @@
 //! image position, image orientation, pixel spacing, and the rescale to Hounsfield units. [`assemble`] sorts
 //! them by their position along the slice normal, drops exact duplicates, detects missing slices and uneven
 //! spacing (refused or resampled onto a uniform grid, with a warning), measures gantry tilt (kept as a
-//! non-orthogonal slice axis in the [`Frame`]) and returns a [`Volume`] in HU.
+//! non-orthogonal slice axis in the [`Frame`]) and returns a [`Volume`] in HU in the closest canonical order
+//! (patient left, posterior, superior along the array axes x, y, z).
 //!
 //! This module knows nothing about file formats: the reader that fills [`Slice`] lives elsewhere.
 
@@ -13,7 +14,7 @@ use serde::Serialize;
 
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
-use crate::volume::{Frame, Volume};
+use crate::volume::{Frame, Volume, to_closest_canonical};
 
 /// HU given to pixels marked as padding (outside the scanned field).
 pub const PADDING_HU: f32 = -1024.0;
@@ -84,7 +85,9 @@ pub struct Warning {
 /// An assembled series.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Assembled {
-    /// HU, `[slice][row][column]`, slices in increasing position along the normal.
+    /// HU, `[z][y][x]` in the closest canonical order (see [`crate::volume::to_closest_canonical`]): the
+    /// column axis runs as nearly as it can to the patient's left, the row axis posterior, the slice axis
+    /// superior, whatever the acquisition's orientation and the order of its rows, columns and slices.
     pub volume: Volume,
     pub warnings: Vec<Warning>,
     /// Angle between the slice axis and the image normal (degrees); 0 for an untilted series.
@@ -540,7 +543,9 @@ pub fn assemble(
         direction: [row_dir, col_dir, slice_dir],
     };
     Ok(Assembled {
-        volume: Volume { data, frame },
+        // Closest canonical order (x left, y posterior, z superior) by exact flips and permutations, so every
+        // acquisition of the same patient becomes the same array.
+        volume: to_closest_canonical(Volume { data, frame }),
         warnings,
         tilt_deg,
         normal_spacing_mm: spacing_n,

@@ -103,6 +103,17 @@ pub fn encode_png(
     window: Window,
     depth: BitDepth,
 ) -> Result<Vec<u8>, VolumeError> {
+    encode_png_annotated(img, window, depth, &[])
+}
+
+/// [`encode_png`] with `(keyword, text)` pairs written as PNG `tEXt` chunks before the image data (keywords
+/// of 1–79 Latin-1 characters).
+pub fn encode_png_annotated(
+    img: ArrayView2<'_, f32>,
+    window: Window,
+    depth: BitDepth,
+    text: &[(String, String)],
+) -> Result<Vec<u8>, VolumeError> {
     let (h, w) = img.dim();
     if h == 0 || w == 0 {
         return Err(VolumeError::Empty);
@@ -133,6 +144,10 @@ pub fn encode_png(
         BitDepth::Eight => png::BitDepth::Eight,
         BitDepth::Sixteen => png::BitDepth::Sixteen,
     });
+    for (k, v) in text {
+        enc.add_text_chunk(k.clone(), v.clone())
+            .map_err(|e| VolumeError::Encode(e.to_string()))?;
+    }
     let mut writer = enc
         .write_header()
         .map_err(|e| VolumeError::Encode(e.to_string()))?;
@@ -150,6 +165,16 @@ pub fn encode_apng(
     frames: &[ndarray::Array2<f32>],
     window: Window,
     delay_ms: u16,
+) -> Result<Vec<u8>, VolumeError> {
+    encode_apng_annotated(frames, window, delay_ms, &[])
+}
+
+/// [`encode_apng`] with `(keyword, text)` pairs written as PNG `tEXt` chunks.
+pub fn encode_apng_annotated(
+    frames: &[ndarray::Array2<f32>],
+    window: Window,
+    delay_ms: u16,
+    text: &[(String, String)],
 ) -> Result<Vec<u8>, VolumeError> {
     let first = frames.first().ok_or(VolumeError::Empty)?;
     let (h, w) = first.dim();
@@ -177,6 +202,9 @@ pub fn encode_apng(
     );
     enc.set_color(png::ColorType::Grayscale);
     enc.set_depth(png::BitDepth::Eight);
+    for (k, v) in text {
+        enc.add_text_chunk(k.clone(), v.clone()).map_err(enc_err)?;
+    }
     enc.set_animated(n, 0).map_err(enc_err)?;
     enc.set_frame_delay(delay_ms, 1000).map_err(enc_err)?;
     let mut writer = enc.write_header().map_err(enc_err)?;
