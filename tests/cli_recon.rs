@@ -80,6 +80,17 @@ fn phantom_then_recon_reproduces_the_shepp_logan_phantom_and_writes_a_png() {
     // IHDR: width and height, big-endian, at bytes 16..24.
     assert_eq!(u32::from_be_bytes(bytes[16..20].try_into().unwrap()), 256);
     assert_eq!(u32::from_be_bytes(bytes[20..24].try_into().unwrap()), 256);
+    // The PNG names its screen sides: the image axes, row 0 at the smallest y.
+    let reader = png::Decoder::new(std::io::Cursor::new(&bytes))
+        .read_info()
+        .unwrap();
+    let text = &reader.info().uncompressed_latin1_text;
+    let o = text.iter().find(|t| t.keyword == "Orientation").unwrap();
+    let o: serde_json::Value = serde_json::from_str(&o.text).unwrap();
+    assert_eq!(
+        o,
+        serde_json::json!({"left": "-x", "right": "+x", "top": "-y", "bottom": "+y"})
+    );
 }
 
 #[test]

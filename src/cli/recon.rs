@@ -212,6 +212,11 @@ fn write_png(
     let mut encoder = png::Encoder::new(std::io::BufWriter::new(file), w as u32, h as u32);
     encoder.set_color(png::ColorType::Grayscale);
     encoder.set_depth(png::BitDepth::Eight);
+    // A reconstruction has no patient: the screen sides are the image axes ([y][x], row 0 at the smallest y).
+    encoder.add_text_chunk(
+        "Orientation".into(),
+        r#"{"left":"-x","right":"+x","top":"-y","bottom":"+y"}"#.into(),
+    )?;
     let mut writer = encoder.write_header()?;
     writer.write_image_data(&pixels)?;
     writer.finish()?;

@@ -24,6 +24,6 @@ pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };
 pub use write::{
-    DerivedSeries, SeriesMeta, new_uid, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
-    write_secondary_capture, write_zip,
+    DerivedSeries, ScOrientation, SeriesMeta, new_uid, write_ct_series, write_encapsulated_stl,
+    write_enhanced_ct, write_secondary_capture, write_secondary_capture_placed, write_zip,
 };

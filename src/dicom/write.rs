@@ -11,7 +11,7 @@ use ndarray::ArrayView2;
 use rayon::prelude::*;
 
 use super::error::DicomError;
-use crate::volume::{Volume, Window};
+use crate::volume::{ImagePlane, ScreenSides, Volume, Window};
 
 /// Identity and labels of a derived series.
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -433,6 +433,27 @@ pub fn write_secondary_capture(
     meta: &SeriesMeta,
     series_uid: Option<&str>,
 ) -> Result<(String, Vec<u8>), DicomError> {
+    write_secondary_capture_placed(img, window, meta, series_uid, None)
+}
+
+/// How a Secondary Capture image is oriented in the patient: the screen sides (written as Patient Orientation
+/// (0020,0020): the directions of the rows and of the columns, H/F for head and feet) and, for a planar
+/// image, its plane (Image Position/Orientation (Patient) and Pixel Spacing, so that a viewer places it and
+/// shows its orientation markers).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ScOrientation {
+    pub sides: ScreenSides,
+    pub plane: Option<ImagePlane>,
+}
+
+/// [`write_secondary_capture`] with the image's orientation in the patient.
+pub fn write_secondary_capture_placed(
+    img: ArrayView2<'_, f32>,
+    window: Window,
+    meta: &SeriesMeta,
+    series_uid: Option<&str>,
+    orientation: Option<&ScOrientation>,
+) -> Result<(String, Vec<u8>), DicomError> {
     let (h, w) = img.dim();
     if h == 0 || w == 0 || h > 65535 || w > 65535 {
         return Err(DicomError::Write(format!(
@@ -462,7 +483,28 @@ pub fn write_secondary_capture(
         &["DERIVED".into(), "SECONDARY".into()],
     )
     .str(tags::CONVERSION_TYPE, VR::CS, "WSD")
-    .str(tags::BURNED_IN_ANNOTATION, VR::CS, "NO")
+    .str(tags::BURNED_IN_ANNOTATION, VR::CS, "NO");
+    if let Some(o) = orientation {
+        let dicom = |s: &str| s.replace('S', "H").replace('I', "F");
+        b.strs(
+            tags::PATIENT_ORIENTATION,
+            VR::CS,
+            &[dicom(&o.sides.right), dicom(&o.sides.bottom)],
+        );
+        if let Some(p) = &o.plane {
+            let [r, c] = [p.row_direction, p.column_direction];
+            b.dss(tags::IMAGE_POSITION_PATIENT, &p.first_pixel_mm)
+                .dss(
+                    tags::IMAGE_ORIENTATION_PATIENT,
+                    &[r[0], r[1], r[2], c[0], c[1], c[2]],
+                )
+                .dss(tags::PIXEL_SPACING, &p.pixel_mm);
+            if let Some(for_uid) = &meta.frame_of_reference_uid {
+                b.str(tags::FRAME_OF_REFERENCE_UID, VR::UI, for_uid);
+            }
+        }
+    }
+    b
     .us(tags::SAMPLES_PER_PIXEL, 1)
     .str(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2")
     .us(tags::ROWS, h as u16)

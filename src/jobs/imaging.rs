@@ -24,8 +24,9 @@ use crate::recon::grid::VolumeGrid;
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::storage::{AnyId, BlobStore, JobId, ResultName, SeriesId};
 use crate::volume::{
-    Axis, Frame, MAX_SIDE, Plane, ProjectionKind, Slab, Volume, curved, gaussian, isotropic_grid,
-    median3, project, reformat, resample_isotropic, rotating_projection, slab_series,
+    Axis, DisplayGrid, Frame, ImagePlane, MAX_SIDE, Plane, ProjectionKind, ScreenSides, Slab, Volume,
+    curved, direction_label, gaussian, isotropic_grid, median3, oriented_projection, reformat,
+    resample_isotropic, rotating_projection, slab_series,
 };
 
 /// The `kind` of a volume job request.
@@ -337,14 +338,12 @@ fn plan_mpr(s: &MprSpec, shape: &VolumeShape, i: usize) -> Result<(Planned, u64)
 
 fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Planned, u64), Problem> {
     let (nz, ny, nx) = shape.dim;
-    let len = |a: Axis| match a {
-        Axis::Axial => nz,
-        Axis::Coronal => ny,
-        Axis::Sagittal => nx,
-    };
     match p {
         ProductSpec::Projection(s) => {
-            let n = len(s.axis);
+            // Slabs count images of the display grid: the volume's own slices when it is axis-aligned.
+            let grid = DisplayGrid::of(&shape.frame, shape.dim).map_err(|e| volume_problem(&e))?;
+            let n = grid.len(s.axis);
+            let (gz, gy, gx) = grid.dim;
             let slab = match s.slab {
                 None => None,
                 Some([a, b]) if a < b && b <= n => Some(a..b),
@@ -355,7 +354,7 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
                     ));
                 }
             };
-            let pixels = (nz * ny * nx / n.max(1)) as u64;
+            let pixels = (gz * gy * gx / n.max(1)) as u64;
             Ok((
                 Planned::Projection {
                     axis: s.axis,
@@ -666,6 +665,7 @@ pub fn execute_volume(
             p,
             &req.products[index],
             fill,
+            input.source_series.is_some(),
         )?);
     }
     ctl.check()?;
@@ -726,9 +726,13 @@ fn make_product(
     planned: &Planned,
     spec: &ProductSpec,
     fill: f32,
+    patient: bool,
 ) -> Result<ProductResult, RunError> {
     let fail = |e: crate::volume::VolumeError| RunError::Failed(volume_problem(&e));
-    let sp = vol.frame.spacing_mm;
+    // The plane of the first frame and the step between frames, for planar products.
+    let mut placed: Option<(ImagePlane, Option<f64>)> = None;
+    // Screen sides of the first frame of non-planar products.
+    let mut sides: Option<ScreenSides> = None;
     let (images, pixel_mm) = match planned {
         Planned::Mesh(opts) => {
             let (mesh, stats) = extract(vol, opts).map_err(|e| {
@@ -748,34 +752,48 @@ fn make_product(
                 shape: None,
                 pixel_mm: None,
                 mesh: Some(stats),
+                orientation: None,
+                plane: None,
+                frame_spacing_mm: None,
                 file,
             });
         }
         Planned::Projection { axis, kind, slab } => {
-            let img = project(vol.data.view(), *axis, *kind, slab.clone()).map_err(fail)?;
-            // Display orientation: axial [y][x]; coronal [z][x]; sagittal [z][y].
-            let px = match axis {
-                Axis::Axial => [sp[1], sp[0]],
-                Axis::Coronal => [sp[2], sp[0]],
-                Axis::Sagittal => [sp[2], sp[1]],
-            };
-            (vec![img], px)
+            // Display orientation whatever the acquisition: axial [y][x]; coronal [z↓][x]; sagittal [z↓][y]
+            // on the volume's display grid (its own samples when axis-aligned).
+            let grid = DisplayGrid::for_volume(vol, patient).map_err(fail)?;
+            let (img, p) =
+                oriented_projection(vol, &grid, *axis, *kind, slab.clone(), fill).map_err(fail)?;
+            placed = Some((p, None));
+            (vec![img], p.pixel_mm)
         }
         Planned::Mpr {
             plane,
             slab,
             series,
         } => {
-            let images = match series {
-                None => vec![reformat(vol, plane, *slab, fill).map_err(fail)?],
+            let (images, first_offset, step) = match series {
+                None => (vec![reformat(vol, plane, *slab, fill).map_err(fail)?], 0.0, None),
                 Some((spacing, extent)) => {
                     let slab = slab.unwrap_or(Slab {
                         thickness_mm: 0.0,
                         kind: ProjectionKind::Mean,
                     });
-                    slab_series(vol, plane, slab, *spacing, *extent, fill).map_err(fail)?
+                    let images =
+                        slab_series(vol, plane, slab, *spacing, *extent, fill).map_err(fail)?;
+                    let first = -(images.len() as f64 - 1.0) / 2.0 * spacing;
+                    (images, first, Some(*spacing))
                 }
             };
+            placed = Some((
+                ImagePlane {
+                    first_pixel_mm: plane.point(0, 0, first_offset),
+                    row_direction: plane.u,
+                    column_direction: plane.v,
+                    pixel_mm: [plane.pixel_mm; 2],
+                },
+                step,
+            ));
             (images, [plane.pixel_mm; 2])
         }
         Planned::Curved {
@@ -783,11 +801,42 @@ fn make_product(
             down,
             height,
             pixel_mm,
-        } => (
-            vec![curved(vol, points, *down, *height, *pixel_mm, fill).map_err(fail)?],
-            [*pixel_mm; 2],
-        ),
+        } => {
+            // Columns follow the curve from its first point to its last; rows run `down`.
+            let (a, b) = (points[0], points[points.len() - 1]);
+            let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
+            let down = down.unwrap_or([0.0, 0.0, -1.0]);
+            let neg = |v: [f64; 3]| v.map(|c| -c);
+            sides = Some(if patient {
+                ScreenSides {
+                    left: direction_label(neg(along)),
+                    right: direction_label(along),
+                    top: direction_label(neg(down)),
+                    bottom: direction_label(down),
+                }
+            } else {
+                ImagePlane {
+                    first_pixel_mm: a,
+                    row_direction: along,
+                    column_direction: down,
+                    pixel_mm: [*pixel_mm; 2],
+                }
+                .axis_sides()
+            });
+            (
+                vec![curved(vol, points, Some(down), *height, *pixel_mm, fill).map_err(fail)?],
+                [*pixel_mm; 2],
+            )
+        }
         Planned::Rotating { angles, kind } => {
+            // The first frame looks from anterior, as a coronal image.
+            let front = ImagePlane {
+                first_pixel_mm: [0.0; 3],
+                row_direction: [1.0, 0.0, 0.0],
+                column_direction: [0.0, 0.0, -1.0],
+                pixel_mm: [1.0; 2],
+            };
+            sides = Some(front.sides_for(patient));
             let px = vol
                 .frame
                 .spacing_mm
@@ -817,6 +866,9 @@ fn make_product(
         shape: Some([n, h, w]),
         pixel_mm: Some(pixel_mm),
         mesh: None,
+        orientation: placed.map(|(p, _)| p.sides_for(patient)).or(sides),
+        plane: placed.map(|(p, _)| p),
+        frame_spacing_mm: placed.and_then(|(_, step)| step),
         file,
     })
 }

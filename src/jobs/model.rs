@@ -13,7 +13,8 @@ use crate::recon::geometry::Geometry;
 use crate::recon::grid::VolumeGrid;
 use crate::recon::phantom::PhantomSpec;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
-use crate::volume::Frame;
+use crate::recon::geometry::vectors::cross3;
+use crate::volume::{Frame, ImagePlane, ScreenSides};
 
 use super::imaging::VolumeJobRequest;
 
@@ -81,6 +82,26 @@ pub struct JobRequest {
     pub grid: OutputGrid,
     #[serde(default = "default_outputs")]
     pub outputs: Vec<OutputKind>,
+    /// Row order of the reconstructed images.
+    #[serde(default, skip_serializing_if = "ImageConvention::is_ctrecon")]
+    pub image_convention: ImageConvention,
+}
+
+/// Row order of reconstructed images (volumes without a patient).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ImageConvention {
+    /// ctrecon's `[y][x]`: row 0 at the smallest y, y growing down the image.
+    #[default]
+    Ctrecon,
+    /// ASTRA's and scikit-image's: row 0 at the largest y (y up on screen).
+    Astra,
+}
+
+impl ImageConvention {
+    fn is_ctrecon(&self) -> bool {
+        *self == ImageConvention::Ctrecon
+    }
 }
 
 impl JobRequest {
@@ -235,12 +256,34 @@ pub struct ProductResult {
     pub pixel_mm: Option<[f64; 2]>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub mesh: Option<MeshStats>,
+    /// Image stacks: the patient directions at the screen sides of the first frame (`R`/`L`, `A`/`P`,
+    /// `S`/`I`; the volume axes `±x`, `±y`, `±z` for a reconstruction without a patient).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub orientation: Option<ScreenSides>,
+    /// Planar image stacks: where the first frame lies in patient space (mm).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub plane: Option<ImagePlane>,
+    /// Planar stacks of several frames: the step (mm) from one frame to the next along the normal
+    /// `row_direction × column_direction`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_spacing_mm: Option<f64>,
     pub file: FileInfo,
 }
 
 impl ProductResult {
     pub fn is_mesh(&self) -> bool {
         self.mesh.is_some()
+    }
+
+    /// Where frame `k` of a planar stack lies.
+    pub fn frame_plane(&self, k: usize) -> Option<ImagePlane> {
+        let p = self.plane?;
+        let step = self.frame_spacing_mm.unwrap_or(0.0) * k as f64;
+        let n = cross3(p.row_direction, p.column_direction);
+        Some(ImagePlane {
+            first_pixel_mm: std::array::from_fn(|c| p.first_pixel_mm[c] + step * n[c]),
+            ..p
+        })
     }
 }
 

@@ -5,6 +5,7 @@ use ndarray::{Array3, ArrayD, ArrayView3, Axis, Ix3};
 use sha2::{Digest, Sha256};
 
 use super::model::{
+    ImageConvention,
     Dataset, FileInfo, Job, JobRequest, JobResult, Quality, SimulationRequest, VolumeUnits,
 };
 use super::plan::recon_problem;
@@ -18,6 +19,7 @@ use crate::recon::phantom::poisson_noise;
 use crate::recon::{ReconError, phantom::PhantomSpec};
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::storage::{BlobStore, ResultName};
+use crate::volume::{Frame, flip_rows};
 
 /// How a job run ends when it does not succeed.
 #[derive(Debug, Clone, PartialEq)]
@@ -148,7 +150,19 @@ pub fn execute(
     };
     ctl.check()?;
     ctl.step("writing", 0.95);
-    let result = write_volume(store, job, vol.view(), &req.grid, metrics)?;
+    let (vol, frame) = match req.image_convention {
+        ImageConvention::Ctrecon => (vol, None),
+        ImageConvention::Astra => {
+            // Rows run from the largest y down; the frame says so, so positions stay exact.
+            let g = volume_grid(&req.grid);
+            let mut f = Frame::from_grid(&g);
+            f.origin_mm[1] = g.y(g.ny - 1);
+            f.direction[1] = [0.0, -1.0, 0.0];
+            (flip_rows(vol), Some(f))
+        }
+    };
+    let mut result = write_volume(store, job, vol.view(), &req.grid, metrics)?;
+    result.frame = frame;
     ctl.step("done", 1.0);
     Ok(result)
 }

@@ -16,18 +16,19 @@ use ndarray::{Array2, Array3, Ix3};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
+use super::imaging::fill_value;
 use super::ingest::dicom_problem;
 use super::model::{ProductResult, VolumeUnits};
 use crate::dicom::{
-    SeriesMeta, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
-    write_secondary_capture, write_zip,
+    ScOrientation, SeriesMeta, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
+    write_secondary_capture_placed, write_zip,
 };
 use crate::error_code::{ErrorCode, Problem};
 use crate::mesh::{MeshOptions, extract};
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::volume::{
-    Axis, BitDepth, Frame, ProjectionKind, Volume, VolumeError, Window, WindowPreset, encode_apng,
-    encode_png, mu_to_hu, project, slice,
+    Axis, BitDepth, DisplayGrid, Frame, ProjectionKind, Volume, VolumeError, Window, WindowPreset,
+    encode_apng_annotated, encode_png_annotated, mu_to_hu, oriented_projection, oriented_slice,
 };
 
 /// Units of explicit window values and iso levels.
@@ -256,6 +257,9 @@ pub struct RenderContext {
     pub units: VolumeUnits,
     pub mu_water: f64,
     pub meta: SeriesMeta,
+    /// The volume comes from a patient (a CT series): images are labelled with patient directions and DICOM
+    /// outputs carry their placement; otherwise with the volume's axes.
+    pub patient: bool,
 }
 
 impl RenderContext {
@@ -319,13 +323,37 @@ fn windowed(
     })
 }
 
-fn encode_view(img: Array2<f32>, d: &Display, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+/// PNG `tEXt` chunks naming an image's orientation: `Orientation` (the screen sides, JSON) and, for planar
+/// images, `ImagePlane` (its placement in patient space, JSON).
+fn orientation_text(o: Option<&ScOrientation>) -> Vec<(String, String)> {
+    let Some(o) = o else { return Vec::new() };
+    let mut text = vec![(
+        "Orientation".to_string(),
+        serde_json::to_string(&o.sides).unwrap_or_default(),
+    )];
+    if let Some(p) = &o.plane {
+        text.push((
+            "ImagePlane".to_string(),
+            serde_json::to_string(p).unwrap_or_default(),
+        ));
+    }
+    text
+}
+
+fn encode_view(
+    img: Array2<f32>,
+    placement: Option<&ScOrientation>,
+    d: &Display,
+    ctx: &RenderContext,
+) -> Result<Vec<u8>, Problem> {
     if d.format == ImageFormat::Npy {
         return Ok(encode_f32(img.view()));
     }
     let (img, window) = windowed(img, d, ctx)?;
     if d.format == ImageFormat::Dicom {
-        return write_secondary_capture(img.view(), window, &ctx.meta, None)
+        // Without a patient there is no frame of reference to place the image in.
+        let placement = placement.filter(|_| ctx.patient);
+        return write_secondary_capture_placed(img.view(), window, &ctx.meta, None, placement)
             .map(|(_, bytes)| bytes)
             .map_err(|e| dicom_problem(&e));
     }
@@ -334,7 +362,8 @@ fn encode_view(img: Array2<f32>, d: &Display, ctx: &RenderContext) -> Result<Vec
     } else {
         BitDepth::Eight
     };
-    encode_png(img.view(), window, depth).map_err(|e| volume_problem(&e))
+    encode_png_annotated(img.view(), window, depth, &orientation_text(placement))
+        .map_err(|e| volume_problem(&e))
 }
 
 fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
@@ -385,20 +414,41 @@ pub fn render(
     req: &ViewRequest,
 ) -> Result<Vec<u8>, Problem> {
     let vol = decode_volume(volume_npy)?;
+    let placed = |plane: crate::volume::ImagePlane| ScOrientation {
+        sides: plane.sides_for(ctx.patient),
+        plane: Some(plane),
+    };
     match req {
         ViewRequest::Slice(q) => {
-            let index = q.index.unwrap_or(q.axis.len(&vol.view()) / 2);
-            let img = slice(vol.view(), q.axis, index).map_err(|e| volume_problem(&e))?;
-            encode_view(img, &req.display().ok_or_else(Problem::internal)?, ctx)
+            let vol = Volume {
+                data: vol,
+                frame: ctx.frame,
+            };
+            let grid =
+                DisplayGrid::for_volume(&vol, ctx.patient).map_err(|e| volume_problem(&e))?;
+            let index = q.index.unwrap_or(grid.len(q.axis) / 2);
+            let (img, plane) = oriented_slice(&vol, &grid, q.axis, index, fill_value(ctx.units))
+                .map_err(|e| volume_problem(&e))?;
+            let d = req.display().ok_or_else(Problem::internal)?;
+            encode_view(img, Some(&placed(plane)), &d, ctx)
         }
         ViewRequest::Projection(q) => {
-            let len = q.axis.len(&vol.view());
+            let vol = Volume {
+                data: vol,
+                frame: ctx.frame,
+            };
+            let grid =
+                DisplayGrid::for_volume(&vol, ctx.patient).map_err(|e| volume_problem(&e))?;
+            let len = grid.len(q.axis);
             let slab = match (q.slab_start, q.slab_end) {
                 (None, None) => None,
                 (s, e) => Some(s.unwrap_or(0)..e.unwrap_or(len)),
             };
-            let img = project(vol.view(), q.axis, q.kind, slab).map_err(|e| volume_problem(&e))?;
-            encode_view(img, &req.display().ok_or_else(Problem::internal)?, ctx)
+            let (img, plane) =
+                oriented_projection(&vol, &grid, q.axis, q.kind, slab, fill_value(ctx.units))
+                    .map_err(|e| volume_problem(&e))?;
+            let d = req.display().ok_or_else(Problem::internal)?;
+            encode_view(img, Some(&placed(plane)), &d, ctx)
         }
         ViewRequest::Mesh(q) => mesh_bytes(
             Volume {
@@ -550,9 +600,25 @@ pub fn render_product(
         Ok(stack.index_axis(ndarray::Axis(0), k).to_owned())
     };
     let k = q.frame.unwrap_or(n / 2);
+    let placement = |k: usize| {
+        p.orientation.clone().map(|sides| ScOrientation {
+            sides,
+            plane: p.frame_plane(k),
+        })
+    };
     match format {
-        ProductFormat::Png => encode_view(frame_at(k)?, &q.display(ImageFormat::Png), ctx),
-        ProductFormat::Dicom => encode_view(frame_at(k)?, &q.display(ImageFormat::Dicom), ctx),
+        ProductFormat::Png => encode_view(
+            frame_at(k)?,
+            placement(k).as_ref(),
+            &q.display(ImageFormat::Png),
+            ctx,
+        ),
+        ProductFormat::Dicom => encode_view(
+            frame_at(k)?,
+            placement(k).as_ref(),
+            &q.display(ImageFormat::Dicom),
+            ctx,
+        ),
         ProductFormat::Apng => {
             // One window for every frame: the one the chosen frame would get.
             let d = q.display(ImageFormat::Png);
@@ -564,7 +630,13 @@ pub fn render_product(
                     if hu { ctx.to_hu(f) } else { f }
                 })
                 .collect();
-            encode_apng(&frames, window, q.delay_ms.unwrap_or(100)).map_err(|e| volume_problem(&e))
+            encode_apng_annotated(
+                &frames,
+                window,
+                q.delay_ms.unwrap_or(100),
+                &orientation_text(placement(0).as_ref()),
+            )
+            .map_err(|e| volume_problem(&e))
         }
         ProductFormat::Npy | ProductFormat::Stl => Err(Problem::internal()),
     }

@@ -133,6 +133,7 @@ async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext
         units: r.units,
         mu_water: st.settings.mu_water_per_mm,
         meta,
+        patient: r.source_series.is_some(),
     })
 }
 
