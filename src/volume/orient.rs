@@ -352,10 +352,10 @@ impl ImagePlane {
     /// DICOM Patient Orientation (0020,0020): the directions of the rows and of the columns, with H/F for
     /// head and feet.
     pub fn patient_orientation(&self) -> [String; 2] {
-        let dicom = |s: String| s.replace('S', "H").replace('I', "F");
+        let head_feet = |s: String| s.replace('S', "H").replace('I', "F");
         [
-            dicom(direction_label(self.row_direction)),
-            dicom(direction_label(self.column_direction)),
+            head_feet(direction_label(self.row_direction)),
+            head_feet(direction_label(self.column_direction)),
         ]
     }
 }
