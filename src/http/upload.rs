@@ -1,7 +1,11 @@
-//! Streaming `.npy` uploads to a temporary file: each chunk is validated (header, limits, expected shape,
-//! finiteness, exact length) and hashed before it is written; nothing is kept unless the whole upload is
-//! accepted.
+//! Uploads stream to temporary files under the data directory, chunk by chunk, so memory stays flat in the
+//! upload size: [`spool`] for any body or multipart field (hashed, the size limit enforced while streaming);
+//! [`UploadSink`] for `.npy` uploads, where each chunk is also validated (header, limits, expected shape,
+//! finiteness, exact length) before it is written. Nothing is kept unless the whole upload is accepted.
 
+use axum::body::Bytes;
+use futures_util::{Stream, StreamExt};
+use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 
 use super::problem::{ApiError, ApiResult, api_error};
@@ -22,6 +26,70 @@ pub fn stream_error(e: StreamError) -> ApiError {
         StreamError::NonFinite { .. } => ErrorCode::NonFiniteData,
     };
     api_error(code, e.to_string())
+}
+
+/// A body (or multipart field) written to `tmp/`, synced.
+pub struct Spooled {
+    pub temp: TempBlob,
+    pub bytes: u64,
+    pub sha256: [u8; 32],
+}
+
+/// The 413 problem of an upload over `limit` bytes.
+pub fn too_large(limit: u64) -> ApiError {
+    api_error(
+        ErrorCode::BodyTooLarge,
+        format!("the upload exceeds the limit of {limit} bytes"),
+    )
+}
+
+/// Write `stream` to a temporary file chunk by chunk; `spent` counts the bytes of the whole request and the
+/// upload is refused (413, the file removed) as soon as it passes `limit`. A stream error is a truncated upload.
+pub async fn spool<S, B, E>(
+    store: &BlobStore,
+    mut stream: S,
+    spent: &mut u64,
+    limit: u64,
+) -> ApiResult<Spooled>
+where
+    S: Stream<Item = Result<B, E>> + Unpin,
+    B: Into<Bytes>,
+    E: std::fmt::Display,
+{
+    let temp = store.temp();
+    let mut file = tokio::fs::File::create(temp.path()).await?;
+    let mut hash = Sha256::new();
+    let mut bytes = 0u64;
+    let failed = loop {
+        let chunk: Bytes = match stream.next().await {
+            None => break None,
+            Some(Ok(c)) => c.into(),
+            Some(Err(e)) => break Some(api_error(ErrorCode::TruncatedUpload, e.to_string())),
+        };
+        *spent = spent.saturating_add(chunk.len() as u64);
+        if *spent > limit {
+            break Some(too_large(limit));
+        }
+        hash.update(&chunk);
+        bytes += chunk.len() as u64;
+        if let Err(e) = file.write_all(&chunk).await {
+            break Some(e.into());
+        }
+    };
+    let synced = match failed {
+        None => file.sync_all().await.err().map(ApiError::from),
+        Some(e) => Some(e),
+    };
+    drop(file);
+    if let Some(e) = synced {
+        temp.discard().await;
+        return Err(e);
+    }
+    Ok(Spooled {
+        temp,
+        bytes,
+        sha256: hash.finalize().into(),
+    })
 }
 
 /// A completed, validated upload still in `tmp/`.
