@@ -475,3 +475,163 @@ async fn zip_bombs_oversized_members_and_climbing_names_are_refused_member_by_me
     }
     assert_eq!(tmp_entries(&app), 0);
 }
+
+/// The value of a Prometheus sample line `name{labels} value`, or 0 when absent.
+fn sample(metrics: &str, series: &str) -> f64 {
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix(series)?.trim().parse().ok())
+        .unwrap_or(0.0)
+}
+
+#[tokio::test]
+async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
+    let _shared = EXCLUSIVE.read().await;
+    use ctrecon::http::Application;
+    let dir = tempfile::tempdir().unwrap();
+    let settings = common::test_settings(dir.path());
+    let client = reqwest::Client::new();
+
+    // A first run stores a series (two, in fact, by uploading twice) and a simulation.
+    let app = Application::build(settings.clone()).await.unwrap();
+    let base = format!("http://{}", app.local_addr());
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    let served = tokio::spawn(app.run_until(async move {
+        let _ = stopped.await;
+    }));
+    let mut series_ids = Vec::new();
+    for _ in 0..2 {
+        let r = client
+            .post(format!("{base}/v1/series"))
+            .header("content-type", "application/zip")
+            .body(write_zip(&slices()).unwrap())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 201);
+        let v: Value = r.json().await.unwrap();
+        series_ids.push(v["series"][0]["series"]["id"].as_str().unwrap().to_string());
+    }
+    let r = client
+        .post(format!("{base}/v1/simulations"))
+        .json(
+            &json!({"phantom": {"table": "modified_shepp_logan", "scale_mm": 20.0},
+                      "geometry": common::parallel_geometry(16, 32, 1.5)}),
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let dataset: Value = r.json().await.unwrap();
+    let dataset = dataset["id"].as_str().unwrap().to_string();
+    let _ = stop.send(());
+    served.await.unwrap().unwrap();
+
+    // What a kill -9 can leave: blobs renamed into place whose rows never landed, a row whose file is gone,
+    // and files nobody named.
+    let root = dir.path();
+    let fresh = || uuid::Uuid::now_v7().to_string();
+    std::fs::write(
+        root.join("series").join(format!("{}.npy", fresh())),
+        b"orphan",
+    )
+    .unwrap();
+    std::fs::write(root.join("series").join("stray.npy"), b"orphan").unwrap();
+    std::fs::write(
+        root.join("datasets").join(format!("{}.npy", fresh())),
+        b"orphan",
+    )
+    .unwrap();
+    let upload_dir = root.join("uploads").join(fresh());
+    std::fs::create_dir_all(&upload_dir).unwrap();
+    std::fs::write(upload_dir.join("a.dcm"), b"orphan").unwrap();
+    std::fs::write(root.join("tmp").join("half-written.part"), b"x").unwrap();
+    std::fs::remove_file(root.join("series").join(format!("{}.npy", series_ids[1]))).unwrap();
+
+    // The second run sweeps before it serves.
+    let app = Application::build(settings).await.unwrap();
+    let base = format!("http://{}", app.local_addr());
+    let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
+    tokio::spawn(app.run_until(async move {
+        let _ = stopped.await;
+    }));
+    let names = |sub: &str| -> Vec<String> {
+        let mut v: Vec<String> = std::fs::read_dir(root.join(sub))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        v.sort();
+        v
+    };
+    assert_eq!(names("series"), [format!("{}.npy", series_ids[0])]);
+    assert_eq!(names("datasets"), [format!("{dataset}.npy")]);
+    assert!(names("uploads").is_empty());
+    assert!(names("tmp").is_empty());
+    let metrics = client
+        .get(format!("{base}/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let orphans = |kind: &str| {
+        sample(
+            &metrics,
+            &format!("ctrecon_startup_orphans_removed_total{{kind=\"{kind}\"}}"),
+        )
+    };
+    assert_eq!(
+        (orphans("series"), orphans("dataset"), orphans("upload")),
+        (2.0, 1.0, 1.0),
+        "{metrics}"
+    );
+    assert_eq!(
+        sample(
+            &metrics,
+            "ctrecon_startup_missing_files_total{kind=\"series\"}"
+        ),
+        1.0
+    );
+    // The series whose volume is gone says so; the others are whole.
+    let gone: Value = client
+        .get(format!("{base}/v1/series/{}", series_ids[1]))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(gone["available"], false);
+    let r = client
+        .get(format!("{base}/v1/series/{}/volume.npy", series_ids[1]))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 410, "file_missing").await;
+    let whole: Value = client
+        .get(format!("{base}/v1/series/{}", series_ids[0]))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(whole["available"], true);
+    let r = client
+        .get(format!("{base}/v1/series/{}/volume.npy", series_ids[0]))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let d: Value = client
+        .get(format!("{base}/v1/datasets/{dataset}"))
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(d["available"], true);
+    let _ = stop.send(());
+}

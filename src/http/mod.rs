@@ -231,6 +231,9 @@ impl Application {
         std::fs::create_dir_all(&settings.data_dir).map_err(BuildError::DataDir)?;
         let store = BlobStore::open(&settings.data_dir).map_err(BuildError::DataDir)?;
         let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let metrics = metrics_handle();
+        let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
+        tracing::info!(?swept, "blob files paired with their rows");
         let engine = Engine::start(
             db.clone(),
             store.clone(),
@@ -260,7 +263,7 @@ impl Application {
             store,
             engine,
             settings,
-            metrics: metrics_handle(),
+            metrics,
             shutdown: shutdown_rx,
         }));
         Ok(Self {

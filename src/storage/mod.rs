@@ -13,6 +13,7 @@
 
 pub mod ids;
 pub mod npy;
+pub mod sweep;
 
 use std::fs;
 use std::io::{self, Write};

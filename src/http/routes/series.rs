@@ -30,6 +30,7 @@ use crate::jobs::{Appended, Completed, IdempotencyKey, Inserted, SeriesRecord, U
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
+use crate::storage::sweep::BlobKind;
 use crate::storage::{SeriesId, UploadId};
 
 /// Query of `POST /v1/series` and `POST /v1/uploads/{id}/complete`.
@@ -621,9 +622,30 @@ async fn load_series(st: &AppState, id: &str) -> ApiResult<SeriesRecord> {
         .ok_or_else(|| api_error(ErrorCode::SeriesNotFound, format!("no series {id}")))
 }
 
+/// 410 when the start-up sweep found the series' volume missing.
+async fn check_available(st: &AppState, id: SeriesId) -> ApiResult<()> {
+    if st
+        .db
+        .blob_missing(BlobKind::Series, &id.to_string())
+        .await?
+    {
+        return Err(api_error(
+            ErrorCode::FileMissing,
+            format!("the volume of series {id} was lost; upload the series again"),
+        ));
+    }
+    Ok(())
+}
+
 pub async fn get_series(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
     let r = load_series(&st, &id).await?;
-    Ok(axum::Json(series_view(&r)).into_response())
+    let missing = st
+        .db
+        .blob_missing(BlobKind::Series, &r.id.to_string())
+        .await?;
+    let mut view = series_view(&r);
+    view["available"] = json!(!missing);
+    Ok(axum::Json(view).into_response())
 }
 
 pub async fn series_volume(
@@ -632,6 +654,7 @@ pub async fn series_volume(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let r = load_series(&st, &id).await?;
+    check_available(&st, r.id).await?;
     serve_file(
         &headers,
         FileMeta {
