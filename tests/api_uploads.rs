@@ -635,3 +635,115 @@ async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
     assert_eq!(d["available"], true);
     let _ = stop.send(());
 }
+
+#[tokio::test]
+async fn series_and_datasets_are_deleted_unless_a_queued_or_running_job_reads_them() {
+    let _shared = EXCLUSIVE.read().await;
+    let app = spawn_app_with(|s| s.max_concurrent_jobs = 1).await;
+    let dataset = app.simulate(common::cone_geometry(360, 128), 40.0).await;
+    let r = post(
+        &app,
+        "/v1/series",
+        "application/zip",
+        write_zip(&slices()).unwrap(),
+    )
+    .await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    let series = v["series"][0]["series"]["id"].as_str().unwrap().to_string();
+
+    // A slow FDK reads the dataset; a volume job on the series waits behind it (one job at a time).
+    let slow = app
+        .submit(
+            &json!({"input": dataset, "algorithm": {"name": "fdk", "filter": "hann"},
+                        "grid": {"nx": 192, "ny": 192, "nz": 192, "spacing_mm": [1.0, 1.0, 1.0]},
+                        "outputs": ["volume"]}),
+        )
+        .await;
+    let slow = slow["id"].as_str().unwrap().to_string();
+    let waiting = app
+        .submit(&json!({"kind": "volume", "input": series,
+                        "products": [{"type": "projection", "axis": "coronal", "kind": "mip"}]}))
+        .await;
+    let waiting = waiting["id"].as_str().unwrap().to_string();
+    assert_eq!(app.job(&waiting).await["status"], "queued");
+    let delete = |path: String| {
+        let c = app.client.clone();
+        let url = app.url(&path);
+        async move { c.delete(url).send().await.unwrap() }
+    };
+    assert_problem(
+        delete(format!("/v1/datasets/{dataset}")).await,
+        409,
+        "resource_in_use",
+    )
+    .await;
+    assert_problem(
+        delete(format!("/v1/series/{series}")).await,
+        409,
+        "resource_in_use",
+    )
+    .await;
+    // Still there, files included.
+    let series_file = app.dir.path().join("series").join(format!("{series}.npy"));
+    let dataset_file = app
+        .dir
+        .path()
+        .join("datasets")
+        .join(format!("{dataset}.npy"));
+    assert!(series_file.exists() && dataset_file.exists());
+
+    // Once the jobs are canceled, both go: 204, the rows and the files.
+    let r = app
+        .post_json(&format!("/v1/jobs/{waiting}/cancel"), &json!({}))
+        .await;
+    assert_eq!(r.status(), 202);
+    let r = delete(format!("/v1/series/{series}")).await;
+    assert_eq!(r.status(), 204);
+    assert!(!series_file.exists());
+    assert_problem(
+        app.get(&format!("/v1/series/{series}")).await,
+        404,
+        "series_not_found",
+    )
+    .await;
+    assert_problem(
+        delete(format!("/v1/series/{series}")).await,
+        404,
+        "series_not_found",
+    )
+    .await;
+
+    let r = app
+        .post_json(&format!("/v1/jobs/{slow}/cancel"), &json!({}))
+        .await;
+    assert_eq!(r.status(), 202);
+    app.finish(&slow).await;
+    let r = delete(format!("/v1/datasets/{dataset}")).await;
+    assert_eq!(r.status(), 204);
+    assert!(!dataset_file.exists());
+    assert_problem(
+        app.get(&format!("/v1/datasets/{dataset}")).await,
+        404,
+        "dataset_not_found",
+    )
+    .await;
+    assert_problem(
+        delete(format!("/v1/datasets/{dataset}")).await,
+        404,
+        "dataset_not_found",
+    )
+    .await;
+    assert_problem(
+        delete("/v1/series/not-an-id".to_string()).await,
+        400,
+        "invalid_id",
+    )
+    .await;
+    assert_problem(
+        delete("/v1/datasets/nope".to_string()).await,
+        400,
+        "invalid_id",
+    )
+    .await;
+}

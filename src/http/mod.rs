@@ -162,7 +162,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .route("/readyz", get(health::readyz))
         .route("/metrics", get(health::metrics))
         .route("/openapi.yaml", get(health::openapi))
-        .route("/v1/datasets/{id}", get(datasets::get_dataset))
+        .route(
+            "/v1/datasets/{id}",
+            get(datasets::get_dataset).delete(datasets::delete_dataset),
+        )
         .route("/v1/jobs", post(jobs::post_job).get(jobs::list_jobs))
         .route("/v1/jobs/{id}", get(jobs::get_job).delete(jobs::delete_job))
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))
@@ -176,7 +179,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             get(results::product),
         )
         .route("/v1/uploads/{id}", get(series::get_upload))
-        .route("/v1/series/{id}", get(series::get_series))
+        .route(
+            "/v1/series/{id}",
+            get(series::get_series).delete(series::delete_series),
+        )
         .route("/v1/series/{id}/volume.npy", get(series::series_volume))
         .route("/v1/jobs/{id}/result/metrics", get(results::metrics))
         .layer(DefaultBodyLimit::max(s.max_json_bytes))

@@ -1,5 +1,5 @@
-//! `POST /v1/simulations`, `POST /v1/sinograms` (multipart or raw `.npy`), `GET /v1/datasets/{id}`. A dataset's
-//! file is renamed into place only after its row is committed.
+//! `POST /v1/simulations`, `POST /v1/sinograms` (multipart or raw `.npy`), `GET` and `DELETE
+//! /v1/datasets/{id}`. A dataset's file is renamed into place only after its row is committed.
 
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -17,12 +17,13 @@ use super::super::upload::{UploadSink, Uploaded};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::plan::{admit_simulation, recon_problem};
+use crate::jobs::repo::Deleted;
 use crate::jobs::run::simulate;
 use crate::jobs::{Dataset, DatasetKind, IdempotencyKey, Inserted, SimulationRequest};
 use crate::recon::geometry::Geometry;
 use crate::storage::npy::{StreamLimits, encode_f32, hex};
 use crate::storage::sweep::BlobKind;
-use crate::storage::{DatasetId, TempBlob};
+use crate::storage::{BlobStore, DatasetId, TempBlob};
 
 const ROUTE_SIMULATIONS: &str = "POST /v1/simulations";
 const ROUTE_SINOGRAMS: &str = "POST /v1/sinograms";
@@ -372,6 +373,33 @@ pub async fn get_dataset(
             Ok(axum::Json(view).into_response())
         }
         None => Err(api_error(
+            ErrorCode::DatasetNotFound,
+            format!("no dataset {id}"),
+        )),
+    }
+}
+
+/// `DELETE /v1/datasets/{id}`: 204, the row and then the file removed; 409 while a queued or running job
+/// reads it.
+pub async fn delete_dataset(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let id = dataset_id(&id)?;
+    match st.db.delete_dataset(id).await? {
+        Deleted::Done => {
+            // A crash before this removal leaves an orphan file, which the start-up sweep removes.
+            if let Err(e) = BlobStore::remove_file(&st.store.dataset_path(id)).await {
+                tracing::warn!(error = %e, dataset_id = %id, "removing a deleted dataset's file failed");
+            }
+            tracing::info!(dataset_id = %id, "dataset deleted");
+            Ok(StatusCode::NO_CONTENT.into_response())
+        }
+        Deleted::InUse => Err(api_error(
+            ErrorCode::ResourceInUse,
+            format!("dataset {id} is the input of a queued or running job; cancel it or wait"),
+        )),
+        Deleted::NotFound => Err(api_error(
             ErrorCode::DatasetNotFound,
             format!("no dataset {id}"),
         )),

@@ -1,6 +1,6 @@
 //! DICOM in: `POST /v1/series` (a multipart form of files, a ZIP, or one `application/dicom` instance appended
-//! to an open upload), `GET /v1/uploads/{id}`, `POST /v1/uploads/{id}/complete`, `GET /v1/series/{id}` and
-//! `GET /v1/series/{id}/volume.npy`.
+//! to an open upload), `GET /v1/uploads/{id}`, `POST /v1/uploads/{id}/complete`, `GET` and `DELETE
+//! /v1/series/{id}`, and `GET /v1/series/{id}/volume.npy`.
 //!
 //! Bodies and multipart fields stream to temporary files (the size limit enforced while streaming), ZIPs are
 //! inflated member by member on disk, files are decoded on the worker pool, split by SeriesInstanceUID and
@@ -26,12 +26,13 @@ use crate::dicom::{ReadLimits, UploadFile, ZipLimits, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::ingest::{IngestOptions, Ingested, Staged, dicom_problem, ingest};
 use crate::jobs::model::rfc3339;
+use crate::jobs::repo::Deleted;
 use crate::jobs::{Appended, Completed, IdempotencyKey, Inserted, SeriesRecord, UploadRecord};
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
 use crate::storage::sweep::BlobKind;
-use crate::storage::{SeriesId, UploadId};
+use crate::storage::{BlobStore, SeriesId, UploadId};
 
 /// Query of `POST /v1/series` and `POST /v1/uploads/{id}/complete`.
 #[derive(Debug, Deserialize)]
@@ -646,6 +647,33 @@ pub async fn get_series(State(st): State<AppState>, Path(id): Path<String>) -> A
     let mut view = series_view(&r);
     view["available"] = json!(!missing);
     Ok(axum::Json(view).into_response())
+}
+
+/// `DELETE /v1/series/{id}`: 204, the row and then the volume removed; 409 while a queued or running job
+/// reads it.
+pub async fn delete_series(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let id = series_id(&id)?;
+    match st.db.delete_series(id).await? {
+        Deleted::Done => {
+            // A crash before this removal leaves an orphan file, which the start-up sweep removes.
+            if let Err(e) = BlobStore::remove_file(&st.store.series_path(id)).await {
+                tracing::warn!(error = %e, series_id = %id, "removing a deleted series' volume failed");
+            }
+            tracing::info!(series_id = %id, "series deleted");
+            Ok(StatusCode::NO_CONTENT.into_response())
+        }
+        Deleted::InUse => Err(api_error(
+            ErrorCode::ResourceInUse,
+            format!("series {id} is the input of a queued or running job; cancel it or wait"),
+        )),
+        Deleted::NotFound => Err(api_error(
+            ErrorCode::SeriesNotFound,
+            format!("no series {id}"),
+        )),
+    }
 }
 
 pub async fn series_volume(
