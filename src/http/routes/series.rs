@@ -96,6 +96,9 @@ async fn read_body(st: &AppState, req: Request) -> ApiResult<Spooled> {
     spool(&st.store, body, &mut spent, st.settings.max_upload_bytes).await
 }
 
+/// Most parts of one form (each is a temporary file while the upload is read).
+const MAX_PARTS: usize = 20_000;
+
 /// Every part of a multipart form is a file (a DICOM instance or a ZIP of them), each streamed to its own
 /// temporary file; the limit is on the sum.
 async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>> {
@@ -115,6 +118,12 @@ async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>>
                 return Err(bad(e.body_text()));
             }
         };
+        if files.len() >= MAX_PARTS {
+            discard_received(files).await;
+            return Err(bad(format!(
+                "the form has more than {MAX_PARTS} parts; send a ZIP"
+            )));
+        }
         let name = label(
             field.file_name().or(field.name()),
             format!("part-{}", files.len() + 1),

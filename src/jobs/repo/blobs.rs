@@ -126,7 +126,7 @@ impl Db {
 pub async fn sweep_blobs(db: &Db, store: &BlobStore) -> Result<SweepReport, DbError> {
     let mut report = SweepReport::default();
     for kind in BlobKind::ALL {
-        let owners = db.owner_ids(kind).await?;
+        // Files first, rows second: a file renamed into place meanwhile already has its row.
         let listing = {
             let store = store.clone();
             tokio::task::spawn_blocking(move || store.list_blobs(kind)).await
@@ -142,6 +142,7 @@ pub async fn sweep_blobs(db: &Db, store: &BlobStore) -> Result<SweepReport, DbEr
                 continue;
             }
         };
+        let owners = db.owner_ids(kind).await?;
         let mut on_disk = HashSet::new();
         let mut removed = 0u64;
         for entry in entries {
@@ -167,6 +168,16 @@ pub async fn sweep_blobs(db: &Db, store: &BlobStore) -> Result<SweepReport, DbEr
         let mut missing = 0u64;
         if kind != BlobKind::Upload {
             for id in owners.difference(&on_disk) {
+                let path = match kind {
+                    BlobKind::Series => SeriesId::parse(id).map(|i| store.series_path(i)),
+                    _ => DatasetId::parse(id).map(|i| store.dataset_path(i)),
+                };
+                // A row inserted after the listing may have its file by now.
+                if let Ok(p) = path
+                    && tokio::fs::try_exists(&p).await.unwrap_or(false)
+                {
+                    continue;
+                }
                 tracing::warn!(kind = kind.as_str(), id = %id, "a row's file is missing; marked unavailable");
                 db.mark_missing(kind, id).await?;
                 missing += 1;
