@@ -314,6 +314,10 @@ async fn a_64_mb_upload_streams_to_disk_and_a_too_large_one_is_refused_while_str
     ))
     .await;
     assert_problem(r, 422, "dicom_not_dicom").await;
+    eprintln!(
+        "64 MiB instance: allocation peak {:.2} MiB",
+        peak as f64 / MIB as f64
+    );
     assert!(
         peak < 16 * MIB,
         "a 64 MB instance peaked at {} MiB",
@@ -411,6 +415,22 @@ async fn zip_bombs_oversized_members_and_climbing_names_are_refused_member_by_me
         "zip_limits_exceeded",
     )
     .await;
+
+    // An archive whose end record declares 65 534 entries is refused before they are read.
+    let mut many = write_zip(&good).unwrap();
+    let end = many.len() - 22;
+    assert_eq!(&many[end..end + 4], b"PK\x05\x06");
+    many[end + 8..end + 12].copy_from_slice(&[0xFE, 0xFF, 0xFE, 0xFF]);
+    let p = assert_problem(
+        post(&app, "/v1/series", "application/zip", many).await,
+        413,
+        "zip_limits_exceeded",
+    )
+    .await;
+    assert!(
+        p["detail"].as_str().unwrap().contains("65534 entries"),
+        "{p}"
+    );
 
     // A member over the per-member cap (3 MiB that do not compress) is listed as refused.
     let mut noise = vec![0u8; 3 * MIB];

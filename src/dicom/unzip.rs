@@ -8,7 +8,7 @@
 //! whole. Member names are labels for messages: the files are named `m<index>` in the scratch directory.
 
 use std::fs::File;
-use std::io::{self, Read, Write};
+use std::io::{self, Read, Seek, SeekFrom, Write};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
 
@@ -55,6 +55,46 @@ fn starts_with_zip_magic(path: &Path) -> io::Result<bool> {
     Ok(n == 4 && (&head == b"PK\x03\x04" || &head == b"PK\x05\x06"))
 }
 
+/// The entry count an archive's end-of-central-directory record declares (ZIP64 included), read from its last
+/// 64 KiB before the ZIP reader allocates anything per entry; `None` when there is no such record (the reader
+/// then refuses the archive).
+fn declared_entries(f: &mut File) -> io::Result<Option<u64>> {
+    let len = f.metadata()?.len();
+    let tail_len = len.min(65_535 + 22);
+    f.seek(SeekFrom::Start(len - tail_len))?;
+    let mut tail = vec![0u8; tail_len as usize];
+    f.read_exact(&mut tail)?;
+    let Some(at) = (0..tail.len().saturating_sub(21))
+        .rev()
+        .find(|&i| tail[i..i + 4] == *b"PK\x05\x06")
+    else {
+        return Ok(None);
+    };
+    let count = u16::from_le_bytes([tail[at + 10], tail[at + 11]]);
+    if count != 0xFFFF {
+        return Ok(Some(u64::from(count)));
+    }
+    // ZIP64: the locator (20 bytes) sits just before the record and points at the ZIP64 end record.
+    if at < 20 || tail[at - 20..at - 16] != *b"PK\x06\x07" {
+        return Ok(None);
+    }
+    let mut offset = [0u8; 8];
+    offset.copy_from_slice(&tail[at - 12..at - 4]);
+    let offset = u64::from_le_bytes(offset);
+    if offset.saturating_add(56) > len {
+        return Ok(None);
+    }
+    f.seek(SeekFrom::Start(offset))?;
+    let mut record = [0u8; 56];
+    f.read_exact(&mut record)?;
+    if record[..4] != *b"PK\x06\x06" {
+        return Ok(None);
+    }
+    let mut total = [0u8; 8];
+    total.copy_from_slice(&record[32..40]);
+    Ok(Some(u64::from_le_bytes(total)))
+}
+
 fn io_error(label: &str, e: io::Error) -> DicomError {
     // Our own scratch files failing is the server's problem, not the client's.
     DicomError::Write(format!("scratch file for {label}: {e}"))
@@ -76,7 +116,15 @@ pub fn unpack_file(
     let refuse = |out: &mut Unpacked, label: String, error: DicomError| {
         out.rejected.push(Rejected { label, error });
     };
-    let f = File::open(&file.path).map_err(|e| io_error(&file.label, e))?;
+    let mut f = File::open(&file.path).map_err(|e| io_error(&file.label, e))?;
+    let declared = declared_entries(&mut f).map_err(|e| io_error(&file.label, e))?;
+    if let Some(n) = declared.filter(|&n| n > limits.max_entries as u64) {
+        let reason = format!("{n} entries declared, limit {}", limits.max_entries);
+        refuse(out, file.label, DicomError::ZipBomb { reason });
+        return Ok(());
+    }
+    f.seek(SeekFrom::Start(0))
+        .map_err(|e| io_error(&file.label, e))?;
     let mut archive = match zip::ZipArchive::new(f) {
         Ok(a) => a,
         Err(e) => {
