@@ -3,7 +3,11 @@
 //! [`UploadSink`] for `.npy` uploads, where each chunk is also validated (header, limits, expected shape,
 //! finiteness, exact length) before it is written. Nothing is kept unless the whole upload is accepted.
 
-use axum::body::Bytes;
+use std::pin::Pin;
+use std::task::{Context, Poll};
+
+use axum::body::{Body, Bytes};
+use axum::extract::Request;
 use futures_util::{Stream, StreamExt};
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
@@ -28,7 +32,8 @@ pub fn stream_error(e: StreamError) -> ApiError {
     api_error(code, e.to_string())
 }
 
-/// A body (or multipart field) written to `tmp/`, synced.
+/// A body (or multipart field) written to `tmp/` (not synced: most are read once and removed; see
+/// [`TempBlob::sync`] before keeping one).
 pub struct Spooled {
     pub temp: TempBlob,
     pub bytes: u64,
@@ -76,12 +81,12 @@ where
             break Some(e.into());
         }
     };
-    let synced = match failed {
-        None => file.sync_all().await.err().map(ApiError::from),
+    let failed = match failed {
+        None => file.flush().await.err().map(ApiError::from),
         Some(e) => Some(e),
     };
     drop(file);
-    if let Some(e) = synced {
+    if let Some(e) = failed {
         temp.discard().await;
         return Err(e);
     }
@@ -90,6 +95,41 @@ where
         bytes,
         sha256: hash.finalize().into(),
     })
+}
+
+/// A body stream that yields one chunk per poll and then reports `Pending` (waking its task at once), so that a
+/// reader which drains everything ready (the multipart parser does) holds about one chunk at a time rather than
+/// whatever the connection has buffered.
+struct OneChunkPerPoll<S> {
+    inner: S,
+    yielded: bool,
+}
+
+impl<S: Stream + Unpin> Stream for OneChunkPerPoll<S> {
+    type Item = S::Item;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<S::Item>> {
+        if self.yielded {
+            self.yielded = false;
+            cx.waker().wake_by_ref();
+            return Poll::Pending;
+        }
+        let next = Pin::new(&mut self.inner).poll_next(cx);
+        if matches!(next, Poll::Ready(Some(_))) {
+            self.yielded = true;
+        }
+        next
+    }
+}
+
+/// The request with its body paced one chunk per poll (for multipart forms: see [`OneChunkPerPoll`]).
+pub fn paced(req: Request) -> Request {
+    let (parts, body) = req.into_parts();
+    let body = Body::from_stream(OneChunkPerPoll {
+        inner: body.into_data_stream(),
+        yielded: false,
+    });
+    Request::from_parts(parts, body)
 }
 
 /// A completed, validated upload still in `tmp/`.

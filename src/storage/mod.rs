@@ -65,6 +65,11 @@ impl TempBlob {
 }
 
 impl TempBlob {
+    /// Flush the file's data to disk (before it is kept by a rename).
+    pub async fn sync(&self) -> io::Result<()> {
+        tokio::fs::File::open(&self.path).await?.sync_all().await
+    }
+
     /// Remove the file now, without blocking the async runtime (dropping removes it too, synchronously).
     pub async fn discard(mut self) {
         let _ = tokio::fs::remove_file(&self.path).await;

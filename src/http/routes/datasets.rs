@@ -13,7 +13,7 @@ use super::super::extract::{
     ApiJson, ApiQuery, dataset_id, idempotency_key, media_type, parse_json,
 };
 use super::super::problem::{ApiResult, api_error};
-use super::super::upload::{UploadSink, Uploaded};
+use super::super::upload::{UploadSink, Uploaded, paced};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::plan::{admit_simulation, recon_problem};
@@ -298,7 +298,7 @@ async fn raw(
 
 async fn multipart(st: &AppState, req: Request) -> ApiResult<(ParsedGeometry, Uploaded)> {
     let bad = |m: String| api_error(ErrorCode::InvalidMultipart, m);
-    let mut form = Multipart::from_request(req, st)
+    let mut form = Multipart::from_request(paced(req), st)
         .await
         .map_err(|e| bad(e.body_text()))?;
     let mut geometry: Option<ParsedGeometry> = None;

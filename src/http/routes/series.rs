@@ -21,7 +21,7 @@ use super::super::AppState;
 use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::files::{FileMeta, serve_file};
 use super::super::problem::{ApiResult, api_error};
-use super::super::upload::{Spooled, spool, too_large};
+use super::super::upload::{Spooled, paced, spool, too_large};
 use crate::dicom::{ReadLimits, UploadFile, ZipLimits, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::ingest::{IngestOptions, Ingested, Staged, dicom_problem, ingest};
@@ -104,7 +104,7 @@ const MAX_PARTS: usize = 20_000;
 async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>> {
     let limit = st.settings.max_upload_bytes;
     let bad = |m: String| api_error(ErrorCode::InvalidMultipart, m);
-    let mut form = Multipart::from_request(req, st)
+    let mut form = Multipart::from_request(paced(req), st)
         .await
         .map_err(|e| bad(e.body_text()))?;
     let mut files = Vec::new();
@@ -507,6 +507,7 @@ async fn append(
         .await;
     let (instances, duplicate) = match outcome {
         Ok(Appended::Added(n)) => {
+            body.temp.sync().await?;
             st.store.commit_async(body.temp, path).await?;
             (n, false)
         }
