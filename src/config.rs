@@ -18,6 +18,9 @@
 //! | `mu_water_per_mm` | `CTRECON_MU_WATER_PER_MM` | 0.0192 (HU conversion of presets) |
 //! | `request_timeout_secs` | `CTRECON_REQUEST_TIMEOUT_SECS` | 30 (uploads: `upload_timeout_secs`, 600) |
 //! | `progress_interval_ms` | `CTRECON_PROGRESS_INTERVAL_MS` | 500: most one progress write per job per interval |
+//! | `zip_max_member_bytes` | `CTRECON_ZIP_MAX_MEMBER_BYTES` | 1 GiB per inflated ZIP member (and at most the memory budget over the workers) |
+//! | `zip_max_total_bytes` | `CTRECON_ZIP_MAX_TOTAL_BYTES` | 8 GiB inflated per upload |
+//! | `zip_max_ratio` | `CTRECON_ZIP_MAX_RATIO` | 200: inflated/compressed of one member (members under 1 MiB exempt) |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -54,6 +57,9 @@ pub struct Settings {
     pub request_timeout_secs: u64,
     pub upload_timeout_secs: u64,
     pub progress_interval_ms: u64,
+    pub zip_max_member_bytes: u64,
+    pub zip_max_total_bytes: u64,
+    pub zip_max_ratio: u64,
 }
 
 impl Default for Settings {
@@ -75,6 +81,9 @@ impl Default for Settings {
             request_timeout_secs: 30,
             upload_timeout_secs: 600,
             progress_interval_ms: 500,
+            zip_max_member_bytes: 1 << 30,
+            zip_max_total_bytes: 8 << 30,
+            zip_max_ratio: 200,
         }
     }
 }
@@ -160,6 +169,9 @@ impl Settings {
             "CTRECON_REQUEST_TIMEOUT_SECS" => self.request_timeout_secs = parsed(name, v)?,
             "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
             "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
+            "CTRECON_ZIP_MAX_MEMBER_BYTES" => self.zip_max_member_bytes = parsed(name, v)?,
+            "CTRECON_ZIP_MAX_TOTAL_BYTES" => self.zip_max_total_bytes = parsed(name, v)?,
+            "CTRECON_ZIP_MAX_RATIO" => self.zip_max_ratio = parsed(name, v)?,
             // Read by the logger and by the test suite, not settings.
             "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
             other if other.starts_with("CTRECON_") => {
@@ -187,6 +199,12 @@ impl Settings {
         }
         if self.memory_budget_bytes == 0 || self.max_upload_bytes == 0 || self.max_json_bytes == 0 {
             return invalid("limits", "memory and size limits must be positive");
+        }
+        if self.zip_max_member_bytes == 0
+            || self.zip_max_total_bytes == 0
+            || self.zip_max_ratio == 0
+        {
+            return invalid("zip limits", "must be positive");
         }
         if self.max_attempts == 0 {
             return invalid("max_attempts", "must be at least 1");

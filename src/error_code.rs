@@ -70,6 +70,8 @@ catalogue! {
     ResultUnavailable = ("result_unavailable", 404, "The job did not produce this result"),
     JobTooLarge = ("job_too_large", 422, "The job can never fit the memory budget"),
     RangeNotSatisfiable = ("range_not_satisfiable", 416, "The requested range is outside the file"),
+    ResourceInUse = ("resource_in_use", 409, "A queued or running job uses this resource"),
+    FileMissing = ("file_missing", 410, "The stored file was lost; upload it again"),
     // Result views (the codes of `VolumeError`).
     SliceOutOfRange = ("slice_out_of_range", 422, "The slice index is outside the volume"),
     InvalidSlab = ("invalid_slab", 422, "The slab is empty or outside the volume"),

@@ -7,6 +7,8 @@
 //! - [`unpack`]: an upload body (a single file or a ZIP, with bomb limits; names inside the ZIP are labels,
 //!   never paths) into named byte buffers; [`read_upload`] decodes them in parallel and splits them by
 //!   SeriesInstanceUID into [`SeriesGroup`]s, each with a [`SeriesReport`] and [`SeriesGroup::assemble`].
+//! - [`unpack_file`] / [`read_upload_files`]: the same from files on disk, ZIP members inflated one by one
+//!   into a scratch directory and refused one by one (what the service uses: nothing is held whole).
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
 //!   file), [`write_secondary_capture`] (a 2D image), [`write_encapsulated_stl`] and [`write_zip`].
 //!
@@ -15,11 +17,13 @@
 mod error;
 mod read;
 mod scan;
+mod unzip;
 mod upload;
 mod write;
 
 pub use error::DicomError;
 pub use read::{Instance, ReadLimits, read_bytes, read_path};
+pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };

@@ -1,4 +1,5 @@
-//! Uploads: ZIP unpacking with limits, parallel decoding, splitting by series, per-series reports and assembly.
+//! Uploads: ZIP unpacking in memory with limits (the library's easy path; the service unpacks to disk with
+//! [`super::unzip`]), parallel decoding, splitting by series, per-series reports and assembly.
 
 use std::collections::BTreeMap;
 use std::io::{Cursor, Read};
@@ -16,10 +17,12 @@ use crate::series::{Assembled, AssemblyOptions, Warning, assemble};
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ZipLimits {
     pub max_entries: usize,
-    /// Total inflated bytes.
+    /// Total inflated bytes (of all the archives of one upload).
     pub max_total_bytes: u64,
     /// Largest inflated/compressed ratio of one entry (entries under 1 MiB are exempt).
     pub max_ratio: u64,
+    /// Largest inflated entry.
+    pub max_member_bytes: u64,
 }
 
 impl Default for ZipLimits {
@@ -28,6 +31,7 @@ impl Default for ZipLimits {
             max_entries: 20_000,
             max_total_bytes: 4 << 30,
             max_ratio: 200,
+            max_member_bytes: 1 << 30,
         }
     }
 }
@@ -77,8 +81,9 @@ pub fn unpack(
         }
         let compressed = entry.compressed_size().max(1);
         // Allow what is left of the total, and the ratio limit (with 1 MiB of slack for tiny entries).
-        let allowed = (limits.max_total_bytes - total)
-            .min(compressed.saturating_mul(limits.max_ratio).max(1 << 20));
+        let allowed = (limits.max_total_bytes.saturating_sub(total))
+            .min(compressed.saturating_mul(limits.max_ratio).max(1 << 20))
+            .min(limits.max_member_bytes);
         let mut buf = Vec::new();
         (&mut entry)
             .take(allowed + 1)
@@ -87,14 +92,16 @@ pub fn unpack(
                 reason: format!("{label}: {e}"),
             })?;
         if buf.len() as u64 > allowed {
-            return Err(bomb(if allowed < limits.max_total_bytes - total {
-                format!(
-                    "entry {label} inflates more than {}× its compressed size",
-                    limits.max_ratio
-                )
-            } else {
-                format!("more than {} bytes once inflated", limits.max_total_bytes)
-            }));
+            return Err(bomb(
+                if allowed < limits.max_total_bytes.saturating_sub(total) {
+                    format!(
+                        "entry {label} inflates more than {}× its compressed size",
+                        limits.max_ratio
+                    )
+                } else {
+                    format!("more than {} bytes once inflated", limits.max_total_bytes)
+                },
+            ));
         }
         total += buf.len() as u64;
         if buf.starts_with(b"PK\x03\x04") {

@@ -162,7 +162,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .route("/readyz", get(health::readyz))
         .route("/metrics", get(health::metrics))
         .route("/openapi.yaml", get(health::openapi))
-        .route("/v1/datasets/{id}", get(datasets::get_dataset))
+        .route(
+            "/v1/datasets/{id}",
+            get(datasets::get_dataset).delete(datasets::delete_dataset),
+        )
         .route("/v1/jobs", post(jobs::post_job).get(jobs::list_jobs))
         .route("/v1/jobs/{id}", get(jobs::get_job).delete(jobs::delete_job))
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))
@@ -176,7 +179,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             get(results::product),
         )
         .route("/v1/uploads/{id}", get(series::get_upload))
-        .route("/v1/series/{id}", get(series::get_series))
+        .route(
+            "/v1/series/{id}",
+            get(series::get_series).delete(series::delete_series),
+        )
         .route("/v1/series/{id}/volume.npy", get(series::series_volume))
         .route("/v1/jobs/{id}/result/metrics", get(results::metrics))
         .layer(DefaultBodyLimit::max(s.max_json_bytes))
@@ -231,6 +237,9 @@ impl Application {
         std::fs::create_dir_all(&settings.data_dir).map_err(BuildError::DataDir)?;
         let store = BlobStore::open(&settings.data_dir).map_err(BuildError::DataDir)?;
         let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let metrics = metrics_handle();
+        let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
+        tracing::info!(?swept, "blob files paired with their rows");
         let engine = Engine::start(
             db.clone(),
             store.clone(),
@@ -260,7 +269,7 @@ impl Application {
             store,
             engine,
             settings,
-            metrics: metrics_handle(),
+            metrics,
             shutdown: shutdown_rx,
         }));
         Ok(Self {

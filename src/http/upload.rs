@@ -1,7 +1,15 @@
-//! Streaming `.npy` uploads to a temporary file: each chunk is validated (header, limits, expected shape,
-//! finiteness, exact length) and hashed before it is written; nothing is kept unless the whole upload is
-//! accepted.
+//! Uploads stream to temporary files under the data directory, chunk by chunk, so memory stays flat in the
+//! upload size: [`spool`] for any body or multipart field (hashed, the size limit enforced while streaming);
+//! [`UploadSink`] for `.npy` uploads, where each chunk is also validated (header, limits, expected shape,
+//! finiteness, exact length) before it is written. Nothing is kept unless the whole upload is accepted.
 
+use std::pin::Pin;
+use std::task::{Context, Poll};
+
+use axum::body::{Body, Bytes};
+use axum::extract::Request;
+use futures_util::{Stream, StreamExt};
+use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
 
 use super::problem::{ApiError, ApiResult, api_error};
@@ -22,6 +30,106 @@ pub fn stream_error(e: StreamError) -> ApiError {
         StreamError::NonFinite { .. } => ErrorCode::NonFiniteData,
     };
     api_error(code, e.to_string())
+}
+
+/// A body (or multipart field) written to `tmp/` (not synced: most are read once and removed; see
+/// [`TempBlob::sync`] before keeping one).
+pub struct Spooled {
+    pub temp: TempBlob,
+    pub bytes: u64,
+    pub sha256: [u8; 32],
+}
+
+/// The 413 problem of an upload over `limit` bytes.
+pub fn too_large(limit: u64) -> ApiError {
+    api_error(
+        ErrorCode::BodyTooLarge,
+        format!("the upload exceeds the limit of {limit} bytes"),
+    )
+}
+
+/// Write `stream` to a temporary file chunk by chunk; `spent` counts the bytes of the whole request and the
+/// upload is refused (413, the file removed) as soon as it passes `limit`. A stream error is a truncated upload.
+pub async fn spool<S, B, E>(
+    store: &BlobStore,
+    mut stream: S,
+    spent: &mut u64,
+    limit: u64,
+) -> ApiResult<Spooled>
+where
+    S: Stream<Item = Result<B, E>> + Unpin,
+    B: Into<Bytes>,
+    E: std::fmt::Display,
+{
+    let temp = store.temp();
+    let mut file = tokio::fs::File::create(temp.path()).await?;
+    let mut hash = Sha256::new();
+    let mut bytes = 0u64;
+    let failed = loop {
+        let chunk: Bytes = match stream.next().await {
+            None => break None,
+            Some(Ok(c)) => c.into(),
+            Some(Err(e)) => break Some(api_error(ErrorCode::TruncatedUpload, e.to_string())),
+        };
+        *spent = spent.saturating_add(chunk.len() as u64);
+        if *spent > limit {
+            break Some(too_large(limit));
+        }
+        hash.update(&chunk);
+        bytes += chunk.len() as u64;
+        if let Err(e) = file.write_all(&chunk).await {
+            break Some(e.into());
+        }
+    };
+    let failed = match failed {
+        None => file.flush().await.err().map(ApiError::from),
+        Some(e) => Some(e),
+    };
+    drop(file);
+    if let Some(e) = failed {
+        temp.discard().await;
+        return Err(e);
+    }
+    Ok(Spooled {
+        temp,
+        bytes,
+        sha256: hash.finalize().into(),
+    })
+}
+
+/// A body stream that yields one chunk per poll and then reports `Pending` (waking its task at once), so that a
+/// reader which drains everything ready (the multipart parser does) holds about one chunk at a time rather than
+/// whatever the connection has buffered.
+struct OneChunkPerPoll<S> {
+    inner: S,
+    yielded: bool,
+}
+
+impl<S: Stream + Unpin> Stream for OneChunkPerPoll<S> {
+    type Item = S::Item;
+
+    fn poll_next(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<Option<S::Item>> {
+        if self.yielded {
+            self.yielded = false;
+            cx.waker().wake_by_ref();
+            return Poll::Pending;
+        }
+        let next = Pin::new(&mut self.inner).poll_next(cx);
+        if matches!(next, Poll::Ready(Some(_))) {
+            self.yielded = true;
+        }
+        next
+    }
+}
+
+/// The request with its body paced one chunk per poll (for multipart forms: see [`OneChunkPerPoll`]).
+pub fn paced(req: Request) -> Request {
+    let (parts, body) = req.into_parts();
+    let body = Body::from_stream(OneChunkPerPoll {
+        inner: body.into_data_stream(),
+        yielded: false,
+    });
+    Request::from_parts(parts, body)
 }
 
 /// A completed, validated upload still in `tmp/`.

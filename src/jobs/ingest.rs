@@ -1,20 +1,26 @@
-//! DICOM ingestion, run on the worker pool: unpack the uploaded files (ZIPs with limits), decode them, split
-//! them by SeriesInstanceUID, assemble each series into an HU volume and store it as `series/<id>.npy`.
+//! DICOM ingestion, run on the worker pool: unpack the uploaded files (ZIP members inflated one by one to a
+//! scratch directory, with limits), decode them, split them by SeriesInstanceUID, assemble each series into an
+//! HU volume and stage it as a synced temporary file.
 //!
 //! One series that cannot be assembled (a missing slice, a non-CT modality, …) does not stop the others: each
-//! is reported as `ready` (with its new series id) or `refused` (with a problem), and every file that could not
-//! be read is listed with its reason. Nothing is stored for refused series.
+//! is reported as `ready` (with its new series id) or `refused` (with a problem), and every file or ZIP member
+//! that could not be read is listed with its reason. Nothing is staged for refused series. The caller records
+//! the series rows and then [`Staged::commit`]s the volumes to `series/<id>.npy` (temporary file → row →
+//! rename), so a crash never leaves a volume without its row.
 
 use serde::Serialize;
 use sha2::{Digest, Sha256};
 
 use super::model::{FileInfo, Notice, SeriesRecord, now_us};
-use crate::dicom::{DicomError, ReadLimits, SeriesReport, ZipLimits, read_upload, unpack};
+use crate::dicom::{
+    DicomError, ReadLimits, SeriesReport, Unpacked, UploadFile, ZipLimits, read_upload_files,
+    unpack_file,
+};
 use crate::error_code::{ErrorCode, Problem};
 use crate::recon::control::Control;
 use crate::series::{AssemblyOptions, UnevenPolicy};
 use crate::storage::npy::{encode_f32, hex};
-use crate::storage::{BlobStore, SeriesId, UploadId};
+use crate::storage::{BlobStore, SeriesId, TempBlob, UploadId};
 
 /// The catalogue problem of a DICOM error (server-side failures become `internal`).
 pub fn dicom_problem(e: &DicomError) -> Problem {
@@ -117,20 +123,50 @@ impl Ingested {
     }
 }
 
-/// Unpack, decode, split and assemble `files` (name, bytes); store every assembled series.
+/// The volumes of the ready series, synced in `tmp/` and not yet in place.
+#[derive(Debug, Default)]
+pub struct Staged(Vec<(SeriesId, TempBlob)>);
+
+impl Staged {
+    /// Move every volume to `series/<id>.npy`; call once the series rows are committed.
+    pub async fn commit(self, store: &BlobStore) -> std::io::Result<()> {
+        for (id, temp) in self.0 {
+            store.commit_async(temp, store.series_path(id)).await?;
+        }
+        Ok(())
+    }
+
+    /// Remove the staged volumes (the rows were not recorded).
+    pub async fn discard(self) {
+        for (_, temp) in self.0 {
+            temp.discard().await;
+        }
+    }
+}
+
+fn storage_problem(e: std::io::Error) -> Problem {
+    tracing::error!(error = %e, "DICOM ingestion storage failed");
+    Problem::internal()
+}
+
+/// Unpack, decode, split and assemble `files` (on disk; they are read, never moved or removed); stage every
+/// assembled series.
 pub fn ingest(
     store: &BlobStore,
     upload_id: UploadId,
-    files: Vec<(String, Vec<u8>)>,
+    files: Vec<UploadFile>,
     opts: &IngestOptions,
     ctl: Control<'_>,
-) -> Result<Ingested, Problem> {
-    let mut unpacked = Vec::new();
-    for (label, body) in files {
-        unpacked.extend(unpack(&label, body, &opts.zip).map_err(|e| dicom_problem(&e))?);
+) -> Result<(Ingested, Staged), Problem> {
+    let scratch = store.scratch().map_err(storage_problem)?;
+    let mut unpacked = Unpacked::default();
+    for file in files {
+        unpack_file(file, &opts.zip, scratch.path(), &mut unpacked)
+            .map_err(|e| dicom_problem(&e))?;
     }
-    let upload = read_upload(&unpacked, &opts.read, ctl).map_err(|e| dicom_problem(&e))?;
-    drop(unpacked);
+    let upload = read_upload_files(&unpacked.files, unpacked.rejected, &opts.read, ctl)
+        .map_err(|e| dicom_problem(&e))?;
+    drop(scratch);
     let rejected = upload
         .rejected
         .iter()
@@ -149,6 +185,7 @@ pub fn ingest(
         ..AssemblyOptions::default()
     };
     let mut series = Vec::new();
+    let mut staged = Staged::default();
     for group in upload.series {
         let report = group.report();
         let first = group.instances.first();
@@ -180,12 +217,8 @@ pub fn ingest(
         }
         let encoded = encode_f32(vol.data.view());
         let id = SeriesId::generate();
-        store
-            .write_atomic(&store.series_path(id), &encoded)
-            .map_err(|e| {
-                tracing::error!(error = %e, "writing a series volume failed");
-                Problem::internal()
-            })?;
+        let temp = store.write_temp(&encoded).map_err(storage_problem)?;
+        staged.0.push((id, temp));
         let (nz, ny, nx) = vol.data.dim();
         let record = SeriesRecord {
             id,
@@ -220,5 +253,5 @@ pub fn ingest(
             error: None,
         });
     }
-    Ok(Ingested { series, rejected })
+    Ok((Ingested { series, rejected }, staged))
 }

@@ -12,6 +12,10 @@ use sqlx::sqlite::{
 };
 use sqlx::{AssertSqlSafe, Row};
 
+mod blobs;
+
+pub use blobs::{Deleted, SweepReport, sweep_blobs};
+
 use super::cache::JobCache;
 use super::model::{
     Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, SeriesRecord, UploadRecord, now_us,

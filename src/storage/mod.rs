@@ -4,12 +4,16 @@
 //! - `datasets/<dataset id>.npy`: uploaded or simulated projections, exactly as accepted;
 //! - `results/<job id>/<name>`: a job's results (`volume.npy`, `metrics.json`, and cached derived files
 //!   named by the SHA-256 of their parameters);
-//! - `tmp/`: uploads and results being written. Every write goes to a temporary file, is flushed to disk
-//!   and then renamed into place, so a file under `datasets/` or `results/` is always complete.
+//! - `series/<series id>.npy`: assembled CT series (HU volumes);
+//! - `uploads/<upload id>/<sha256>.dcm`: instances of an open upload;
+//! - `tmp/`: uploads, unpacked archives and results being written. Every write goes to a temporary file, is
+//!   flushed to disk and then renamed into place, so a file under `datasets/` or `results/` is always
+//!   complete. A blob that has a database row is renamed into place only after its row is committed.
 //!   `tmp/` is emptied at start.
 
 pub mod ids;
 pub mod npy;
+pub mod sweep;
 
 use std::fs;
 use std::io::{self, Write};
@@ -60,11 +64,42 @@ impl TempBlob {
     }
 }
 
+impl TempBlob {
+    /// Flush the file's data to disk (before it is kept by a rename).
+    pub async fn sync(&self) -> io::Result<()> {
+        tokio::fs::File::open(&self.path).await?.sync_all().await
+    }
+
+    /// Remove the file now, without blocking the async runtime (dropping removes it too, synchronously).
+    pub async fn discard(mut self) {
+        let _ = tokio::fs::remove_file(&self.path).await;
+        self.committed = true;
+    }
+}
+
 impl Drop for TempBlob {
     fn drop(&mut self) {
         if !self.committed {
             let _ = fs::remove_file(&self.path);
         }
+    }
+}
+
+/// A directory under `tmp/` (the members of an archive being unpacked); removed with its files on drop.
+#[derive(Debug)]
+pub struct ScratchDir {
+    path: PathBuf,
+}
+
+impl ScratchDir {
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for ScratchDir {
+    fn drop(&mut self) {
+        let _ = fs::remove_dir_all(&self.path);
     }
 }
 
@@ -83,7 +118,9 @@ impl BlobStore {
         }
         for entry in fs::read_dir(root.join("tmp"))? {
             let entry = entry?;
-            if entry.file_type()?.is_file() {
+            if entry.file_type()?.is_dir() {
+                fs::remove_dir_all(entry.path())?;
+            } else {
                 fs::remove_file(entry.path())?;
             }
         }
@@ -140,6 +177,42 @@ impl BlobStore {
         }
     }
 
+    /// A fresh, empty scratch directory under `tmp/`.
+    pub fn scratch(&self) -> io::Result<ScratchDir> {
+        let path = self
+            .root
+            .join("tmp")
+            .join(format!("{}.d", uuid::Uuid::new_v4()));
+        fs::create_dir(&path)?;
+        Ok(ScratchDir { path })
+    }
+
+    /// Write `bytes` to a temporary file and sync it; [`commit`](Self::commit) moves it into place once its
+    /// database row exists (so a crash leaves a row without a file, never a file without a row).
+    pub fn write_temp(&self, bytes: &[u8]) -> io::Result<TempBlob> {
+        let temp = self.temp();
+        let mut f = fs::File::create(temp.path())?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        Ok(temp)
+    }
+
+    /// [`commit`](Self::commit) off the async runtime.
+    pub async fn commit_async(&self, temp: TempBlob, dest: PathBuf) -> io::Result<()> {
+        let store = self.clone();
+        tokio::task::spawn_blocking(move || store.commit(temp, &dest))
+            .await
+            .map_err(io::Error::other)?
+    }
+
+    /// Remove a file off the async runtime (missing is fine).
+    pub async fn remove_file(path: &Path) -> io::Result<()> {
+        match tokio::fs::remove_file(path).await {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+            _ => Ok(()),
+        }
+    }
+
     /// Move a fully written and synced temporary file to `dest` (atomic on one file system).
     pub fn commit(&self, mut temp: TempBlob, dest: &Path) -> io::Result<()> {
         if let Some(parent) = dest.parent() {
@@ -155,11 +228,7 @@ impl BlobStore {
 
     /// Write `bytes` to `dest` atomically: temporary file, fsync, rename.
     pub fn write_atomic(&self, dest: &Path, bytes: &[u8]) -> io::Result<()> {
-        let temp = self.temp();
-        let mut f = fs::File::create(temp.path())?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        drop(f);
+        let temp = self.write_temp(bytes)?;
         self.commit(temp, dest)
     }
 

@@ -1,4 +1,5 @@
-//! `POST /v1/simulations`, `POST /v1/sinograms` (multipart or raw `.npy`), `GET /v1/datasets/{id}`.
+//! `POST /v1/simulations`, `POST /v1/sinograms` (multipart or raw `.npy`), `GET` and `DELETE
+//! /v1/datasets/{id}`. A dataset's file is renamed into place only after its row is committed.
 
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
@@ -12,15 +13,17 @@ use super::super::extract::{
     ApiJson, ApiQuery, dataset_id, idempotency_key, media_type, parse_json,
 };
 use super::super::problem::{ApiResult, api_error};
-use super::super::upload::{UploadSink, Uploaded};
+use super::super::upload::{UploadSink, Uploaded, paced};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::plan::{admit_simulation, recon_problem};
+use crate::jobs::repo::Deleted;
 use crate::jobs::run::simulate;
 use crate::jobs::{Dataset, DatasetKind, IdempotencyKey, Inserted, SimulationRequest};
 use crate::recon::geometry::Geometry;
-use crate::storage::DatasetId;
 use crate::storage::npy::{StreamLimits, encode_f32, hex};
+use crate::storage::sweep::BlobKind;
+use crate::storage::{BlobStore, DatasetId, TempBlob};
 
 const ROUTE_SIMULATIONS: &str = "POST /v1/simulations";
 const ROUTE_SINOGRAMS: &str = "POST /v1/sinograms";
@@ -83,10 +86,32 @@ async fn existing(st: &AppState, id: &str) -> ApiResult<Response> {
     }
 }
 
-/// Insert `d` (its file already in place) under the Idempotency-Key; on a lost race, answer the winner.
-async fn insert(st: &AppState, d: Dataset, key: Option<IdempotencyKey>) -> ApiResult<Response> {
-    match st.db.insert_dataset(&d, key.as_ref()).await? {
+/// Insert `d` under the Idempotency-Key, then move its file (`temp`, synced) into place: temporary file →
+/// row → rename, so a crash never leaves a file without its row. On a lost race, answer the winner.
+async fn insert(
+    st: &AppState,
+    d: Dataset,
+    key: Option<IdempotencyKey>,
+    temp: TempBlob,
+) -> ApiResult<Response> {
+    let inserted = match st.db.insert_dataset(&d, key.as_ref()).await {
+        Ok(i) => i,
+        Err(e) => {
+            temp.discard().await;
+            return Err(e.into());
+        }
+    };
+    match inserted {
         Inserted::New => {
+            if let Err(e) = st
+                .store
+                .commit_async(temp, st.store.dataset_path(d.id))
+                .await
+            {
+                tracing::error!(error = %e, dataset_id = %d.id, "moving a dataset into place failed");
+                let _ = st.db.delete_dataset(d.id).await;
+                return Err(Problem::internal().into());
+            }
             tracing::info!(dataset_id = %d.id, kind = d.kind.as_str(), "dataset stored");
             Ok(created(&d))
         }
@@ -94,7 +119,7 @@ async fn insert(st: &AppState, d: Dataset, key: Option<IdempotencyKey>) -> ApiRe
             resource_id,
             fingerprint,
         } => {
-            let _ = std::fs::remove_file(st.store.dataset_path(d.id));
+            temp.discard().await;
             if key.is_some_and(|k| k.fingerprint != fingerprint) {
                 return Err(reused());
             }
@@ -124,18 +149,17 @@ pub async fn post_simulation(
     let id = DatasetId::generate();
     let store = st.store.clone();
     let request = req.clone();
-    let (bytes, sha256, shape) = st
+    let (temp, bytes, sha256, shape) = st
         .engine
         .compute(move || {
             let data = simulate(&request, &views)?;
             let encoded = encode_f32(data.view());
-            store
-                .write_atomic(&store.dataset_path(id), &encoded)
-                .map_err(|e| {
-                    tracing::error!(error = %e, "writing a simulation failed");
-                    Problem::internal()
-                })?;
+            let temp = store.write_temp(&encoded).map_err(|e| {
+                tracing::error!(error = %e, "writing a simulation failed");
+                Problem::internal()
+            })?;
             Ok((
+                temp,
                 encoded.len() as u64,
                 hex(&Sha256::digest(&encoded)),
                 data.shape().to_vec(),
@@ -159,7 +183,7 @@ pub async fn post_simulation(
         key,
         fingerprint: body.fingerprint,
     });
-    insert(&st, d, key).await
+    insert(&st, d, key, temp).await
 }
 
 /// Query of a raw upload: the geometry JSON, unless sent in the `X-Ctrecon-Geometry` header.
@@ -227,7 +251,6 @@ pub async fn post_sinogram(
         return Ok(r);
     }
     let id = DatasetId::generate();
-    st.store.commit(upload.temp, &st.store.dataset_path(id))?;
     let d = Dataset {
         id,
         kind: DatasetKind::Upload,
@@ -245,7 +268,7 @@ pub async fn post_sinogram(
         key,
         fingerprint,
     });
-    insert(&st, d, key).await
+    insert(&st, d, key, upload.temp).await
 }
 
 async fn raw(
@@ -275,7 +298,7 @@ async fn raw(
 
 async fn multipart(st: &AppState, req: Request) -> ApiResult<(ParsedGeometry, Uploaded)> {
     let bad = |m: String| api_error(ErrorCode::InvalidMultipart, m);
-    let mut form = Multipart::from_request(req, st)
+    let mut form = Multipart::from_request(paced(req), st)
         .await
         .map_err(|e| bad(e.body_text()))?;
     let mut geometry: Option<ParsedGeometry> = None;
@@ -340,8 +363,43 @@ pub async fn get_dataset(
 ) -> ApiResult<Response> {
     let id = dataset_id(&id)?;
     match st.db.get_dataset(id).await? {
-        Some(d) => Ok(axum::Json(dataset_view(&d)).into_response()),
+        Some(d) => {
+            let missing = st
+                .db
+                .blob_missing(BlobKind::Dataset, &id.to_string())
+                .await?;
+            let mut view = dataset_view(&d);
+            view["available"] = serde_json::json!(!missing);
+            Ok(axum::Json(view).into_response())
+        }
         None => Err(api_error(
+            ErrorCode::DatasetNotFound,
+            format!("no dataset {id}"),
+        )),
+    }
+}
+
+/// `DELETE /v1/datasets/{id}`: 204, the row and then the file removed; 409 while a queued or running job
+/// reads it.
+pub async fn delete_dataset(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let id = dataset_id(&id)?;
+    match st.db.delete_dataset(id).await? {
+        Deleted::Done => {
+            // A crash before this removal leaves an orphan file, which the start-up sweep removes.
+            if let Err(e) = BlobStore::remove_file(&st.store.dataset_path(id)).await {
+                tracing::warn!(error = %e, dataset_id = %id, "removing a deleted dataset's file failed");
+            }
+            tracing::info!(dataset_id = %id, "dataset deleted");
+            Ok(StatusCode::NO_CONTENT.into_response())
+        }
+        Deleted::InUse => Err(api_error(
+            ErrorCode::ResourceInUse,
+            format!("dataset {id} is the input of a queued or running job; cancel it or wait"),
+        )),
+        Deleted::NotFound => Err(api_error(
             ErrorCode::DatasetNotFound,
             format!("no dataset {id}"),
         )),

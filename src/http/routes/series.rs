@@ -1,16 +1,18 @@
 //! DICOM in: `POST /v1/series` (a multipart form of files, a ZIP, or one `application/dicom` instance appended
-//! to an open upload), `GET /v1/uploads/{id}`, `POST /v1/uploads/{id}/complete`, `GET /v1/series/{id}` and
-//! `GET /v1/series/{id}/volume.npy`.
+//! to an open upload), `GET /v1/uploads/{id}`, `POST /v1/uploads/{id}/complete`, `GET` and `DELETE
+//! /v1/series/{id}`, and `GET /v1/series/{id}/volume.npy`.
 //!
-//! Files are held in memory up to the upload limit, decoded on the worker pool, split by SeriesInstanceUID and
-//! assembled into HU volumes. Instances of an open upload are stored under their SHA-256 as they arrive (so
-//! re-sending one is harmless) and assembled on completion; a completion that fails (say, a missing slice)
-//! leaves the upload open, so the missing instance can still be sent.
+//! Bodies and multipart fields stream to temporary files (the size limit enforced while streaming), ZIPs are
+//! inflated member by member on disk, files are decoded on the worker pool, split by SeriesInstanceUID and
+//! assembled into HU volumes; a file or member that cannot be read is listed as rejected with its reason and
+//! the others go on. Instances of an open upload are stored under their SHA-256 as they arrive (so re-sending
+//! one is harmless) and assembled on completion; a completion that fails (say, a missing slice) leaves the
+//! upload open, so the missing instance can still be sent. Volumes are renamed into place only after their
+//! rows are committed.
 
 use axum::extract::{FromRequest, Multipart, Path, Request, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use futures_util::StreamExt;
 use serde::Deserialize;
 use serde_json::{Value, json};
 use sha2::{Digest, Sha256};
@@ -18,16 +20,19 @@ use sha2::{Digest, Sha256};
 use super::super::AppState;
 use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::files::{FileMeta, serve_file};
-use super::super::problem::{ApiError, ApiResult, api_error};
-use crate::dicom::{ReadLimits, ZipLimits, read_bytes};
+use super::super::problem::{ApiResult, api_error};
+use super::super::upload::{Spooled, paced, spool, too_large};
+use crate::dicom::{ReadLimits, UploadFile, ZipLimits, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::ingest::{IngestOptions, Ingested, dicom_problem, ingest};
+use crate::jobs::ingest::{IngestOptions, Ingested, Staged, dicom_problem, ingest};
 use crate::jobs::model::rfc3339;
+use crate::jobs::repo::Deleted;
 use crate::jobs::{Appended, Completed, IdempotencyKey, Inserted, SeriesRecord, UploadRecord};
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
-use crate::storage::{SeriesId, UploadId};
+use crate::storage::sweep::BlobKind;
+use crate::storage::{BlobStore, SeriesId, UploadId};
 
 /// Query of `POST /v1/series` and `POST /v1/uploads/{id}/complete`.
 #[derive(Debug, Deserialize)]
@@ -59,13 +64,6 @@ fn label(name: Option<&str>, fallback: String) -> String {
     }
 }
 
-fn too_large(limit: u64) -> ApiError {
-    api_error(
-        ErrorCode::BodyTooLarge,
-        format!("the upload exceeds the limit of {limit} bytes"),
-    )
-}
-
 fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     let limit = st.settings.max_upload_bytes;
     match headers
@@ -78,48 +76,65 @@ fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     }
 }
 
-/// The whole body, refused beyond the upload limit.
-async fn read_body(st: &AppState, req: Request) -> ApiResult<Vec<u8>> {
-    let limit = st.settings.max_upload_bytes;
-    let mut out = Vec::new();
-    let mut body = req.into_body().into_data_stream();
-    while let Some(chunk) = body.next().await {
-        let chunk = chunk.map_err(|e| api_error(ErrorCode::TruncatedUpload, e.to_string()))?;
-        if out.len() as u64 + chunk.len() as u64 > limit {
-            return Err(too_large(limit));
-        }
-        out.extend_from_slice(&chunk);
-    }
-    Ok(out)
+/// A file of the upload, streamed to `tmp/`, with the name the client gave it.
+struct Received {
+    label: String,
+    file: Spooled,
 }
 
-/// Every part of a multipart form is a file (a DICOM instance or a ZIP of them).
-async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<(String, Vec<u8>)>> {
+/// Remove the temporary files of a request.
+async fn discard_received(files: Vec<Received>) {
+    for f in files {
+        f.file.temp.discard().await;
+    }
+}
+
+/// The whole body, streamed to a temporary file and refused beyond the upload limit.
+async fn read_body(st: &AppState, req: Request) -> ApiResult<Spooled> {
+    let body = req.into_body().into_data_stream();
+    let mut spent = 0;
+    spool(&st.store, body, &mut spent, st.settings.max_upload_bytes).await
+}
+
+/// Most parts of one form (each is a temporary file while the upload is read).
+const MAX_PARTS: usize = 20_000;
+
+/// Every part of a multipart form is a file (a DICOM instance or a ZIP of them), each streamed to its own
+/// temporary file; the limit is on the sum.
+async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>> {
     let limit = st.settings.max_upload_bytes;
     let bad = |m: String| api_error(ErrorCode::InvalidMultipart, m);
-    let mut form = Multipart::from_request(req, st)
+    let mut form = Multipart::from_request(paced(req), st)
         .await
         .map_err(|e| bad(e.body_text()))?;
     let mut files = Vec::new();
-    let mut total = 0u64;
-    while let Some(mut field) = form.next_field().await.map_err(|e| bad(e.body_text()))? {
+    let mut spent = 0u64;
+    loop {
+        let field = match form.next_field().await {
+            Ok(Some(f)) => f,
+            Ok(None) => break,
+            Err(e) => {
+                discard_received(files).await;
+                return Err(bad(e.body_text()));
+            }
+        };
+        if files.len() >= MAX_PARTS {
+            discard_received(files).await;
+            return Err(bad(format!(
+                "the form has more than {MAX_PARTS} parts; send a ZIP"
+            )));
+        }
         let name = label(
             field.file_name().or(field.name()),
             format!("part-{}", files.len() + 1),
         );
-        let mut bytes = Vec::new();
-        while let Some(chunk) = field
-            .chunk()
-            .await
-            .map_err(|e| api_error(ErrorCode::TruncatedUpload, e.body_text()))?
-        {
-            total += chunk.len() as u64;
-            if total > limit {
-                return Err(too_large(limit));
+        match spool(&st.store, field, &mut spent, limit).await {
+            Ok(file) => files.push(Received { label: name, file }),
+            Err(e) => {
+                discard_received(files).await;
+                return Err(e);
             }
-            bytes.extend_from_slice(&chunk);
         }
-        files.push((name, bytes));
     }
     if files.is_empty() {
         return Err(bad("the form has no file parts".into()));
@@ -128,12 +143,17 @@ async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<(String, V
 }
 
 fn ingest_options(st: &AppState, uneven: Option<UnevenPolicy>) -> IngestOptions {
-    let budget = st.settings.memory_budget_bytes;
+    let s = &st.settings;
+    let budget = s.memory_budget_bytes;
+    // Each worker holds one file's bytes while decoding it: a member is capped by its share of the budget.
+    let share = budget / s.resolved_worker_threads().max(1) as u64;
     IngestOptions {
         uneven: uneven.unwrap_or_default(),
         read: ReadLimits::default(),
         zip: ZipLimits {
-            max_total_bytes: budget.min(ZipLimits::default().max_total_bytes),
+            max_total_bytes: s.zip_max_total_bytes,
+            max_ratio: s.zip_max_ratio,
+            max_member_bytes: s.zip_max_member_bytes.min(share),
             ..ZipLimits::default()
         },
         // Stored slices and the f32 volume both live in memory while assembling.
@@ -190,20 +210,13 @@ fn created(location: &str, body: Value) -> Response {
     r
 }
 
-/// Remove the volumes of series that were assembled but will not be recorded.
-fn discard(st: &AppState, ingested: &Ingested) {
-    for r in ingested.ready() {
-        let _ = std::fs::remove_file(st.store.series_path(r.id));
-    }
-}
-
-/// Decode and assemble `files` on the pool.
+/// Decode and assemble `files` (on disk) on the pool.
 async fn run_ingest(
     st: &AppState,
     id: UploadId,
-    files: Vec<(String, Vec<u8>)>,
+    files: Vec<UploadFile>,
     uneven: Option<UnevenPolicy>,
-) -> ApiResult<Ingested> {
+) -> ApiResult<(Ingested, Staged)> {
     let store = st.store.clone();
     let opts = ingest_options(st, uneven);
     Ok(st
@@ -216,6 +229,30 @@ async fn run_ingest(
 }
 
 const ROUTE_SERIES: &str = "POST /v1/series";
+
+/// Record an upload completed in one request with its series: `None` when recorded, or the answer of the
+/// request that won a race for the same Idempotency-Key.
+async fn record_upload(
+    st: &AppState,
+    id: UploadId,
+    (instances, bytes): (u32, u64),
+    view: &Value,
+    records: &[SeriesRecord],
+    key: Option<&IdempotencyKey>,
+) -> ApiResult<Option<Response>> {
+    let inserted = st
+        .db
+        .insert_completed_upload(id, instances, bytes, view, records, key)
+        .await?;
+    match (inserted, key) {
+        (Inserted::New, _) => Ok(None),
+        (Inserted::Existing { .. }, Some(k)) => replay(st, k)
+            .await?
+            .map(Some)
+            .ok_or_else(|| Problem::internal().into()),
+        (Inserted::Existing { .. }, None) => Err(Problem::internal().into()),
+    }
+}
 
 /// The upload an earlier request with the same Idempotency-Key created (201 with its view), or 422 when that
 /// request differed; `None` when the key is new.
@@ -237,13 +274,32 @@ async fn replay(st: &AppState, key: &IdempotencyKey) -> ApiResult<Option<Respons
 }
 
 /// Fingerprint of an upload: the media type, options and the SHA-256 of every file in order.
-fn fingerprint(media: &str, q: &SeriesQuery, files: &[(String, Vec<u8>)]) -> String {
+fn fingerprint(media: &str, q: &SeriesQuery, files: &[Received]) -> String {
     let mut h = Sha256::new();
     h.update(format!("{media}|{:?}|{:?}|", q.upload, q.uneven).as_bytes());
-    for (_, bytes) in files {
-        h.update(Sha256::digest(bytes));
+    for f in files {
+        h.update(f.file.sha256);
     }
     hex(&h.finalize())
+}
+
+/// After the series rows were recorded (`Ok(None)`), move their volumes into place; otherwise (an answer for
+/// a lost race, or an error) remove them, so that nothing is left behind.
+async fn commit_series(
+    st: &AppState,
+    staged: Staged,
+    recorded: ApiResult<Option<Response>>,
+) -> ApiResult<Option<Response>> {
+    match recorded {
+        Ok(None) => {
+            staged.commit(&st.store).await?;
+            Ok(None)
+        }
+        other => {
+            staged.discard().await;
+            other
+        }
+    }
 }
 
 pub async fn post_series(
@@ -264,7 +320,10 @@ pub async fn post_series(
         }
         "multipart/form-data" => read_multipart(&st, req).await?,
         "application/zip" | "application/x-zip-compressed" | "application/octet-stream" => {
-            vec![("upload.zip".to_string(), read_body(&st, req).await?)]
+            vec![Received {
+                label: "upload.zip".to_string(),
+                file: read_body(&st, req).await?,
+            }]
         }
         _ => {
             return Err(api_error(
@@ -279,41 +338,42 @@ pub async fn post_series(
         key,
         fingerprint: fingerprint(&media, &q, &files),
     });
-    if let Some(k) = &key
-        && let Some(r) = replay(&st, k).await?
-    {
-        return Ok(r);
-    }
-    let bytes: u64 = files.iter().map(|(_, b)| b.len() as u64).sum();
+    let bytes: u64 = files.iter().map(|f| f.file.bytes).sum();
     let id = UploadId::generate();
-    let ingested = run_ingest(&st, id, files, q.uneven).await?;
+    let replayed: ApiResult<Option<Response>> = match &key {
+        Some(k) => replay(&st, k).await,
+        None => Ok(None),
+    };
+    let outcome: ApiResult<Result<(Ingested, Staged), Response>> = match replayed {
+        Ok(None) => {
+            let on_disk = files
+                .iter()
+                .map(|f| UploadFile {
+                    label: f.label.clone(),
+                    path: f.file.temp.path().to_path_buf(),
+                })
+                .collect();
+            run_ingest(&st, id, on_disk, q.uneven).await.map(Ok)
+        }
+        Ok(Some(r)) => Ok(Err(r)),
+        Err(e) => Err(e),
+    };
+    discard_received(files).await;
+    let (ingested, staged) = match outcome? {
+        Ok(done) => done,
+        Err(replayed) => return Ok(replayed),
+    };
     // Instances (ZIP entries included), not request parts.
     let instances = ingested.files() as u32;
     let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
     if records.is_empty() {
+        staged.discard().await;
         return Err(ingested.failure().into());
     }
     let view = outcome_view(id, instances, bytes, &ingested);
-    match st
-        .db
-        .insert_completed_upload(id, instances, bytes, &view, &records, key.as_ref())
-        .await
-    {
-        Ok(Inserted::New) => {}
-        Ok(Inserted::Existing { .. }) => {
-            // Lost a race with the same key: answer the winner.
-            discard(&st, &ingested);
-            if let Some(k) = &key
-                && let Some(r) = replay(&st, k).await?
-            {
-                return Ok(r);
-            }
-            return Err(Problem::internal().into());
-        }
-        Err(e) => {
-            discard(&st, &ingested);
-            return Err(e.into());
-        }
+    let recorded = record_upload(&st, id, (instances, bytes), &view, &records, key.as_ref()).await;
+    if let Some(r) = commit_series(&st, staged, recorded).await? {
+        return Ok(r);
     }
     tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
     Ok(created(&format!("/v1/uploads/{id}"), view))
@@ -377,7 +437,7 @@ async fn append(
         ));
     }
     let body = read_body(st, req).await?;
-    let sha = hex(&Sha256::digest(&body));
+    let sha = hex(&body.sha256);
     let key = key.map(|key| IdempotencyKey {
         route: ROUTE_SERIES,
         key,
@@ -385,22 +445,36 @@ async fn append(
             format!("application/dicom|{sha}").as_bytes(),
         )),
     });
-    if let Some(k) = &key
-        && let Some(r) = replay(st, k).await?
-    {
-        return Ok(r);
+    if let Some(k) = &key {
+        match replay(st, k).await {
+            Ok(None) => {}
+            done => {
+                body.temp.discard().await;
+                return done.and_then(|r| r.ok_or_else(|| Problem::internal().into()));
+            }
+        }
     }
     let name = format!("instance-{}", &sha[..12]);
     // Decode now, so that a broken file is refused at once and never reaches the upload.
-    let (body, series_uid) = {
-        let name = name.clone();
+    let decoded = {
+        let file = UploadFile {
+            label: name.clone(),
+            path: body.temp.path().to_path_buf(),
+        };
         st.engine
             .compute(move || {
-                let inst = read_bytes(&name, &body, &ReadLimits::default())
-                    .map_err(|e| dicom_problem(&e))?;
-                Ok((body, inst.series_uid))
+                read_upload_file(&file, &ReadLimits::default())
+                    .map(|inst| inst.series_uid)
+                    .map_err(|e| dicom_problem(&e))
             })
-            .await?
+            .await
+    };
+    let series_uid = match decoded {
+        Ok(uid) => uid,
+        Err(e) => {
+            body.temp.discard().await;
+            return Err(e.into());
+        }
     };
     let (id, new) = match existing {
         Some(id) => (id, false),
@@ -418,24 +492,31 @@ async fn append(
             (id, true)
         }
     };
+    // Temporary file → row → rename: a crash between the last two leaves a row the completion reports.
     let path = st.store.upload_file(id, &sha);
-    st.store.write_atomic(&path, &body)?;
     let outcome = st
         .db
         .append_upload_file(
             id,
             &sha,
             &name,
-            body.len() as u64,
+            body.bytes,
             &series_uid,
             st.settings.max_upload_bytes,
         )
         .await;
     let (instances, duplicate) = match outcome {
-        Ok(Appended::Added(n)) => (n, false),
-        Ok(Appended::Duplicate(n)) => (n, true),
+        Ok(Appended::Added(n)) => {
+            body.temp.sync().await?;
+            st.store.commit_async(body.temp, path).await?;
+            (n, false)
+        }
+        Ok(Appended::Duplicate(n)) => {
+            body.temp.discard().await;
+            (n, true)
+        }
         Ok(other) => {
-            let _ = std::fs::remove_file(&path);
+            body.temp.discard().await;
             return Err(match other {
                 Appended::Closed => api_error(
                     ErrorCode::UploadClosed,
@@ -449,7 +530,7 @@ async fn append(
             });
         }
         Err(e) => {
-            let _ = std::fs::remove_file(&path);
+            body.temp.discard().await;
             return Err(e.into());
         }
     };
@@ -504,42 +585,40 @@ pub async fn complete_upload(
     let listed = st.db.upload_files(id).await?;
     let instances = listed.len() as u32;
     let mut files = Vec::with_capacity(listed.len());
+    let mut bytes = 0u64;
     for (sha, name) in listed {
         if sha.len() != 64 || !sha.bytes().all(|b| b.is_ascii_hexdigit()) {
             tracing::error!(upload_id = %id, "an upload file has a malformed hash");
             return Err(Problem::internal().into());
         }
-        files.push((name, tokio::fs::read(st.store.upload_file(id, &sha)).await?));
+        let path = st.store.upload_file(id, &sha);
+        bytes += tokio::fs::metadata(&path).await?.len();
+        files.push(UploadFile { label: name, path });
     }
-    let bytes: u64 = files.iter().map(|(_, b)| b.len() as u64).sum();
-    let ingested = run_ingest(&st, id, files, q.uneven).await?;
+    let (ingested, staged) = run_ingest(&st, id, files, q.uneven).await?;
     let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
     if records.is_empty() {
         // The upload stays open: a missing instance can still be appended.
+        staged.discard().await;
         return Err(ingested.failure().into());
     }
     let view = outcome_view(id, instances, bytes, &ingested);
-    match st.db.complete_upload(id, instances, &view, &records).await {
-        Ok(Completed::Done) => {}
-        Ok(other) => {
-            discard(&st, &ingested);
-            return Err(match other {
-                Completed::Changed => api_error(
-                    ErrorCode::UploadChanged,
-                    "instances arrived while the upload was being completed; complete it again",
-                ),
-                _ => api_error(
-                    ErrorCode::UploadClosed,
-                    format!("upload {id} was completed meanwhile"),
-                ),
-            });
-        }
-        Err(e) => {
-            discard(&st, &ingested);
-            return Err(e.into());
-        }
-    }
-    if let Err(e) = st.store.remove_upload(id) {
+    let recorded = match st.db.complete_upload(id, instances, &view, &records).await {
+        Ok(Completed::Done) => Ok(None),
+        Ok(Completed::Changed) => Err(api_error(
+            ErrorCode::UploadChanged,
+            "instances arrived while the upload was being completed; complete it again",
+        )),
+        Ok(Completed::Closed) => Err(api_error(
+            ErrorCode::UploadClosed,
+            format!("upload {id} was completed meanwhile"),
+        )),
+        Err(e) => Err(e.into()),
+    };
+    commit_series(&st, staged, recorded).await?;
+    let store = st.store.clone();
+    let removed = tokio::task::spawn_blocking(move || store.remove_upload(id)).await;
+    if let Ok(Err(e)) = removed {
         tracing::warn!(error = %e, upload_id = %id, "removing the instances of a completed upload failed");
     }
     tracing::info!(upload_id = %id, series = records.len(), "upload completed");
@@ -554,9 +633,57 @@ async fn load_series(st: &AppState, id: &str) -> ApiResult<SeriesRecord> {
         .ok_or_else(|| api_error(ErrorCode::SeriesNotFound, format!("no series {id}")))
 }
 
+/// 410 when the start-up sweep found the series' volume missing.
+async fn check_available(st: &AppState, id: SeriesId) -> ApiResult<()> {
+    if st
+        .db
+        .blob_missing(BlobKind::Series, &id.to_string())
+        .await?
+    {
+        return Err(api_error(
+            ErrorCode::FileMissing,
+            format!("the volume of series {id} was lost; upload the series again"),
+        ));
+    }
+    Ok(())
+}
+
 pub async fn get_series(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
     let r = load_series(&st, &id).await?;
-    Ok(axum::Json(series_view(&r)).into_response())
+    let missing = st
+        .db
+        .blob_missing(BlobKind::Series, &r.id.to_string())
+        .await?;
+    let mut view = series_view(&r);
+    view["available"] = json!(!missing);
+    Ok(axum::Json(view).into_response())
+}
+
+/// `DELETE /v1/series/{id}`: 204, the row and then the volume removed; 409 while a queued or running job
+/// reads it.
+pub async fn delete_series(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    let id = series_id(&id)?;
+    match st.db.delete_series(id).await? {
+        Deleted::Done => {
+            // A crash before this removal leaves an orphan file, which the start-up sweep removes.
+            if let Err(e) = BlobStore::remove_file(&st.store.series_path(id)).await {
+                tracing::warn!(error = %e, series_id = %id, "removing a deleted series' volume failed");
+            }
+            tracing::info!(series_id = %id, "series deleted");
+            Ok(StatusCode::NO_CONTENT.into_response())
+        }
+        Deleted::InUse => Err(api_error(
+            ErrorCode::ResourceInUse,
+            format!("series {id} is the input of a queued or running job; cancel it or wait"),
+        )),
+        Deleted::NotFound => Err(api_error(
+            ErrorCode::SeriesNotFound,
+            format!("no series {id}"),
+        )),
+    }
 }
 
 pub async fn series_volume(
@@ -565,6 +692,7 @@ pub async fn series_volume(
     headers: HeaderMap,
 ) -> ApiResult<Response> {
     let r = load_series(&st, &id).await?;
+    check_available(&st, r.id).await?;
     serve_file(
         &headers,
         FileMeta {
