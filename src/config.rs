@@ -18,6 +18,7 @@
 //! | `mu_water_per_mm` | `CTRECON_MU_WATER_PER_MM` | 0.0192 (HU conversion of presets) |
 //! | `request_timeout_secs` | `CTRECON_REQUEST_TIMEOUT_SECS` | 30 (uploads: `upload_timeout_secs`, 600) |
 //! | `progress_interval_ms` | `CTRECON_PROGRESS_INTERVAL_MS` | 500: most one progress write per job per interval |
+//! | `drain_timeout_ms` | `CTRECON_DRAIN_TIMEOUT_MS` | 10000: after SIGTERM/Ctrl-C, open requests get this long, then close |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -54,6 +55,7 @@ pub struct Settings {
     pub request_timeout_secs: u64,
     pub upload_timeout_secs: u64,
     pub progress_interval_ms: u64,
+    pub drain_timeout_ms: u64,
 }
 
 impl Default for Settings {
@@ -75,6 +77,7 @@ impl Default for Settings {
             request_timeout_secs: 30,
             upload_timeout_secs: 600,
             progress_interval_ms: 500,
+            drain_timeout_ms: 10_000,
         }
     }
 }
@@ -160,6 +163,7 @@ impl Settings {
             "CTRECON_REQUEST_TIMEOUT_SECS" => self.request_timeout_secs = parsed(name, v)?,
             "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
             "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
+            "CTRECON_DRAIN_TIMEOUT_MS" => self.drain_timeout_ms = parsed(name, v)?,
             // Read by the logger and by the test suite, not settings.
             "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
             other if other.starts_with("CTRECON_") => {

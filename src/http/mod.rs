@@ -2,16 +2,17 @@
 //!
 //! [`Application::build`] opens the data directory and the database, recovers jobs, starts the engine and
 //! binds the listener (port 0 picks a free port: tests run the real server); [`Application::run_until`]
-//! serves until the shutdown signal, then lets open requests finish.
+//! serves until the shutdown signal, then lets open requests finish for at most the drain timeout.
 
 pub mod auth;
+pub mod drain;
 pub mod extract;
 pub mod files;
 pub mod problem;
 pub mod routes;
 pub mod upload;
 
-use std::future::Future;
+use std::future::{Future, IntoFuture};
 use std::net::SocketAddr;
 use std::ops::Deref;
 use std::sync::Arc;
@@ -25,7 +26,8 @@ use axum::response::Response;
 use axum::routing::{get, post};
 use axum::{BoxError, Router};
 use metrics_exporter_prometheus::PrometheusHandle;
-use tokio::sync::watch;
+use tokio::sync::{oneshot, watch};
+use tokio_util::sync::CancellationToken;
 use tower::ServiceBuilder;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::cors::{AllowOrigin, CorsLayer};
@@ -86,6 +88,7 @@ pub struct Application {
     router: Router,
     shutdown: watch::Sender<bool>,
     addr: SocketAddr,
+    drain_timeout: Duration,
 }
 
 async fn not_found() -> ApiError {
@@ -254,6 +257,7 @@ impl Application {
             source,
         })?;
         let (shutdown, shutdown_rx) = watch::channel(false);
+        let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
         let tokens = auth::Tokens::from_settings(&settings);
         let state = AppState(Arc::new(Shared {
             db,
@@ -268,6 +272,7 @@ impl Application {
             router: router(state, tokens),
             shutdown,
             addr,
+            drain_timeout,
         })
     }
 
@@ -276,19 +281,41 @@ impl Application {
         self.addr
     }
 
-    /// Serve until `signal` completes, then stop accepting, end event streams and let requests finish.
+    /// Serve until `signal` completes, then stop accepting, end event streams and let open requests
+    /// finish; connections still open after the drain timeout are closed (a client reading a large body
+    /// slowly cannot hold the shutdown up).
     pub async fn run_until(
         self,
         signal: impl Future<Output = ()> + Send + 'static,
     ) -> std::io::Result<()> {
         let shutdown = self.shutdown;
-        axum::serve(self.listener, self.router)
+        let drain = self.drain_timeout;
+        let cut = CancellationToken::new();
+        let (began, signalled) = oneshot::channel::<()>();
+        let listener = drain::DrainListener::new(self.listener, cut.clone());
+        let serve = axum::serve(listener, self.router)
             .with_graceful_shutdown(async move {
                 signal.await;
-                tracing::info!("shutting down");
+                tracing::info!(drain_ms = drain.as_millis() as u64, "shutting down");
                 let _ = shutdown.send(true);
+                let _ = began.send(());
             })
-            .await
+            .into_future();
+        let deadline = async move {
+            if signalled.await.is_err() {
+                // The server ended without a signal (it failed): nothing to bound.
+                return std::future::pending::<()>().await;
+            }
+            tokio::time::sleep(drain).await;
+            tracing::warn!("drain timeout: closing the connections still open");
+            cut.cancel();
+            // Every cut connection fails at its next poll; this only bounds one that is never polled.
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        };
+        tokio::select! {
+            r = serve => r,
+            _ = deadline => Ok(()),
+        }
     }
 }
 

@@ -1,0 +1,226 @@
+//! The service's life cycle: shutdown drains open connections for a bounded time.
+
+mod common;
+
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
+
+use common::{parallel_geometry, test_settings};
+use ctrecon::config::Settings;
+use ctrecon::http::Application;
+use serde_json::{Value, json};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::oneshot;
+use tokio::task::JoinHandle;
+
+/// A real server over `dir` whose shutdown the test triggers and awaits.
+struct Server {
+    base: String,
+    addr: SocketAddr,
+    client: reqwest::Client,
+    stop: Option<oneshot::Sender<()>>,
+    served: Option<JoinHandle<std::io::Result<()>>>,
+}
+
+impl Server {
+    async fn start(dir: &std::path::Path, configure: impl FnOnce(&mut Settings)) -> Self {
+        let mut settings = test_settings(dir);
+        configure(&mut settings);
+        let app = Application::build(settings)
+            .await
+            .expect("the service builds");
+        let addr = app.local_addr();
+        let (stop, stopped) = oneshot::channel::<()>();
+        let served = tokio::spawn(app.run_until(async move {
+            let _ = stopped.await;
+        }));
+        Self {
+            base: format!("http://{addr}"),
+            addr,
+            client: reqwest::Client::new(),
+            stop: Some(stop),
+            served: Some(served),
+        }
+    }
+
+    /// Send the shutdown signal and wait for `run_until` to return; returns how long that took.
+    async fn shut_down(&mut self) -> Duration {
+        let t0 = Instant::now();
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+        if let Some(h) = self.served.take() {
+            // Bounds a hang; the tests assert the real figure.
+            tokio::time::timeout(Duration::from_secs(120), h)
+                .await
+                .expect("run_until returns")
+                .expect("the serving task does not panic")
+                .expect("serving ends without an I/O error");
+        }
+        t0.elapsed()
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{}", self.base, path)
+    }
+
+    async fn get_json(&self, path: &str) -> Value {
+        let r = self.client.get(self.url(path)).send().await.expect("request");
+        assert_eq!(r.status(), 200, "GET {path}");
+        r.json().await.expect("json")
+    }
+
+    async fn post_json(&self, path: &str, body: &Value) -> (u16, Value) {
+        let r = self
+            .client
+            .post(self.url(path))
+            .json(body)
+            .send()
+            .await
+            .expect("request");
+        (r.status().as_u16(), r.json().await.expect("json"))
+    }
+
+    async fn simulate(&self, geometry: Value) -> String {
+        let (status, v) = self
+            .post_json(
+                "/v1/simulations",
+                &json!({"phantom": {"table": "modified_shepp_logan", "scale_mm": 40},
+                        "geometry": geometry}),
+            )
+            .await;
+        assert_eq!(status, 201, "{v}");
+        v["id"].as_str().expect("id").to_string()
+    }
+
+    async fn submit(&self, body: &Value) -> String {
+        let (status, v) = self.post_json("/v1/jobs", body).await;
+        assert_eq!(status, 202, "{v}");
+        v["id"].as_str().expect("id").to_string()
+    }
+
+    /// Poll job `id` until `done` holds (at most `secs`: this bounds a hang, it is not a timing).
+    async fn wait_until(&self, id: &str, secs: u64, done: impl Fn(&Value) -> bool) -> Value {
+        let deadline = Instant::now() + Duration::from_secs(secs);
+        loop {
+            let j = self.get_json(&format!("/v1/jobs/{id}")).await;
+            if done(&j) {
+                return j;
+            }
+            assert!(Instant::now() < deadline, "job {id} did not get there: {j}");
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        if let Some(s) = self.stop.take() {
+            let _ = s.send(());
+        }
+    }
+}
+
+fn terminal(j: &Value) -> bool {
+    matches!(
+        j["status"].as_str(),
+        Some("succeeded" | "failed" | "canceled")
+    )
+}
+
+/// A succeeded job whose volume is 2048 × 2048 float32 (16 MiB plus the header): more than the socket
+/// buffers of a loopback connection can hold, so a client that stops reading keeps the response open.
+async fn large_result(server: &Server) -> (String, u64) {
+    let input = server.simulate(parallel_geometry(30, 256, 0.8)).await;
+    let id = server
+        .submit(&json!({"input": input, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 2048, "ny": 2048, "dx_mm": 0.04, "dy_mm": 0.04}}))
+        .await;
+    let j = server.wait_until(&id, 600, terminal).await;
+    assert_eq!(j["status"], "succeeded", "{j}");
+    let bytes = j["result"]["volume"]["bytes"].as_u64().expect("volume bytes");
+    assert!(bytes > 16 << 20, "{bytes}");
+    (id, bytes)
+}
+
+/// Open a raw connection with a small receive buffer, ask for `path` and read the response head and the
+/// first bytes of the body; returns the stream, the declared body length and the body bytes read so far.
+async fn start_download(addr: SocketAddr, path: &str) -> (tokio::net::TcpStream, u64, u64) {
+    let socket = tokio::net::TcpSocket::new_v4().expect("socket");
+    socket.set_recv_buffer_size(4096).expect("receive buffer");
+    let mut s = socket.connect(addr).await.expect("connect");
+    s.write_all(format!("GET {path} HTTP/1.1\r\nHost: test\r\n\r\n").as_bytes())
+        .await
+        .expect("request");
+    let mut head = Vec::new();
+    let mut buf = [0u8; 1024];
+    let end = loop {
+        let n = s.read(&mut buf).await.expect("response");
+        assert!(n > 0, "the connection closed before the response head");
+        head.extend_from_slice(&buf[..n]);
+        if let Some(p) = head.windows(4).position(|w| w == b"\r\n\r\n") {
+            break p + 4;
+        }
+    };
+    let text = String::from_utf8_lossy(&head[..end]).to_ascii_lowercase();
+    assert!(text.starts_with("http/1.1 200"), "{text}");
+    let length = text
+        .lines()
+        .find_map(|l| l.strip_prefix("content-length:"))
+        .and_then(|v| v.trim().parse::<u64>().ok())
+        .expect("a content length");
+    (s, length, (head.len() - end) as u64)
+}
+
+/// Read until the server closes the connection (or fails it); returns the bytes read.
+async fn read_to_close(s: &mut tokio::net::TcpStream) -> u64 {
+    let mut buf = vec![0u8; 1 << 16];
+    let mut total = 0u64;
+    loop {
+        match s.read(&mut buf).await {
+            Ok(0) | Err(_) => return total,
+            Ok(n) => total += n as u64,
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_client_that_stops_reading_a_large_body_is_cut_off_at_the_drain_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), |s| s.drain_timeout_ms = 1000).await;
+    let (id, bytes) = large_result(&server).await;
+    let (mut stream, length, read) =
+        start_download(server.addr, &format!("/v1/jobs/{id}/result/volume.npy")).await;
+    assert_eq!(length, bytes);
+
+    // The client reads nothing more; the shutdown waits for the download only as long as the drain allows.
+    let took = server.shut_down().await;
+    assert!(took >= Duration::from_millis(900), "{took:?}: the drain did not wait");
+    assert!(took < Duration::from_secs(5), "{took:?}: the drain was not bounded");
+
+    // The connection was closed before the body was complete.
+    let rest = read_to_close(&mut stream).await;
+    assert!(read + rest < length, "{} of {length} bytes", read + rest);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_download_in_flight_at_shutdown_completes_within_the_drain_timeout() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), |s| s.drain_timeout_ms = 10_000).await;
+    let (id, bytes) = large_result(&server).await;
+    let (mut stream, length, read) =
+        start_download(server.addr, &format!("/v1/jobs/{id}/result/volume.npy")).await;
+    assert_eq!(length, bytes);
+
+    // The shutdown begins while the body is still in flight; the client then reads the rest.
+    let stop = tokio::spawn(async move {
+        let took = server.shut_down().await;
+        (server, took)
+    });
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let rest = read_to_close(&mut stream).await;
+    assert_eq!(read + rest, length, "the whole body arrives");
+    let (_server, took) = stop.await.unwrap();
+    assert!(took < Duration::from_secs(9), "{took:?}: waited for the whole timeout");
+}
+
