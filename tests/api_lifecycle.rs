@@ -1,11 +1,14 @@
-//! The service's life cycle: shutdown drains open connections for a bounded time.
+//! The service's life cycle: shutdown drains open connections for a bounded time, and jobs stopped by a
+//! graceful shutdown go back to the queue without spending an attempt.
 
 mod common;
 
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
-use common::{parallel_geometry, test_settings};
+use common::{cone_geometry, parallel_geometry, test_settings};
+use ctrecon::jobs::{Db, JobStatus};
+use ctrecon::storage::JobId;
 use ctrecon::config::Settings;
 use ctrecon::http::Application;
 use serde_json::{Value, json};
@@ -222,5 +225,102 @@ async fn a_download_in_flight_at_shutdown_completes_within_the_drain_timeout() {
     assert_eq!(read + rest, length, "the whole body arrives");
     let (_server, took) = stop.await.unwrap();
     assert!(took < Duration::from_secs(9), "{took:?}: waited for the whole timeout");
+}
+
+/// A cone-beam FDK long enough to be stopped while it runs (about as long as the crash-recovery test's).
+async fn long_job(server: &Server) -> String {
+    let input = server.simulate(cone_geometry(360, 128)).await;
+    server
+        .submit(&json!({"input": input, "algorithm": {"name": "fdk"},
+                        "grid": {"nx": 160, "ny": 160, "nz": 160, "spacing_mm": [0.5, 0.5, 0.5]}}))
+        .await
+}
+
+fn lifecycle_settings(s: &mut Settings) {
+    s.max_attempts = 2;
+    s.drain_timeout_ms = 2000;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_stopped_by_graceful_shutdowns_is_requeued_without_spending_attempts() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), lifecycle_settings).await;
+    let id = long_job(&server).await;
+    let job_path = format!("/v1/jobs/{id}");
+
+    // More graceful restarts than the attempt limit (2) allows crashes.
+    for round in 0..4 {
+        let j = server
+            .wait_until(&id, 300, |j| {
+                terminal(j) || (j["status"] == "running" && j["progress"].as_u64() > Some(2))
+            })
+            .await;
+        assert_eq!(
+            j["status"], "running",
+            "round {round}: the job finished before the shutdown: make it slower"
+        );
+        assert_eq!(j["attempts"], 1, "round {round}: {j}");
+
+        // An open event stream does not hold the shutdown up; it ends.
+        let mut events = server
+            .client
+            .get(server.url(&format!("{job_path}/events")))
+            .send()
+            .await
+            .expect("events");
+        assert_eq!(events.status(), 200);
+        let took = server.shut_down().await;
+        assert!(took < Duration::from_secs(10), "round {round}: {took:?}");
+        let ended = tokio::time::timeout(Duration::from_secs(10), async {
+            while let Ok(Some(_)) = events.chunk().await {}
+        })
+        .await;
+        assert!(ended.is_ok(), "round {round}: the event stream stayed open");
+
+        // Between the two processes the job is queued again with the attempt given back.
+        {
+            let db = Db::open(&dir.path().join("ctrecon.sqlite")).await.unwrap();
+            let stored = db
+                .get_job(JobId::parse(&id).unwrap())
+                .await
+                .unwrap()
+                .expect("the job is kept");
+            assert_eq!(stored.status, JobStatus::Queued, "round {round}");
+            assert_eq!(stored.attempts, 0, "round {round}");
+            assert_eq!(stored.stage, "requeued");
+            assert_eq!(stored.started_us, None);
+        }
+        server = Server::start(dir.path(), lifecycle_settings).await;
+        let j = server.get_json(&job_path).await;
+        assert!(
+            matches!(j["status"].as_str(), Some("queued" | "running")),
+            "round {round}: {j}"
+        );
+    }
+    let done = server.wait_until(&id, 600, terminal).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["attempts"], 1, "{done}");
+    assert_eq!(done["result"]["shape"], json!([160, 160, 160]));
+    server.shut_down().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_job_asked_to_cancel_before_a_graceful_shutdown_ends_canceled() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), lifecycle_settings).await;
+    let id = long_job(&server).await;
+    let j = server
+        .wait_until(&id, 300, |j| terminal(j) || j["status"] == "running")
+        .await;
+    assert_eq!(j["status"], "running", "{j}");
+    let (status, _) = server
+        .post_json(&format!("/v1/jobs/{id}/cancel"), &json!({}))
+        .await;
+    assert_eq!(status, 202);
+    server.shut_down().await;
+    let server = Server::start(dir.path(), lifecycle_settings).await;
+    let j = server.get_json(&format!("/v1/jobs/{id}")).await;
+    assert_eq!(j["status"], "canceled", "{j}");
+    assert_eq!(j["attempts"], 1, "{j}");
 }
 

@@ -25,6 +25,7 @@ use axum::middleware::{self, Next};
 use axum::response::Response;
 use axum::routing::{get, post};
 use axum::{BoxError, Router};
+use futures_util::FutureExt;
 use metrics_exporter_prometheus::PrometheusHandle;
 use tokio::sync::{oneshot, watch};
 use tokio_util::sync::CancellationToken;
@@ -82,6 +83,10 @@ pub enum BuildError {
     },
 }
 
+/// The least time running jobs get to hand themselves back at shutdown (a job checks for cancellation
+/// at least once a second).
+pub const HAND_BACK_MIN: Duration = Duration::from_secs(3);
+
 /// A built service, bound and ready to serve.
 pub struct Application {
     listener: tokio::net::TcpListener,
@@ -89,6 +94,7 @@ pub struct Application {
     shutdown: watch::Sender<bool>,
     addr: SocketAddr,
     drain_timeout: Duration,
+    engine: Engine,
 }
 
 async fn not_found() -> ApiError {
@@ -262,7 +268,7 @@ impl Application {
         let state = AppState(Arc::new(Shared {
             db,
             store,
-            engine,
+            engine: engine.clone(),
             settings,
             metrics: metrics_handle(),
             shutdown: shutdown_rx,
@@ -273,6 +279,7 @@ impl Application {
             shutdown,
             addr,
             drain_timeout,
+            engine,
         })
     }
 
@@ -283,26 +290,32 @@ impl Application {
 
     /// Serve until `signal` completes, then stop accepting, end event streams and let open requests
     /// finish; connections still open after the drain timeout are closed (a client reading a large body
-    /// slowly cannot hold the shutdown up).
+    /// slowly cannot hold the shutdown up). At the signal the engine starts no more jobs and asks the running
+    /// ones to stop; those that stop in time (the drain timeout, at least [`HAND_BACK_MIN`]) go back to the
+    /// queue without spending an attempt.
     pub async fn run_until(
         self,
         signal: impl Future<Output = ()> + Send + 'static,
     ) -> std::io::Result<()> {
         let shutdown = self.shutdown;
         let drain = self.drain_timeout;
+        let engine = self.engine;
+        let stopping = engine.clone();
         let cut = CancellationToken::new();
-        let (began, signalled) = oneshot::channel::<()>();
+        let (began, signalled) = oneshot::channel::<tokio::time::Instant>();
+        let signalled = signalled.shared();
         let listener = drain::DrainListener::new(self.listener, cut.clone());
         let serve = axum::serve(listener, self.router)
             .with_graceful_shutdown(async move {
                 signal.await;
                 tracing::info!(drain_ms = drain.as_millis() as u64, "shutting down");
                 let _ = shutdown.send(true);
-                let _ = began.send(());
+                stopping.begin_stop();
+                let _ = began.send(tokio::time::Instant::now());
             })
             .into_future();
-        let deadline = async move {
-            if signalled.await.is_err() {
+        let deadline = async {
+            if signalled.clone().await.is_err() {
                 // The server ended without a signal (it failed): nothing to bound.
                 return std::future::pending::<()>().await;
             }
@@ -312,10 +325,18 @@ impl Application {
             // Every cut connection fails at its next poll; this only bounds one that is never polled.
             tokio::time::sleep(Duration::from_secs(1)).await;
         };
-        tokio::select! {
+        let served = tokio::select! {
             r = serve => r,
             _ = deadline => Ok(()),
+        };
+        // Running jobs stop at their next check; wait for their hand-back, bounded from the signal.
+        engine.begin_stop();
+        let since = signalled.await.unwrap_or_else(|_| tokio::time::Instant::now());
+        let left = engine.stopped(since + drain.max(HAND_BACK_MIN)).await;
+        if left > 0 {
+            tracing::warn!(left, "jobs still running at exit: the next start recovers them");
         }
+        served
     }
 }
 

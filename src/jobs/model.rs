@@ -1,8 +1,11 @@
 //! The job and dataset model: statuses and their transitions, the typed job and simulation requests,
 //! stored records and results.
 //!
-//! Job states: `queued → running → succeeded | failed | canceled`, plus `queued → canceled`; a crash puts
-//! `running` back to `queued` (or `failed` after too many attempts). Terminal states never change.
+//! Job states: `queued → running → succeeded | failed | canceled`, plus `queued → canceled`. `running →
+//! queued` happens two ways: a graceful hand-back (the server stops and the job stops with it), which spends
+//! no attempt, and recovery after a crash, which keeps the attempt the claim counted (and fails the job with
+//! `attempts_exhausted` once `max_attempts` starts were spent). Terminal states never change. Every
+//! transition is one guarded update in [`super::repo::Db`].
 
 use serde::{Deserialize, Serialize};
 

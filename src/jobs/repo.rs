@@ -420,6 +420,22 @@ impl Db {
         Ok(done.rows_affected() == 1)
     }
 
+    /// `running → queued` by a graceful hand-back (the server is stopping): the run is given back, not
+    /// spent, so the attempt its claim counted is returned. False when the job was not running, or was asked
+    /// to cancel (it then ends canceled).
+    pub async fn hand_back(&self, id: JobId) -> Result<bool, DbError> {
+        let done = sqlx::query(
+            "UPDATE jobs SET status = 'queued', stage = 'requeued', progress = 0, started_us = NULL,
+                    attempts = MAX(attempts - 1, 0)
+             WHERE id = ? AND status = 'running' AND cancel_requested = 0",
+        )
+        .bind(id.to_string())
+        .execute(&self.pool)
+        .await?;
+        self.cache.invalidate(id);
+        Ok(done.rows_affected() == 1)
+    }
+
     /// Persist the progress of a running job.
     pub async fn set_progress(&self, id: JobId, progress: u8, stage: &str) -> Result<(), DbError> {
         sqlx::query("UPDATE jobs SET progress = ?, stage = ? WHERE id = ? AND status = 'running'")
@@ -487,8 +503,9 @@ impl Db {
         Ok(())
     }
 
-    /// After a crash: jobs left `running` go back to `queued`, except those asked to cancel (→ canceled)
-    /// and those already started `max_attempts` times (→ failed). Returns `(requeued, failed)`.
+    /// After a crash (or a shutdown that did not get to hand a job back): jobs left `running` go back to
+    /// `queued`, keeping the attempt their claim counted, except those asked to cancel (→ canceled) and those
+    /// already started `max_attempts` times (→ failed). Returns `(requeued, failed)`.
     pub async fn recover(&self, max_attempts: u32) -> Result<(u64, u64), DbError> {
         let now = now_us();
         sqlx::query(
