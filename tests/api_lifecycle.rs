@@ -1,5 +1,5 @@
-//! The service's life cycle: shutdown drains open connections for a bounded time, and jobs stopped by a
-//! graceful shutdown go back to the queue without spending an attempt.
+//! The service's life cycle: shutdown drains open connections for a bounded time, jobs stopped by a graceful
+//! shutdown go back to the queue without spending an attempt; job lists are light summaries.
 
 mod common;
 
@@ -322,5 +322,87 @@ async fn a_job_asked_to_cancel_before_a_graceful_shutdown_ends_canceled() {
     let j = server.get_json(&format!("/v1/jobs/{id}")).await;
     assert_eq!(j["status"], "canceled", "{j}");
     assert_eq!(j["attempts"], 1, "{j}");
+}
+
+fn keys(v: &Value) -> Vec<String> {
+    let mut k: Vec<String> = v.as_object().expect("an object").keys().cloned().collect();
+    k.sort();
+    k
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
+    let dir = tempfile::tempdir().unwrap();
+    let server = Server::start(dir.path(), |_| {}).await;
+    let input = server.simulate(parallel_geometry(60, 128, 0.8)).await;
+    let id = server
+        .submit(&json!({"input": input, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 32, "ny": 32, "dx_mm": 2.5, "dy_mm": 2.5},
+                        "outputs": ["volume", "metrics"]}))
+        .await;
+    assert_eq!(server.wait_until(&id, 600, terminal).await["status"], "succeeded");
+    let full = server.get_json(&format!("/v1/jobs/{id}")).await;
+
+    let summary_keys = [
+        "created_at",
+        "finished_at",
+        "id",
+        "kind",
+        "links",
+        "progress",
+        "stage",
+        "started_at",
+        "status",
+    ];
+    let list = server.get_json("/v1/jobs").await;
+    let s = &list["jobs"][0];
+    assert_eq!(keys(s), summary_keys);
+    for k in summary_keys {
+        assert_eq!(s[k], full[k], "{k}");
+    }
+    assert_eq!(s["links"]["metrics"], format!("/v1/jobs/{id}/result/metrics"));
+
+    let e = server.get_json("/v1/jobs?expand=attempts,error,result").await;
+    let e = &e["jobs"][0];
+    let mut expanded: Vec<&str> = summary_keys.to_vec();
+    expanded.extend(["attempts", "error", "result"]);
+    expanded.sort();
+    assert_eq!(keys(e), expanded);
+    assert_eq!(e["attempts"], 1);
+    assert_eq!(e["error"], Value::Null);
+    assert_eq!(e["result"], full["result"]);
+    assert!(e["result"]["metrics"]["rmse"].is_number());
+
+    let all = server.get_json("/v1/jobs?expand=all").await;
+    assert_eq!(all["jobs"][0], full);
+    let summary_bytes = serde_json::to_vec(&list).unwrap().len();
+    let full_bytes = serde_json::to_vec(&all).unwrap().len();
+    assert!(summary_bytes < full_bytes, "{summary_bytes} vs {full_bytes}");
+
+    let f = server.get_json("/v1/jobs?fields=status,progress").await;
+    assert_eq!(f["jobs"][0], json!({"id": id, "status": "succeeded", "progress": 100}));
+    let r = server.get_json("/v1/jobs?fields=request").await;
+    let r = &r["jobs"][0];
+    assert_eq!(keys(r), ["algorithm", "grid", "id", "input", "outputs"]);
+    for k in ["algorithm", "grid", "input", "outputs"] {
+        assert_eq!(r[k], full[k], "{k}");
+    }
+
+    for bad in ["fields=colour", "expand=status,secrets", "fields=", "expand=request,,x"] {
+        let resp = server
+            .client
+            .get(server.url(&format!("/v1/jobs?{bad}")))
+            .send()
+            .await
+            .unwrap();
+        if bad == "fields=" {
+            // An empty list names no field: the id alone.
+            assert_eq!(resp.status(), 200, "{bad}");
+            let v: Value = resp.json().await.unwrap();
+            assert_eq!(v["jobs"][0], json!({"id": id}));
+            continue;
+        }
+        common::assert_problem(resp, 400, "invalid_query").await;
+    }
 }
 

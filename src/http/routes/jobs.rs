@@ -54,26 +54,120 @@ fn links(job: &Job) -> serde_json::Value {
     l
 }
 
+/// A field of a job's JSON view. `request` stands for the request's own fields (`input`, `algorithm`,
+/// `grid`, `outputs`; or `input`, `steps`, `products`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Field {
+    Id,
+    Kind,
+    Status,
+    Progress,
+    Stage,
+    CreatedAt,
+    StartedAt,
+    FinishedAt,
+    Links,
+    Attempts,
+    EstimateBytes,
+    Error,
+    Result,
+    Request,
+}
+
+/// Every field with its name in the API, in the order `?fields=` documents them.
+const FIELDS: [(&str, Field); 14] = [
+    ("id", Field::Id),
+    ("kind", Field::Kind),
+    ("status", Field::Status),
+    ("progress", Field::Progress),
+    ("stage", Field::Stage),
+    ("created_at", Field::CreatedAt),
+    ("started_at", Field::StartedAt),
+    ("finished_at", Field::FinishedAt),
+    ("links", Field::Links),
+    ("attempts", Field::Attempts),
+    ("estimate_bytes", Field::EstimateBytes),
+    ("error", Field::Error),
+    ("result", Field::Result),
+    ("request", Field::Request),
+];
+
+/// A set of fields of a job's view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FieldSet(u16);
+
+impl FieldSet {
+    /// What `GET /v1/jobs` returns by default: id, kind, status, progress, stage, timestamps, links.
+    pub const SUMMARY: FieldSet = FieldSet(0b1_1111_1111);
+    /// The whole job, as `GET /v1/jobs/{id}` returns it.
+    pub const ALL: FieldSet = FieldSet((1 << FIELDS.len()) - 1);
+
+    fn bit(f: Field) -> u16 {
+        1 << (f as u16)
+    }
+
+    fn has(self, f: Field) -> bool {
+        self.0 & Self::bit(f) != 0
+    }
+
+    /// The fields named in a comma-separated list (`all` names every field); `Err` names an unknown one.
+    fn parse(list: &str) -> Result<FieldSet, String> {
+        let mut set = FieldSet(0);
+        for name in list.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            if name == "all" {
+                set = Self::ALL;
+                continue;
+            }
+            let (_, f) = FIELDS
+                .iter()
+                .find(|(n, _)| *n == name)
+                .ok_or_else(|| format!("unknown field `{}`", name.chars().take(64).collect::<String>()))?;
+            set.0 |= Self::bit(*f);
+        }
+        Ok(set)
+    }
+
+    /// The view `GET /v1/jobs` answers for `fields` (exactly these, and the id) and `expand` (the summary
+    /// and these); both absent: the summary.
+    pub fn of_query(fields: Option<&str>, expand: Option<&str>) -> Result<FieldSet, String> {
+        let base = match fields {
+            Some(f) => FieldSet(Self::parse(f)?.0 | Self::bit(Field::Id)),
+            None => Self::SUMMARY,
+        };
+        let more = expand.map(Self::parse).transpose()?.unwrap_or(FieldSet(0));
+        Ok(FieldSet(base.0 | more.0))
+    }
+}
+
 /// The JSON view of a job.
 pub fn job_view(job: &Job) -> serde_json::Value {
-    let mut v = json!({
-        "id": job.id,
-        "kind": job.kind,
-        "status": job.status,
-        "progress": job.progress,
-        "stage": job.stage,
-        "attempts": job.attempts,
-        "created_at": rfc3339(job.created_us),
-        "started_at": job.started_us.map(rfc3339),
-        "finished_at": job.finished_us.map(rfc3339),
-        "estimate_bytes": job.estimate_bytes,
-        "error": job.error,
-        "result": job.result,
-        "links": links(job),
-    });
+    job_fields(job, FieldSet::ALL)
+}
+
+/// The fields `set` of a job's JSON view (only those are computed).
+pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
+    let mut m = serde_json::Map::new();
+    let mut put = |f: Field, name: &str, v: &dyn Fn() -> serde_json::Value| {
+        if set.has(f) {
+            m.insert(name.to_string(), v());
+        }
+    };
+    put(Field::Id, "id", &|| json!(job.id));
+    put(Field::Kind, "kind", &|| json!(job.kind));
+    put(Field::Status, "status", &|| json!(job.status));
+    put(Field::Progress, "progress", &|| json!(job.progress));
+    put(Field::Stage, "stage", &|| json!(job.stage));
+    put(Field::CreatedAt, "created_at", &|| json!(rfc3339(job.created_us)));
+    put(Field::StartedAt, "started_at", &|| json!(job.started_us.map(rfc3339)));
+    put(Field::FinishedAt, "finished_at", &|| json!(job.finished_us.map(rfc3339)));
+    put(Field::Links, "links", &|| links(job));
+    put(Field::Attempts, "attempts", &|| json!(job.attempts));
+    put(Field::EstimateBytes, "estimate_bytes", &|| json!(job.estimate_bytes));
+    put(Field::Error, "error", &|| json!(job.error));
+    put(Field::Result, "result", &|| json!(job.result));
     // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
-    if let (Some(m), Ok(serde_json::Value::Object(req))) =
-        (v.as_object_mut(), serde_json::to_value(&job.request))
+    if set.has(Field::Request)
+        && let Ok(serde_json::Value::Object(req)) = serde_json::to_value(&job.request)
     {
         for (k, x) in req {
             if k != "kind" {
@@ -81,7 +175,7 @@ pub fn job_view(job: &Job) -> serde_json::Value {
             }
         }
     }
-    v
+    serde_json::Value::Object(m)
 }
 
 fn accepted(job: &Job) -> Response {
@@ -219,6 +313,10 @@ pub struct ListQuery {
     pub limit: Option<u32>,
     /// `next_cursor` of the previous page.
     pub cursor: Option<String>,
+    /// Comma-separated: exactly these fields of each job (and its id).
+    pub fields: Option<String>,
+    /// Comma-separated: the summary and these fields (`all`: the whole job).
+    pub expand: Option<String>,
 }
 
 pub async fn list_jobs(
@@ -248,6 +346,12 @@ pub async fn list_jobs(
         .as_deref()
         .map(|c| JobId::parse(c).map_err(|_| bad("`cursor` is not a cursor from this API".into())))
         .transpose()?;
+    let view = FieldSet::of_query(q.fields.as_deref(), q.expand.as_deref()).map_err(|e| {
+        bad(format!(
+            "{e}; the fields are {} (or `all`)",
+            FIELDS.map(|(n, _)| n).join(", ")
+        ))
+    })?;
     let filter = JobFilter {
         statuses,
         kind: q.kind.clone(),
@@ -263,7 +367,7 @@ pub async fn list_jobs(
     } else {
         None
     };
-    let items: Vec<_> = jobs.iter().map(job_view).collect();
+    let items: Vec<_> = jobs.iter().map(|j| job_fields(j, view)).collect();
     Ok(axum::Json(json!({ "jobs": items, "next_cursor": next })).into_response())
 }
 
