@@ -19,6 +19,10 @@
 //! | `request_timeout_secs` | `CTRECON_REQUEST_TIMEOUT_SECS` | 30 (uploads: `upload_timeout_secs`, 600) |
 //! | `progress_interval_ms` | `CTRECON_PROGRESS_INTERVAL_MS` | 500: most one progress write per job per interval |
 //! | `drain_timeout_ms` | `CTRECON_DRAIN_TIMEOUT_MS` | 10000: after SIGTERM/Ctrl-C, open requests get this long, then close |
+//! | `retain_finished_jobs_secs` | `CTRECON_RETAIN_FINISHED_JOBS_SECS` | 0 = forever; else jobs (and results) this long after they finished |
+//! | `retain_datasets_secs` | `CTRECON_RETAIN_DATASETS_SECS` | 0 = forever; else datasets this long after creation, unless in use |
+//! | `retain_series_secs` | `CTRECON_RETAIN_SERIES_SECS` | 0 = forever; else series this long after creation, unless in use |
+//! | `retention_sweep_secs` | `CTRECON_RETENTION_SWEEP_SECS` | 3600: retention runs at start and this often |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -56,6 +60,10 @@ pub struct Settings {
     pub upload_timeout_secs: u64,
     pub progress_interval_ms: u64,
     pub drain_timeout_ms: u64,
+    pub retain_finished_jobs_secs: u64,
+    pub retain_datasets_secs: u64,
+    pub retain_series_secs: u64,
+    pub retention_sweep_secs: u64,
 }
 
 impl Default for Settings {
@@ -78,6 +86,10 @@ impl Default for Settings {
             upload_timeout_secs: 600,
             progress_interval_ms: 500,
             drain_timeout_ms: 10_000,
+            retain_finished_jobs_secs: 0,
+            retain_datasets_secs: 0,
+            retain_series_secs: 0,
+            retention_sweep_secs: 3600,
         }
     }
 }
@@ -164,6 +176,10 @@ impl Settings {
             "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
             "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
             "CTRECON_DRAIN_TIMEOUT_MS" => self.drain_timeout_ms = parsed(name, v)?,
+            "CTRECON_RETAIN_FINISHED_JOBS_SECS" => self.retain_finished_jobs_secs = parsed(name, v)?,
+            "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
+            "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
+            "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,
             // Read by the logger and by the test suite, not settings.
             "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
             other if other.starts_with("CTRECON_") => {
@@ -197,6 +213,9 @@ impl Settings {
         }
         if !(self.mu_water_per_mm.is_finite() && self.mu_water_per_mm > 0.0) {
             return invalid("mu_water_per_mm", "must be positive and finite");
+        }
+        if self.retention_sweep_secs == 0 {
+            return invalid("retention_sweep_secs", "must be at least 1");
         }
         if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
             return invalid("timeouts", "must be positive");

@@ -1,5 +1,5 @@
 //! The service's life cycle: shutdown drains open connections for a bounded time, jobs stopped by a graceful
-//! shutdown go back to the queue without spending an attempt; job lists are light summaries.
+//! shutdown go back to the queue without spending an attempt, and retention removes what has aged out.
 
 mod common;
 
@@ -406,3 +406,138 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
     }
 }
 
+/// `ctrecon_storage_bytes{kind="…"}` from `/metrics`.
+async fn storage_bytes(server: &Server, kind: &str) -> u64 {
+    let text = server
+        .client
+        .get(server.url("/metrics"))
+        .send()
+        .await
+        .unwrap()
+        .text()
+        .await
+        .unwrap();
+    let prefix = format!("ctrecon_storage_bytes{{kind=\"{kind}\"}} ");
+    text.lines()
+        .find_map(|l| l.strip_prefix(&prefix))
+        .and_then(|v| v.trim().parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no {prefix} in\n{text}")) as u64
+}
+
+async fn status_of(server: &Server, path: &str) -> u16 {
+    server
+        .client
+        .get(server.url(path))
+        .send()
+        .await
+        .unwrap()
+        .status()
+        .as_u16()
+}
+
+/// Poll until `path` answers 404 (at most `secs`: this bounds a hang, it is not a timing).
+async fn wait_gone(server: &Server, path: &str, secs: u64) {
+    let deadline = Instant::now() + Duration::from_secs(secs);
+    while status_of(server, path).await != 404 {
+        assert!(Instant::now() < deadline, "{path} was never removed");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+}
+
+fn retain_one_second(sweep_secs: u64) -> impl FnOnce(&mut Settings) {
+    move |s| {
+        s.retain_finished_jobs_secs = 1;
+        s.retain_datasets_secs = 1;
+        s.retain_series_secs = 1;
+        s.retention_sweep_secs = sweep_secs;
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn retention_removes_what_aged_out_at_start_and_periodically_but_never_an_input_in_use() {
+    let dir = tempfile::tempdir().unwrap();
+    let data = dir.path();
+
+    // Retention off: a finished job, its dataset, and a CT series made from its DICOM export.
+    let mut server = Server::start(data, |_| {}).await;
+    let a = server.simulate(cone_geometry(60, 48)).await;
+    let j1 = server
+        .submit(&json!({"input": a, "algorithm": {"name": "fdk"},
+                        "grid": {"nx": 16, "ny": 16, "nz": 16, "spacing_mm": [1.2, 1.2, 1.2]}}))
+        .await;
+    assert_eq!(server.wait_until(&j1, 600, terminal).await["status"], "succeeded");
+    let zip = server
+        .client
+        .get(server.url(&format!("/v1/jobs/{j1}/result/series.zip")))
+        .send()
+        .await
+        .unwrap()
+        .bytes()
+        .await
+        .unwrap();
+    let r = server
+        .client
+        .post(server.url("/v1/series"))
+        .header("content-type", "application/zip")
+        .body(zip.to_vec())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    let s1 = v["series"][0]["series"]["id"].as_str().unwrap().to_string();
+    assert!(storage_bytes(&server, "datasets").await > 0);
+    assert!(storage_bytes(&server, "series").await > 0);
+    assert!(storage_bytes(&server, "results").await > 0);
+    server.shut_down().await;
+    tokio::time::sleep(Duration::from_millis(1200)).await;
+
+    // A start with a retention of 1 s and no periodic sweep in sight: the sweep at start removed them all.
+    let mut server = Server::start(data, retain_one_second(3600)).await;
+    assert_eq!(status_of(&server, &format!("/v1/jobs/{j1}")).await, 404);
+    assert_eq!(status_of(&server, &format!("/v1/datasets/{a}")).await, 404);
+    assert_eq!(status_of(&server, &format!("/v1/series/{s1}")).await, 404);
+    assert!(!data.join("datasets").join(format!("{a}.npy")).exists());
+    assert!(!data.join("series").join(format!("{s1}.npy")).exists());
+    assert!(!data.join("results").join(&j1).exists());
+    for kind in ["datasets", "series", "results"] {
+        assert_eq!(storage_bytes(&server, kind).await, 0, "{kind}");
+    }
+    server.shut_down().await;
+
+    // Sweeping every second: a finished job and its dataset go; a dataset a running job uses stays.
+    let server = Server::start(data, retain_one_second(1)).await;
+    let b = server.simulate(cone_geometry(360, 128)).await;
+    let long = server
+        .submit(&json!({"input": b, "algorithm": {"name": "fdk"},
+                        "grid": {"nx": 160, "ny": 160, "nz": 160, "spacing_mm": [0.5, 0.5, 0.5]}}))
+        .await;
+    let b_bytes = server.get_json(&format!("/v1/datasets/{b}")).await["bytes"]
+        .as_u64()
+        .unwrap();
+    let c = server.simulate(parallel_geometry(30, 64, 1.0)).await;
+    let j3 = server
+        .submit(&json!({"input": c, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 16, "ny": 16, "dx_mm": 2.0, "dy_mm": 2.0}}))
+        .await;
+    assert_eq!(server.wait_until(&j3, 600, terminal).await["status"], "succeeded");
+    wait_gone(&server, &format!("/v1/jobs/{j3}"), 30).await;
+    wait_gone(&server, &format!("/v1/datasets/{c}"), 30).await;
+    // B was there while the job that reads it was still queued or running (checked in that order).
+    assert_eq!(status_of(&server, &format!("/v1/datasets/{b}")).await, 200);
+    let j = server.get_json(&format!("/v1/jobs/{long}")).await;
+    assert!(
+        matches!(j["status"].as_str(), Some("queued" | "running")),
+        "the long job finished too soon: {j}"
+    );
+    assert_eq!(storage_bytes(&server, "datasets").await, b_bytes);
+
+    // Once the job is over, it and its dataset age out too.
+    let (status, _) = server
+        .post_json(&format!("/v1/jobs/{long}/cancel"), &json!({}))
+        .await;
+    assert_eq!(status, 202);
+    wait_gone(&server, &format!("/v1/jobs/{long}"), 30).await;
+    wait_gone(&server, &format!("/v1/datasets/{b}"), 30).await;
+    assert_eq!(storage_bytes(&server, "datasets").await, 0);
+}

@@ -37,6 +37,7 @@ use tower_http::trace::TraceLayer;
 
 use crate::config::{ConfigError, Settings};
 use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::retention::{self, Retention};
 use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
 use crate::storage::BlobStore;
 use crate::telemetry::{metrics_handle, names};
@@ -240,6 +241,21 @@ impl Application {
         std::fs::create_dir_all(&settings.data_dir).map_err(BuildError::DataDir)?;
         let store = BlobStore::open(&settings.data_dir).map_err(BuildError::DataDir)?;
         let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let retention = Retention::from_secs(
+            settings.retain_finished_jobs_secs,
+            settings.retain_datasets_secs,
+            settings.retain_series_secs,
+        );
+        if !retention.is_off() {
+            let s = retention::sweep(&db, &store, &retention).await?;
+            tracing::info!(
+                jobs = s.jobs,
+                datasets = s.datasets,
+                series = s.series,
+                uploads = s.uploads,
+                "retention at start: removed"
+            );
+        }
         let engine = Engine::start(
             db.clone(),
             store.clone(),
@@ -263,6 +279,13 @@ impl Application {
             source,
         })?;
         let (shutdown, shutdown_rx) = watch::channel(false);
+        retention::spawn(
+            db.clone(),
+            store.clone(),
+            retention,
+            Duration::from_secs(settings.retention_sweep_secs),
+            shutdown_rx.clone(),
+        );
         let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
         let tokens = auth::Tokens::from_settings(&settings);
         let state = AppState(Arc::new(Shared {

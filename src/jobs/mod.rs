@@ -9,6 +9,7 @@ pub mod model;
 pub mod plan;
 pub mod quality;
 pub mod repo;
+pub mod retention;
 pub mod run;
 pub mod views;
 
