@@ -65,7 +65,9 @@ fn start_server(dir: &std::path::Path) -> String {
             .build()
             .expect("server runtime");
         runtime.block_on(async move {
-            let app = Application::build(settings).await.expect("the service builds");
+            let app = Application::build(settings)
+                .await
+                .expect("the service builds");
             let _ = tx.send(format!("http://{}", app.local_addr()));
             let _ = app.run_until(std::future::pending()).await;
         });

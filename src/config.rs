@@ -176,7 +176,9 @@ impl Settings {
             "CTRECON_UPLOAD_TIMEOUT_SECS" => self.upload_timeout_secs = parsed(name, v)?,
             "CTRECON_PROGRESS_INTERVAL_MS" => self.progress_interval_ms = parsed(name, v)?,
             "CTRECON_DRAIN_TIMEOUT_MS" => self.drain_timeout_ms = parsed(name, v)?,
-            "CTRECON_RETAIN_FINISHED_JOBS_SECS" => self.retain_finished_jobs_secs = parsed(name, v)?,
+            "CTRECON_RETAIN_FINISHED_JOBS_SECS" => {
+                self.retain_finished_jobs_secs = parsed(name, v)?
+            }
             "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
             "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
             "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,

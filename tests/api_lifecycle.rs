@@ -7,10 +7,10 @@ use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use common::{cone_geometry, parallel_geometry, test_settings};
-use ctrecon::jobs::{Db, JobStatus};
-use ctrecon::storage::JobId;
 use ctrecon::config::Settings;
 use ctrecon::http::Application;
+use ctrecon::jobs::{Db, JobStatus};
+use ctrecon::storage::JobId;
 use serde_json::{Value, json};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::oneshot;
@@ -68,7 +68,12 @@ impl Server {
     }
 
     async fn get_json(&self, path: &str) -> Value {
-        let r = self.client.get(self.url(path)).send().await.expect("request");
+        let r = self
+            .client
+            .get(self.url(path))
+            .send()
+            .await
+            .expect("request");
         assert_eq!(r.status(), 200, "GET {path}");
         r.json().await.expect("json")
     }
@@ -141,7 +146,9 @@ async fn large_result(server: &Server) -> (String, u64) {
         .await;
     let j = server.wait_until(&id, 600, terminal).await;
     assert_eq!(j["status"], "succeeded", "{j}");
-    let bytes = j["result"]["volume"]["bytes"].as_u64().expect("volume bytes");
+    let bytes = j["result"]["volume"]["bytes"]
+        .as_u64()
+        .expect("volume bytes");
     assert!(bytes > 16 << 20, "{bytes}");
     (id, bytes)
 }
@@ -198,8 +205,14 @@ async fn a_client_that_stops_reading_a_large_body_is_cut_off_at_the_drain_timeou
 
     // The client reads nothing more; the shutdown waits for the download only as long as the drain allows.
     let took = server.shut_down().await;
-    assert!(took >= Duration::from_millis(900), "{took:?}: the drain did not wait");
-    assert!(took < Duration::from_secs(5), "{took:?}: the drain was not bounded");
+    assert!(
+        took >= Duration::from_millis(900),
+        "{took:?}: the drain did not wait"
+    );
+    assert!(
+        took < Duration::from_secs(5),
+        "{took:?}: the drain was not bounded"
+    );
 
     // The connection was closed before the body was complete.
     let rest = read_to_close(&mut stream).await;
@@ -224,7 +237,10 @@ async fn a_download_in_flight_at_shutdown_completes_within_the_drain_timeout() {
     let rest = read_to_close(&mut stream).await;
     assert_eq!(read + rest, length, "the whole body arrives");
     let (_server, took) = stop.await.unwrap();
-    assert!(took < Duration::from_secs(9), "{took:?}: waited for the whole timeout");
+    assert!(
+        took < Duration::from_secs(9),
+        "{took:?}: waited for the whole timeout"
+    );
 }
 
 /// A cone-beam FDK long enough to be stopped while it runs (about as long as the crash-recovery test's).
@@ -340,7 +356,10 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
                         "grid": {"nx": 32, "ny": 32, "dx_mm": 2.5, "dy_mm": 2.5},
                         "outputs": ["volume", "metrics"]}))
         .await;
-    assert_eq!(server.wait_until(&id, 600, terminal).await["status"], "succeeded");
+    assert_eq!(
+        server.wait_until(&id, 600, terminal).await["status"],
+        "succeeded"
+    );
     let full = server.get_json(&format!("/v1/jobs/{id}")).await;
 
     let summary_keys = [
@@ -360,9 +379,14 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
     for k in summary_keys {
         assert_eq!(s[k], full[k], "{k}");
     }
-    assert_eq!(s["links"]["metrics"], format!("/v1/jobs/{id}/result/metrics"));
+    assert_eq!(
+        s["links"]["metrics"],
+        format!("/v1/jobs/{id}/result/metrics")
+    );
 
-    let e = server.get_json("/v1/jobs?expand=attempts,error,result").await;
+    let e = server
+        .get_json("/v1/jobs?expand=attempts,error,result")
+        .await;
     let e = &e["jobs"][0];
     let mut expanded: Vec<&str> = summary_keys.to_vec();
     expanded.extend(["attempts", "error", "result"]);
@@ -377,10 +401,16 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
     assert_eq!(all["jobs"][0], full);
     let summary_bytes = serde_json::to_vec(&list).unwrap().len();
     let full_bytes = serde_json::to_vec(&all).unwrap().len();
-    assert!(summary_bytes < full_bytes, "{summary_bytes} vs {full_bytes}");
+    assert!(
+        summary_bytes < full_bytes,
+        "{summary_bytes} vs {full_bytes}"
+    );
 
     let f = server.get_json("/v1/jobs?fields=status,progress").await;
-    assert_eq!(f["jobs"][0], json!({"id": id, "status": "succeeded", "progress": 100}));
+    assert_eq!(
+        f["jobs"][0],
+        json!({"id": id, "status": "succeeded", "progress": 100})
+    );
     let r = server.get_json("/v1/jobs?fields=request").await;
     let r = &r["jobs"][0];
     assert_eq!(keys(r), ["algorithm", "grid", "id", "input", "outputs"]);
@@ -388,7 +418,12 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
         assert_eq!(r[k], full[k], "{k}");
     }
 
-    for bad in ["fields=colour", "expand=status,secrets", "fields=", "expand=request,,x"] {
+    for bad in [
+        "fields=colour",
+        "expand=status,secrets",
+        "fields=",
+        "expand=request,,x",
+    ] {
         let resp = server
             .client
             .get(server.url(&format!("/v1/jobs?{bad}")))
@@ -465,7 +500,10 @@ async fn retention_removes_what_aged_out_at_start_and_periodically_but_never_an_
         .submit(&json!({"input": a, "algorithm": {"name": "fdk"},
                         "grid": {"nx": 16, "ny": 16, "nz": 16, "spacing_mm": [1.2, 1.2, 1.2]}}))
         .await;
-    assert_eq!(server.wait_until(&j1, 600, terminal).await["status"], "succeeded");
+    assert_eq!(
+        server.wait_until(&j1, 600, terminal).await["status"],
+        "succeeded"
+    );
     let zip = server
         .client
         .get(server.url(&format!("/v1/jobs/{j1}/result/series.zip")))
@@ -520,7 +558,10 @@ async fn retention_removes_what_aged_out_at_start_and_periodically_but_never_an_
         .submit(&json!({"input": c, "algorithm": {"name": "fbp"},
                         "grid": {"nx": 16, "ny": 16, "dx_mm": 2.0, "dy_mm": 2.0}}))
         .await;
-    assert_eq!(server.wait_until(&j3, 600, terminal).await["status"], "succeeded");
+    assert_eq!(
+        server.wait_until(&j3, 600, terminal).await["status"],
+        "succeeded"
+    );
     wait_gone(&server, &format!("/v1/jobs/{j3}"), 30).await;
     wait_gone(&server, &format!("/v1/datasets/{c}"), 30).await;
     // B was there while the job that reads it was still queued or running (checked in that order).

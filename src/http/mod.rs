@@ -354,10 +354,15 @@ impl Application {
         };
         // Running jobs stop at their next check; wait for their hand-back, bounded from the signal.
         engine.begin_stop();
-        let since = signalled.await.unwrap_or_else(|_| tokio::time::Instant::now());
+        let since = signalled
+            .await
+            .unwrap_or_else(|_| tokio::time::Instant::now());
         let left = engine.stopped(since + drain.max(HAND_BACK_MIN)).await;
         if left > 0 {
-            tracing::warn!(left, "jobs still running at exit: the next start recovers them");
+            tracing::warn!(
+                left,
+                "jobs still running at exit: the next start recovers them"
+            );
         }
         served
     }

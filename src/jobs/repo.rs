@@ -560,7 +560,11 @@ impl Db {
 
     /// Delete the rows that `sql` (a `DELETE … WHERE … < ? … RETURNING id`) selects with `before_us`, and
     /// the Idempotency-Key records that name them, in one transaction; returns the ids deleted.
-    async fn delete_returning(&self, sql: &'static str, before_us: i64) -> Result<Vec<String>, DbError> {
+    async fn delete_returning(
+        &self,
+        sql: &'static str,
+        before_us: i64,
+    ) -> Result<Vec<String>, DbError> {
         let mut tx = self.pool.begin().await?;
         let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
         let ids = rows

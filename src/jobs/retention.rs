@@ -64,7 +64,8 @@ fn remove_file(path: &Path) -> io::Result<()> {
 /// Remove what has aged out under `retention`, now.
 pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<Swept, DbError> {
     let now = now_us();
-    let before = |age: Duration| now.saturating_sub(i64::try_from(age.as_micros()).unwrap_or(i64::MAX));
+    let before =
+        |age: Duration| now.saturating_sub(i64::try_from(age.as_micros()).unwrap_or(i64::MAX));
     let mut swept = Swept::default();
     let (mut jobs, mut datasets, mut series, mut uploads) = (vec![], vec![], vec![], vec![]);
     if let Some(age) = retention.finished_jobs {

@@ -118,10 +118,12 @@ impl FieldSet {
                 set = Self::ALL;
                 continue;
             }
-            let (_, f) = FIELDS
-                .iter()
-                .find(|(n, _)| *n == name)
-                .ok_or_else(|| format!("unknown field `{}`", name.chars().take(64).collect::<String>()))?;
+            let (_, f) = FIELDS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+                format!(
+                    "unknown field `{}`",
+                    name.chars().take(64).collect::<String>()
+                )
+            })?;
             set.0 |= Self::bit(*f);
         }
         Ok(set)
@@ -157,12 +159,20 @@ pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
     put(Field::Status, "status", &|| json!(job.status));
     put(Field::Progress, "progress", &|| json!(job.progress));
     put(Field::Stage, "stage", &|| json!(job.stage));
-    put(Field::CreatedAt, "created_at", &|| json!(rfc3339(job.created_us)));
-    put(Field::StartedAt, "started_at", &|| json!(job.started_us.map(rfc3339)));
-    put(Field::FinishedAt, "finished_at", &|| json!(job.finished_us.map(rfc3339)));
+    put(Field::CreatedAt, "created_at", &|| {
+        json!(rfc3339(job.created_us))
+    });
+    put(Field::StartedAt, "started_at", &|| {
+        json!(job.started_us.map(rfc3339))
+    });
+    put(Field::FinishedAt, "finished_at", &|| {
+        json!(job.finished_us.map(rfc3339))
+    });
     put(Field::Links, "links", &|| links(job));
     put(Field::Attempts, "attempts", &|| json!(job.attempts));
-    put(Field::EstimateBytes, "estimate_bytes", &|| json!(job.estimate_bytes));
+    put(Field::EstimateBytes, "estimate_bytes", &|| {
+        json!(job.estimate_bytes)
+    });
     put(Field::Error, "error", &|| json!(job.error));
     put(Field::Result, "result", &|| json!(job.result));
     // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
