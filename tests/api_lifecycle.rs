@@ -439,6 +439,22 @@ async fn job_lists_are_summaries_and_fields_or_expand_select_the_rest() {
         }
         common::assert_problem(resp, 400, "invalid_query").await;
     }
+
+    // A list served again (from the page cache) shows every write made since: a new job, then its end.
+    assert_eq!(server.get_json("/v1/jobs").await, list);
+    let second = server
+        .submit(&json!({"input": input, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 16, "ny": 16, "dx_mm": 5.0, "dy_mm": 5.0}}))
+        .await;
+    let again = server.get_json("/v1/jobs").await;
+    assert_eq!(again["jobs"].as_array().unwrap().len(), 2);
+    assert_eq!(again["jobs"][0]["id"], second.as_str());
+    let done = server.wait_until(&second, 600, terminal).await;
+    assert_eq!(done["status"], "succeeded");
+    let again = server.get_json("/v1/jobs").await;
+    assert_eq!(again["jobs"][0]["status"], "succeeded");
+    assert_eq!(again["jobs"][0]["progress"], 100);
+    assert_eq!(again["jobs"][1], list["jobs"][0]);
 }
 
 /// `ctrecon_storage_bytes{kind="…"}` from `/metrics`.

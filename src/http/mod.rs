@@ -8,6 +8,7 @@ pub mod auth;
 pub mod drain;
 pub mod extract;
 pub mod files;
+pub mod lists;
 pub mod problem;
 pub mod routes;
 pub mod upload;
@@ -53,6 +54,8 @@ pub struct Shared {
     pub metrics: PrometheusHandle,
     /// Turns true when the server shuts down (ends event streams).
     pub shutdown: watch::Receiver<bool>,
+    /// Rendered job lists, reused until a job is written.
+    pub lists: lists::ListCache,
 }
 
 /// Handler state; cheap to clone.
@@ -295,6 +298,7 @@ impl Application {
             settings,
             metrics: metrics_handle(),
             shutdown: shutdown_rx,
+            lists: Default::default(),
         }));
         Ok(Self {
             listener,

@@ -15,7 +15,7 @@ pub mod views;
 
 pub use engine::{CancelError, Engine, EngineConfig, JobEvent, StartError};
 pub use model::{
-    Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, SeriesRecord,
+    Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
     SimulationRequest, UploadRecord,
 };
 pub use repo::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter};

@@ -142,6 +142,46 @@ pub struct Job {
     pub finished_us: Option<i64>,
 }
 
+/// What a job list shows of a job: its state and timestamps, and what its result links need.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobSummary {
+    pub id: JobId,
+    pub kind: String,
+    pub status: JobStatus,
+    /// 0–100.
+    pub progress: u8,
+    pub stage: String,
+    pub created_us: i64,
+    pub started_us: Option<i64>,
+    pub finished_us: Option<i64>,
+    /// The result holds quality metrics.
+    pub has_metrics: bool,
+    /// Indexes of the result's products, in order.
+    pub product_indexes: Vec<usize>,
+}
+
+impl JobSummary {
+    /// The summary of a whole job.
+    pub fn of(job: &Job) -> Self {
+        Self {
+            id: job.id,
+            kind: job.kind.clone(),
+            status: job.status,
+            progress: job.progress,
+            stage: job.stage.clone(),
+            created_us: job.created_us,
+            started_us: job.started_us,
+            finished_us: job.finished_us,
+            has_metrics: job.result.as_ref().is_some_and(|r| r.metrics.is_some()),
+            product_indexes: job
+                .result
+                .iter()
+                .flat_map(|r| r.products.iter().map(|p| p.index))
+                .collect(),
+        }
+    }
+}
+
 /// A file written by a job.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct FileInfo {

@@ -14,7 +14,8 @@ use sqlx::{AssertSqlSafe, Row};
 
 use super::cache::JobCache;
 use super::model::{
-    Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, SeriesRecord, UploadRecord, now_us,
+    Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
+    UploadRecord, now_us,
 };
 use crate::error_code::Problem;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
@@ -176,6 +177,44 @@ fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
     })
 }
 
+/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
+/// (comma-separated).
+const SUMMARY_COLUMNS: &str =
+    "id, kind, status, progress, stage, created_us, started_us, finished_us,
+    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
+    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
+        AS product_indexes";
+
+fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
+    let id: String = row.try_get("id")?;
+    let status: String = row.try_get("status")?;
+    let progress: i64 = row.try_get("progress")?;
+    let has_metrics: i64 = row.try_get("has_metrics")?;
+    let products: Option<String> = row.try_get("product_indexes")?;
+    let product_indexes = products
+        .iter()
+        .flat_map(|p| p.split(','))
+        .map(|i| {
+            i.trim()
+                .parse::<usize>()
+                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(JobSummary {
+        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        kind: row.try_get("kind")?,
+        status: JobStatus::parse(&status)
+            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
+        progress: progress.clamp(0, 100) as u8,
+        stage: row.try_get("stage")?,
+        created_us: row.try_get("created_us")?,
+        started_us: row.try_get("started_us")?,
+        finished_us: row.try_get("finished_us")?,
+        has_metrics: has_metrics != 0,
+        product_indexes,
+    })
+}
+
 impl Db {
     /// Open (creating if needed) the database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, DbError> {
@@ -195,6 +234,12 @@ impl Db {
             pool,
             cache: Default::default(),
         })
+    }
+
+    /// A counter that changes after every write of a job (insert, transition, progress, delete): a value
+    /// computed from job rows is current while the counter still has the value read before computing it.
+    pub fn jobs_generation(&self) -> u64 {
+        self.cache.generation()
     }
 
     /// The database answers a trivial query.
@@ -331,6 +376,8 @@ impl Db {
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;
+        // A new job changes every list it falls in.
+        self.cache.invalidate(j.id);
         Ok(Inserted::New)
     }
 
@@ -352,8 +399,25 @@ impl Db {
 
     /// Jobs matching `f`, newest first, at most `f.limit`.
     pub async fn list_jobs(&self, f: &JobFilter) -> Result<Vec<Job>, DbError> {
+        let rows = self.list_rows("*", f).await?;
+        rows.iter().map(job_from_row).collect()
+    }
+
+    /// The summaries of the jobs matching `f`, newest first, at most `f.limit`: neither the request nor the
+    /// result is read, only what the result links need (SQLite's JSON functions look it up).
+    pub async fn list_job_summaries(&self, f: &JobFilter) -> Result<Vec<JobSummary>, DbError> {
+        let rows = self.list_rows(SUMMARY_COLUMNS, f).await?;
+        rows.iter().map(summary_from_row).collect()
+    }
+
+    /// The rows of `columns` (a fixed list) of the jobs matching `f`.
+    async fn list_rows(
+        &self,
+        columns: &'static str,
+        f: &JobFilter,
+    ) -> Result<Vec<SqliteRow>, DbError> {
         // Only fixed fragments enter the SQL text; every value is bound.
-        let mut sql = String::from("SELECT * FROM jobs WHERE 1 = 1");
+        let mut sql = format!("SELECT {columns} FROM jobs WHERE 1 = 1");
         if !f.statuses.is_empty() {
             let marks = vec!["?"; f.statuses.len()].join(", ");
             sql.push_str(&format!(" AND status IN ({marks})"));
@@ -388,8 +452,7 @@ impl Db {
             q = q.bind(id.to_string());
         }
         q = q.bind(f.limit as i64);
-        let rows = q.fetch_all(&self.pool).await?;
-        rows.iter().map(job_from_row).collect()
+        Ok(q.fetch_all(&self.pool).await?)
     }
 
     /// Queued jobs in submission order: `(id, estimate bytes)`.

@@ -1,7 +1,8 @@
 //! `POST /v1/jobs`, `GET /v1/jobs`, `GET /v1/jobs/{id}`, `POST /v1/jobs/{id}/cancel`,
 //! `DELETE /v1/jobs/{id}`.
 
-use axum::extract::{Path, State};
+use axum::body::Bytes;
+use axum::extract::{Path, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -16,13 +17,14 @@ use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us, parse_rfc3339
 use crate::jobs::plan::admit_job;
 use crate::jobs::{
     CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobSpec, JobStatus,
+    JobSummary,
 };
 use crate::storage::JobId;
 
 const ROUTE_JOBS: &str = "POST /v1/jobs";
 
 /// Links of a job: itself, its events, cancel, and its results once it succeeded.
-fn links(job: &Job) -> serde_json::Value {
+fn links(job: &JobSummary) -> serde_json::Value {
     let base = format!("/v1/jobs/{}", job.id);
     let mut l = json!({
         "self": base,
@@ -36,19 +38,16 @@ fn links(job: &Job) -> serde_json::Value {
         l["projection"] = json!(format!("{r}/projection?axis=axial&kind=mip"));
         l["mesh"] = json!(format!("{r}/mesh.stl?iso=<value>"));
         l["series"] = json!(format!("{r}/series.zip"));
-        if let Some(result) = &job.result {
-            if result.metrics.is_some() {
-                l["metrics"] = json!(format!("{r}/metrics"));
-            }
-            if !result.products.is_empty() {
-                l["products"] = json!(
-                    result
-                        .products
-                        .iter()
-                        .map(|p| format!("{r}/products/{}", p.index))
-                        .collect::<Vec<_>>()
-                );
-            }
+        if job.has_metrics {
+            l["metrics"] = json!(format!("{r}/metrics"));
+        }
+        if !job.product_indexes.is_empty() {
+            l["products"] = json!(
+                job.product_indexes
+                    .iter()
+                    .map(|i| format!("{r}/products/{i}"))
+                    .collect::<Vec<_>>()
+            );
         }
     }
     l
@@ -110,6 +109,11 @@ impl FieldSet {
         self.0 & Self::bit(f) != 0
     }
 
+    /// Every field of `self` is in `other`.
+    fn within(self, other: FieldSet) -> bool {
+        self.0 & !other.0 == 0
+    }
+
     /// The fields named in a comma-separated list (`all` names every field); `Err` names an unknown one.
     fn parse(list: &str) -> Result<FieldSet, String> {
         let mut set = FieldSet(0);
@@ -149,6 +153,37 @@ pub fn job_view(job: &Job) -> serde_json::Value {
 /// The fields `set` of a job's JSON view (only those are computed).
 pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
     let mut m = serde_json::Map::new();
+    summary_fields(&mut m, &JobSummary::of(job), set);
+    let mut put = |f: Field, name: &str, v: &dyn Fn() -> serde_json::Value| {
+        if set.has(f) {
+            m.insert(name.to_string(), v());
+        }
+    };
+    put(Field::Attempts, "attempts", &|| json!(job.attempts));
+    put(Field::EstimateBytes, "estimate_bytes", &|| {
+        json!(job.estimate_bytes)
+    });
+    put(Field::Error, "error", &|| json!(job.error));
+    put(Field::Result, "result", &|| json!(job.result));
+    // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
+    if set.has(Field::Request)
+        && let Ok(serde_json::Value::Object(req)) = serde_json::to_value(&job.request)
+    {
+        for (k, x) in req {
+            if k != "kind" {
+                m.insert(k, x);
+            }
+        }
+    }
+    serde_json::Value::Object(m)
+}
+
+/// The fields of `set` that a summary holds.
+fn summary_fields(
+    m: &mut serde_json::Map<String, serde_json::Value>,
+    job: &JobSummary,
+    set: FieldSet,
+) {
     let mut put = |f: Field, name: &str, v: &dyn Fn() -> serde_json::Value| {
         if set.has(f) {
             m.insert(name.to_string(), v());
@@ -169,23 +204,6 @@ pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
         json!(job.finished_us.map(rfc3339))
     });
     put(Field::Links, "links", &|| links(job));
-    put(Field::Attempts, "attempts", &|| json!(job.attempts));
-    put(Field::EstimateBytes, "estimate_bytes", &|| {
-        json!(job.estimate_bytes)
-    });
-    put(Field::Error, "error", &|| json!(job.error));
-    put(Field::Result, "result", &|| json!(job.result));
-    // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
-    if set.has(Field::Request)
-        && let Ok(serde_json::Value::Object(req)) = serde_json::to_value(&job.request)
-    {
-        for (k, x) in req {
-            if k != "kind" {
-                m.insert(k, x);
-            }
-        }
-    }
-    serde_json::Value::Object(m)
 }
 
 fn accepted(job: &Job) -> Response {
@@ -331,8 +349,15 @@ pub struct ListQuery {
 
 pub async fn list_jobs(
     State(st): State<AppState>,
+    RawQuery(raw): RawQuery,
     ApiQuery(q): ApiQuery<ListQuery>,
 ) -> ApiResult<Response> {
+    // Read before the rows: a page is reused only while no job was written since.
+    let generation = st.db.jobs_generation();
+    let key = raw.unwrap_or_default();
+    if let Some(body) = st.lists.get(&key, generation) {
+        return Ok(json_bytes(body));
+    }
     let bad = |m: String| api_error(ErrorCode::InvalidQuery, m);
     let mut statuses = Vec::new();
     for s in q.status.iter().flat_map(|s| s.split(',')) {
@@ -370,15 +395,47 @@ pub async fn list_jobs(
         before_id,
         limit: limit + 1,
     };
-    let mut jobs = st.db.list_jobs(&filter).await?;
-    let next = if jobs.len() > limit as usize {
-        jobs.truncate(limit as usize);
-        jobs.last().map(|j| j.id.to_string())
+    // A summary view reads neither requests nor results (most lists: status polls).
+    let (items, next) = if view.within(FieldSet::SUMMARY) {
+        let jobs = st.db.list_job_summaries(&filter).await?;
+        page(
+            &jobs,
+            limit,
+            |j| j.id,
+            |j| {
+                let mut m = serde_json::Map::new();
+                summary_fields(&mut m, j, view);
+                serde_json::Value::Object(m)
+            },
+        )
     } else {
-        None
+        let jobs = st.db.list_jobs(&filter).await?;
+        page(&jobs, limit, |j| j.id, |j| job_fields(j, view))
     };
-    let items: Vec<_> = jobs.iter().map(|j| job_fields(j, view)).collect();
-    Ok(axum::Json(json!({ "jobs": items, "next_cursor": next })).into_response())
+    let body = Bytes::from(
+        serde_json::to_vec(&json!({ "jobs": items, "next_cursor": next })).unwrap_or_default(),
+    );
+    st.lists.put(&key, generation, body.clone());
+    Ok(json_bytes(body))
+}
+
+fn json_bytes(body: Bytes) -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], body).into_response()
+}
+
+/// The first `limit` of `rows` as JSON, and the cursor of the next page (there is one when the query found
+/// more than `limit`).
+fn page<T>(
+    rows: &[T],
+    limit: u32,
+    id: impl Fn(&T) -> JobId,
+    view: impl Fn(&T) -> serde_json::Value,
+) -> (Vec<serde_json::Value>, Option<String>) {
+    let shown = &rows[..rows.len().min(limit as usize)];
+    let next = (rows.len() > limit as usize)
+        .then(|| shown.last().map(|r| id(r).to_string()))
+        .flatten();
+    (shown.iter().map(view).collect(), next)
 }
 
 pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
