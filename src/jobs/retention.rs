@@ -66,7 +66,6 @@ pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<
     let now = now_us();
     let before =
         |age: Duration| now.saturating_sub(i64::try_from(age.as_micros()).unwrap_or(i64::MAX));
-    let mut swept = Swept::default();
     let (mut jobs, mut datasets, mut series, mut uploads) = (vec![], vec![], vec![], vec![]);
     if let Some(age) = retention.finished_jobs {
         jobs = db.delete_jobs_finished_before(before(age)).await?;
@@ -78,10 +77,12 @@ pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<
         series = db.delete_series_created_before(before(age)).await?;
         uploads = db.delete_uploads_without_series(before(age)).await?;
     }
-    swept.jobs = jobs.len();
-    swept.datasets = datasets.len();
-    swept.series = series.len();
-    swept.uploads = uploads.len();
+    let swept = Swept {
+        jobs: jobs.len(),
+        datasets: datasets.len(),
+        series: series.len(),
+        uploads: uploads.len(),
+    };
     // The rows are gone: nothing serves these files any more. A file that cannot be removed is logged and
     // counted by the storage gauge; it never comes back as a resource.
     let store = store.clone();
