@@ -21,6 +21,11 @@
 //! | `zip_max_member_bytes` | `CTRECON_ZIP_MAX_MEMBER_BYTES` | 1 GiB per inflated ZIP member (and at most the memory budget over the workers) |
 //! | `zip_max_total_bytes` | `CTRECON_ZIP_MAX_TOTAL_BYTES` | 8 GiB inflated per upload |
 //! | `zip_max_ratio` | `CTRECON_ZIP_MAX_RATIO` | 200: inflated/compressed of one member (members under 1 MiB exempt) |
+//! | `drain_timeout_ms` | `CTRECON_DRAIN_TIMEOUT_MS` | 10000: after SIGTERM/Ctrl-C, open requests get this long, then close |
+//! | `retain_finished_jobs_secs` | `CTRECON_RETAIN_FINISHED_JOBS_SECS` | 0 = forever; else jobs (and results) this long after they finished |
+//! | `retain_datasets_secs` | `CTRECON_RETAIN_DATASETS_SECS` | 0 = forever; else datasets this long after creation, unless in use |
+//! | `retain_series_secs` | `CTRECON_RETAIN_SERIES_SECS` | 0 = forever; else series this long after creation, unless in use |
+//! | `retention_sweep_secs` | `CTRECON_RETENTION_SWEEP_SECS` | 3600: retention runs at start and this often |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -60,6 +65,11 @@ pub struct Settings {
     pub zip_max_member_bytes: u64,
     pub zip_max_total_bytes: u64,
     pub zip_max_ratio: u64,
+    pub drain_timeout_ms: u64,
+    pub retain_finished_jobs_secs: u64,
+    pub retain_datasets_secs: u64,
+    pub retain_series_secs: u64,
+    pub retention_sweep_secs: u64,
 }
 
 impl Default for Settings {
@@ -84,6 +94,11 @@ impl Default for Settings {
             zip_max_member_bytes: 1 << 30,
             zip_max_total_bytes: 8 << 30,
             zip_max_ratio: 200,
+            drain_timeout_ms: 10_000,
+            retain_finished_jobs_secs: 0,
+            retain_datasets_secs: 0,
+            retain_series_secs: 0,
+            retention_sweep_secs: 3600,
         }
     }
 }
@@ -172,6 +187,13 @@ impl Settings {
             "CTRECON_ZIP_MAX_MEMBER_BYTES" => self.zip_max_member_bytes = parsed(name, v)?,
             "CTRECON_ZIP_MAX_TOTAL_BYTES" => self.zip_max_total_bytes = parsed(name, v)?,
             "CTRECON_ZIP_MAX_RATIO" => self.zip_max_ratio = parsed(name, v)?,
+            "CTRECON_DRAIN_TIMEOUT_MS" => self.drain_timeout_ms = parsed(name, v)?,
+            "CTRECON_RETAIN_FINISHED_JOBS_SECS" => {
+                self.retain_finished_jobs_secs = parsed(name, v)?
+            }
+            "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
+            "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
+            "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,
             // Read by the logger and by the test suite, not settings.
             "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
             other if other.starts_with("CTRECON_") => {
@@ -211,6 +233,9 @@ impl Settings {
         }
         if !(self.mu_water_per_mm.is_finite() && self.mu_water_per_mm > 0.0) {
             return invalid("mu_water_per_mm", "must be positive and finite");
+        }
+        if self.retention_sweep_secs == 0 {
+            return invalid("retention_sweep_secs", "must be at least 1");
         }
         if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
             return invalid("timeouts", "must be positive");

@@ -44,4 +44,8 @@ pub mod names {
     pub const QUEUE_DEPTH: &str = "ctrecon_queue_depth";
     pub const JOBS_FINISHED: &str = "ctrecon_jobs_finished_total";
     pub const JOB_DURATION: &str = "ctrecon_job_duration_seconds";
+    /// Bytes the data directory holds, by `kind` (datasets, series, results, uploads).
+    pub const STORAGE_BYTES: &str = "ctrecon_storage_bytes";
+    /// Resources removed by retention, by `kind` (jobs, datasets, series, uploads).
+    pub const RETENTION_REMOVED: &str = "ctrecon_retention_removed_total";
 }

@@ -209,7 +209,12 @@ async fn a_job_interrupted_too_often_fails_with_a_clear_reason() {
         s.max_attempts = 1;
     })
     .await;
-    let list: Value = app.get("/v1/jobs").await.json().await.unwrap();
+    let list: Value = app
+        .get("/v1/jobs?expand=attempts,error")
+        .await
+        .json()
+        .await
+        .unwrap();
     let j = &list["jobs"][0];
     assert_eq!(j["status"], "failed", "{j}");
     assert_eq!(j["error"]["code"], "attempts_exhausted");

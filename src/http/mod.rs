@@ -2,16 +2,18 @@
 //!
 //! [`Application::build`] opens the data directory and the database, recovers jobs, starts the engine and
 //! binds the listener (port 0 picks a free port: tests run the real server); [`Application::run_until`]
-//! serves until the shutdown signal, then lets open requests finish.
+//! serves until the shutdown signal, then lets open requests finish for at most the drain timeout.
 
 pub mod auth;
+pub mod drain;
 pub mod extract;
 pub mod files;
+pub mod lists;
 pub mod problem;
 pub mod routes;
 pub mod upload;
 
-use std::future::Future;
+use std::future::{Future, IntoFuture};
 use std::net::SocketAddr;
 use std::ops::Deref;
 use std::sync::Arc;
@@ -24,8 +26,10 @@ use axum::middleware::{self, Next};
 use axum::response::Response;
 use axum::routing::{get, post};
 use axum::{BoxError, Router};
+use futures_util::FutureExt;
 use metrics_exporter_prometheus::PrometheusHandle;
-use tokio::sync::watch;
+use tokio::sync::{oneshot, watch};
+use tokio_util::sync::CancellationToken;
 use tower::ServiceBuilder;
 use tower_http::catch_panic::CatchPanicLayer;
 use tower_http::cors::{AllowOrigin, CorsLayer};
@@ -34,6 +38,7 @@ use tower_http::trace::TraceLayer;
 
 use crate::config::{ConfigError, Settings};
 use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::retention::{self, Retention};
 use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
 use crate::storage::BlobStore;
 use crate::telemetry::{metrics_handle, names};
@@ -49,6 +54,8 @@ pub struct Shared {
     pub metrics: PrometheusHandle,
     /// Turns true when the server shuts down (ends event streams).
     pub shutdown: watch::Receiver<bool>,
+    /// Rendered job lists, reused until a job is written.
+    pub lists: lists::ListCache,
 }
 
 /// Handler state; cheap to clone.
@@ -80,12 +87,18 @@ pub enum BuildError {
     },
 }
 
+/// The least time running jobs get to hand themselves back at shutdown (a job checks for cancellation
+/// at least once a second).
+pub const HAND_BACK_MIN: Duration = Duration::from_secs(3);
+
 /// A built service, bound and ready to serve.
 pub struct Application {
     listener: tokio::net::TcpListener,
     router: Router,
     shutdown: watch::Sender<bool>,
     addr: SocketAddr,
+    drain_timeout: Duration,
+    engine: Engine,
 }
 
 async fn not_found() -> ApiError {
@@ -240,6 +253,21 @@ impl Application {
         let metrics = metrics_handle();
         let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
         tracing::info!(?swept, "blob files paired with their rows");
+        let retention = Retention::from_secs(
+            settings.retain_finished_jobs_secs,
+            settings.retain_datasets_secs,
+            settings.retain_series_secs,
+        );
+        if !retention.is_off() {
+            let s = retention::sweep(&db, &store, &retention).await?;
+            tracing::info!(
+                jobs = s.jobs,
+                datasets = s.datasets,
+                series = s.series,
+                uploads = s.uploads,
+                "retention at start: removed"
+            );
+        }
         let engine = Engine::start(
             db.clone(),
             store.clone(),
@@ -263,20 +291,31 @@ impl Application {
             source,
         })?;
         let (shutdown, shutdown_rx) = watch::channel(false);
+        retention::spawn(
+            db.clone(),
+            store.clone(),
+            retention,
+            Duration::from_secs(settings.retention_sweep_secs),
+            shutdown_rx.clone(),
+        );
+        let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
         let tokens = auth::Tokens::from_settings(&settings);
         let state = AppState(Arc::new(Shared {
             db,
             store,
-            engine,
+            engine: engine.clone(),
             settings,
             metrics,
             shutdown: shutdown_rx,
+            lists: Default::default(),
         }));
         Ok(Self {
             listener,
             router: router(state, tokens),
             shutdown,
             addr,
+            drain_timeout,
+            engine,
         })
     }
 
@@ -285,19 +324,60 @@ impl Application {
         self.addr
     }
 
-    /// Serve until `signal` completes, then stop accepting, end event streams and let requests finish.
+    /// Serve until `signal` completes, then stop accepting, end event streams and let open requests
+    /// finish; connections still open after the drain timeout are closed (a client reading a large body
+    /// slowly cannot hold the shutdown up). At the signal the engine starts no more jobs and asks the running
+    /// ones to stop; those that stop in time (the drain timeout, at least [`HAND_BACK_MIN`]) go back to the
+    /// queue without spending an attempt.
     pub async fn run_until(
         self,
         signal: impl Future<Output = ()> + Send + 'static,
     ) -> std::io::Result<()> {
         let shutdown = self.shutdown;
-        axum::serve(self.listener, self.router)
+        let drain = self.drain_timeout;
+        let engine = self.engine;
+        let stopping = engine.clone();
+        let cut = CancellationToken::new();
+        let (began, signalled) = oneshot::channel::<tokio::time::Instant>();
+        let signalled = signalled.shared();
+        let listener = drain::DrainListener::new(self.listener, cut.clone());
+        let serve = axum::serve(listener, self.router)
             .with_graceful_shutdown(async move {
                 signal.await;
-                tracing::info!("shutting down");
+                tracing::info!(drain_ms = drain.as_millis() as u64, "shutting down");
                 let _ = shutdown.send(true);
+                stopping.begin_stop();
+                let _ = began.send(tokio::time::Instant::now());
             })
+            .into_future();
+        let deadline = async {
+            if signalled.clone().await.is_err() {
+                // The server ended without a signal (it failed): nothing to bound.
+                return std::future::pending::<()>().await;
+            }
+            tokio::time::sleep(drain).await;
+            tracing::warn!("drain timeout: closing the connections still open");
+            cut.cancel();
+            // Every cut connection fails at its next poll; this only bounds one that is never polled.
+            tokio::time::sleep(Duration::from_secs(1)).await;
+        };
+        let served = tokio::select! {
+            r = serve => r,
+            _ = deadline => Ok(()),
+        };
+        // Running jobs stop at their next check; wait for their hand-back, bounded from the signal.
+        engine.begin_stop();
+        let since = signalled
             .await
+            .unwrap_or_else(|_| tokio::time::Instant::now());
+        let left = engine.stopped(since + drain.max(HAND_BACK_MIN)).await;
+        if left > 0 {
+            tracing::warn!(
+                left,
+                "jobs still running at exit: the next start recovers them"
+            );
+        }
+        served
     }
 }
 

@@ -5,9 +5,14 @@
 //! The async runtime never computes: work goes to the pool and its result comes back through a oneshot
 //! channel. Job state lives in the database; the engine keeps in memory only the cancel flags and memory
 //! reservations of the jobs it is running.
+//!
+//! A graceful stop ([`Engine::begin_stop`]) starts no more jobs and asks the running ones to stop; each one
+//! that stops is handed back to the queue (`running → queued`) without spending an attempt, so rolling
+//! restarts never exhaust a job. Only a crash (the process killed) counts as an attempt.
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
@@ -57,6 +62,10 @@ struct Inner {
     running: Mutex<HashMap<JobId, Running>>,
     wake: Notify,
     events: broadcast::Sender<JobEvent>,
+    /// Set by a graceful stop: no job starts any more, running ones are handed back.
+    stopping: AtomicBool,
+    /// Notified each time a running job is released.
+    released: Notify,
 }
 
 /// What a job run does, with its input resolved (one per running job: its size does not matter).
@@ -143,6 +152,8 @@ impl Engine {
                 running: Mutex::new(HashMap::new()),
                 wake: Notify::new(),
                 events,
+                stopping: AtomicBool::new(false),
+                released: Notify::new(),
             }),
         };
         let scheduler = engine.clone();
@@ -158,6 +169,39 @@ impl Engine {
     /// Tell the scheduler that a job was queued.
     pub fn wake(&self) {
         self.inner.wake.notify_one();
+    }
+
+    /// Begin a graceful stop: start no more jobs and ask the running ones to stop at their next check;
+    /// each one that stops is handed back to the queue without spending an attempt.
+    pub fn begin_stop(&self) {
+        self.inner.stopping.store(true, Ordering::SeqCst);
+        let flags: Vec<Cancel> = match self.inner.running.lock() {
+            Ok(r) => r.values().map(|x| x.cancel.clone()).collect(),
+            Err(_) => Vec::new(),
+        };
+        for flag in flags {
+            flag.cancel();
+        }
+        self.inner.wake.notify_one();
+    }
+
+    fn is_stopping(&self) -> bool {
+        self.inner.stopping.load(Ordering::SeqCst)
+    }
+
+    /// Wait until no job runs, or until `deadline`; returns the number still running then (they stay
+    /// `running` in the database and are recovered at the next start, as after a crash).
+    pub async fn stopped(&self, deadline: tokio::time::Instant) -> usize {
+        loop {
+            let released = self.inner.released.notified();
+            if self.running_count() == 0 {
+                return 0;
+            }
+            tokio::select! {
+                _ = released => {}
+                _ = tokio::time::sleep_until(deadline) => return self.running_count(),
+            }
+        }
     }
 
     /// Number of jobs running now.
@@ -237,7 +281,7 @@ impl Engine {
     }
 
     async fn schedule(self) {
-        loop {
+        while !self.is_stopping() {
             if let Err(e) = self.dispatch().await {
                 tracing::error!(error = %e, "scheduling failed");
             }
@@ -256,6 +300,11 @@ impl Engine {
                 let Ok(mut running) = self.inner.running.lock() else {
                     return Ok(());
                 };
+                // Checked under the lock that `begin_stop` takes to flag the running jobs: a job is either
+                // flagged by it or never registered.
+                if self.is_stopping() {
+                    return Ok(());
+                }
                 if running.contains_key(&id) {
                     continue;
                 }
@@ -294,12 +343,33 @@ impl Engine {
             r.remove(&id);
         }
         self.inner.wake.notify_one();
+        self.inner.released.notify_waiters();
     }
 
     async fn supervise(self, id: JobId) {
         let started = Instant::now();
         let (status, error, result) = self.run(id).await;
         let db = &self.inner.db;
+        if status == JobStatus::Canceled && self.is_stopping() {
+            // Stopped by a graceful stop, unless a client asked to cancel it (that ends canceled).
+            match db.hand_back(id).await {
+                Ok(true) => {
+                    tracing::info!("job handed back to the queue");
+                    self.release(id);
+                    if let Ok(Some(job)) = db.get_job(id).await {
+                        self.publish(&job);
+                    }
+                    return;
+                }
+                Ok(false) => {}
+                Err(e) => {
+                    // Left running: the next start recovers it (counting the attempt, as after a crash).
+                    tracing::error!(error = %e, "handing a job back failed");
+                    self.release(id);
+                    return;
+                }
+            }
+        }
         let ok = db
             .finish(id, status, error.as_ref(), result.as_ref())
             .await

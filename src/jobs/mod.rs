@@ -9,12 +9,13 @@ pub mod model;
 pub mod plan;
 pub mod quality;
 pub mod repo;
+pub mod retention;
 pub mod run;
 pub mod views;
 
 pub use engine::{CancelError, Engine, EngineConfig, JobEvent, StartError};
 pub use model::{
-    Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, SeriesRecord,
+    Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
     SimulationRequest, UploadRecord,
 };
 pub use repo::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter};

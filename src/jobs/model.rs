@@ -1,8 +1,11 @@
 //! The job and dataset model: statuses and their transitions, the typed job and simulation requests,
 //! stored records and results.
 //!
-//! Job states: `queued → running → succeeded | failed | canceled`, plus `queued → canceled`; a crash puts
-//! `running` back to `queued` (or `failed` after too many attempts). Terminal states never change.
+//! Job states: `queued → running → succeeded | failed | canceled`, plus `queued → canceled`. `running →
+//! queued` happens two ways: a graceful hand-back (the server stops and the job stops with it), which spends
+//! no attempt, and recovery after a crash, which keeps the attempt the claim counted (and fails the job with
+//! `attempts_exhausted` once `max_attempts` starts were spent). Terminal states never change. Every
+//! transition is one guarded update in [`super::repo::Db`].
 
 use serde::{Deserialize, Serialize};
 
@@ -158,6 +161,46 @@ pub struct Job {
     pub created_us: i64,
     pub started_us: Option<i64>,
     pub finished_us: Option<i64>,
+}
+
+/// What a job list shows of a job: its state and timestamps, and what its result links need.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobSummary {
+    pub id: JobId,
+    pub kind: String,
+    pub status: JobStatus,
+    /// 0–100.
+    pub progress: u8,
+    pub stage: String,
+    pub created_us: i64,
+    pub started_us: Option<i64>,
+    pub finished_us: Option<i64>,
+    /// The result holds quality metrics.
+    pub has_metrics: bool,
+    /// Indexes of the result's products, in order.
+    pub product_indexes: Vec<usize>,
+}
+
+impl JobSummary {
+    /// The summary of a whole job.
+    pub fn of(job: &Job) -> Self {
+        Self {
+            id: job.id,
+            kind: job.kind.clone(),
+            status: job.status,
+            progress: job.progress,
+            stage: job.stage.clone(),
+            created_us: job.created_us,
+            started_us: job.started_us,
+            finished_us: job.finished_us,
+            has_metrics: job.result.as_ref().is_some_and(|r| r.metrics.is_some()),
+            product_indexes: job
+                .result
+                .iter()
+                .flat_map(|r| r.products.iter().map(|p| p.index))
+                .collect(),
+        }
+    }
 }
 
 /// A file written by a job.

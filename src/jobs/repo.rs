@@ -18,7 +18,8 @@ pub use blobs::{Deleted, SweepReport, sweep_blobs};
 
 use super::cache::JobCache;
 use super::model::{
-    Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, SeriesRecord, UploadRecord, now_us,
+    Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
+    UploadRecord, now_us,
 };
 use crate::error_code::Problem;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
@@ -87,6 +88,13 @@ pub struct JobFilter {
     /// Return jobs older than this one (ids are time-ordered).
     pub before_id: Option<JobId>,
     pub limit: u32,
+}
+
+/// The inputs (datasets, series, jobs) of queued and running jobs: never removed.
+macro_rules! active_inputs {
+    () => {
+        "SELECT dataset_id FROM jobs WHERE status IN ('queued', 'running')"
+    };
 }
 
 #[derive(Clone, Debug)]
@@ -173,6 +181,44 @@ fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
     })
 }
 
+/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
+/// (comma-separated).
+const SUMMARY_COLUMNS: &str =
+    "id, kind, status, progress, stage, created_us, started_us, finished_us,
+    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
+    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
+        AS product_indexes";
+
+fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
+    let id: String = row.try_get("id")?;
+    let status: String = row.try_get("status")?;
+    let progress: i64 = row.try_get("progress")?;
+    let has_metrics: i64 = row.try_get("has_metrics")?;
+    let products: Option<String> = row.try_get("product_indexes")?;
+    let product_indexes = products
+        .iter()
+        .flat_map(|p| p.split(','))
+        .map(|i| {
+            i.trim()
+                .parse::<usize>()
+                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    Ok(JobSummary {
+        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        kind: row.try_get("kind")?,
+        status: JobStatus::parse(&status)
+            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
+        progress: progress.clamp(0, 100) as u8,
+        stage: row.try_get("stage")?,
+        created_us: row.try_get("created_us")?,
+        started_us: row.try_get("started_us")?,
+        finished_us: row.try_get("finished_us")?,
+        has_metrics: has_metrics != 0,
+        product_indexes,
+    })
+}
+
 impl Db {
     /// Open (creating if needed) the database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, DbError> {
@@ -192,6 +238,12 @@ impl Db {
             pool,
             cache: Default::default(),
         })
+    }
+
+    /// A counter that changes after every write of a job (insert, transition, progress, delete): a value
+    /// computed from job rows is current while the counter still has the value read before computing it.
+    pub fn jobs_generation(&self) -> u64 {
+        self.cache.generation()
     }
 
     /// The database answers a trivial query.
@@ -328,6 +380,8 @@ impl Db {
         .execute(&mut *tx)
         .await?;
         tx.commit().await?;
+        // A new job changes every list it falls in.
+        self.cache.invalidate(j.id);
         Ok(Inserted::New)
     }
 
@@ -349,8 +403,25 @@ impl Db {
 
     /// Jobs matching `f`, newest first, at most `f.limit`.
     pub async fn list_jobs(&self, f: &JobFilter) -> Result<Vec<Job>, DbError> {
+        let rows = self.list_rows("*", f).await?;
+        rows.iter().map(job_from_row).collect()
+    }
+
+    /// The summaries of the jobs matching `f`, newest first, at most `f.limit`: neither the request nor the
+    /// result is read, only what the result links need (SQLite's JSON functions look it up).
+    pub async fn list_job_summaries(&self, f: &JobFilter) -> Result<Vec<JobSummary>, DbError> {
+        let rows = self.list_rows(SUMMARY_COLUMNS, f).await?;
+        rows.iter().map(summary_from_row).collect()
+    }
+
+    /// The rows of `columns` (a fixed list) of the jobs matching `f`.
+    async fn list_rows(
+        &self,
+        columns: &'static str,
+        f: &JobFilter,
+    ) -> Result<Vec<SqliteRow>, DbError> {
         // Only fixed fragments enter the SQL text; every value is bound.
-        let mut sql = String::from("SELECT * FROM jobs WHERE 1 = 1");
+        let mut sql = format!("SELECT {columns} FROM jobs WHERE 1 = 1");
         if !f.statuses.is_empty() {
             let marks = vec!["?"; f.statuses.len()].join(", ");
             sql.push_str(&format!(" AND status IN ({marks})"));
@@ -385,8 +456,7 @@ impl Db {
             q = q.bind(id.to_string());
         }
         q = q.bind(f.limit as i64);
-        let rows = q.fetch_all(&self.pool).await?;
-        rows.iter().map(job_from_row).collect()
+        Ok(q.fetch_all(&self.pool).await?)
     }
 
     /// Queued jobs in submission order: `(id, estimate bytes)`.
@@ -417,6 +487,22 @@ impl Db {
              WHERE id = ? AND status = 'queued'",
         )
         .bind(now_us())
+        .bind(id.to_string())
+        .execute(&self.pool)
+        .await?;
+        self.cache.invalidate(id);
+        Ok(done.rows_affected() == 1)
+    }
+
+    /// `running → queued` by a graceful hand-back (the server is stopping): the run is given back, not
+    /// spent, so the attempt its claim counted is returned. False when the job was not running, or was asked
+    /// to cancel (it then ends canceled).
+    pub async fn hand_back(&self, id: JobId) -> Result<bool, DbError> {
+        let done = sqlx::query(
+            "UPDATE jobs SET status = 'queued', stage = 'requeued', progress = 0, started_us = NULL,
+                    attempts = MAX(attempts - 1, 0)
+             WHERE id = ? AND status = 'running' AND cancel_requested = 0",
+        )
         .bind(id.to_string())
         .execute(&self.pool)
         .await?;
@@ -491,8 +577,9 @@ impl Db {
         Ok(())
     }
 
-    /// After a crash: jobs left `running` go back to `queued`, except those asked to cancel (→ canceled)
-    /// and those already started `max_attempts` times (→ failed). Returns `(requeued, failed)`.
+    /// After a crash (or a shutdown that did not get to hand a job back): jobs left `running` go back to
+    /// `queued`, keeping the attempt their claim counted, except those asked to cancel (→ canceled) and those
+    /// already started `max_attempts` times (→ failed). Returns `(requeued, failed)`.
     pub async fn recover(&self, max_attempts: u32) -> Result<(u64, u64), DbError> {
         let now = now_us();
         sqlx::query(
@@ -536,6 +623,110 @@ impl Db {
         .await?;
         self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
+    }
+
+    /// Delete the rows that `sql` (a `DELETE … WHERE … < ? … RETURNING id`) selects with `before_us`, and
+    /// the Idempotency-Key records that name them, in one transaction; returns the ids deleted.
+    async fn delete_returning(
+        &self,
+        sql: &'static str,
+        before_us: i64,
+    ) -> Result<Vec<String>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
+        let ids = rows
+            .iter()
+            .map(|r| r.try_get::<String, _>("id"))
+            .collect::<Result<Vec<_>, _>>()?;
+        for id in &ids {
+            sqlx::query("DELETE FROM idempotency_keys WHERE resource_id = ?")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(ids)
+    }
+
+    /// Retention: delete the jobs that finished before `before_us`, except those a queued or running job
+    /// takes as input; returns their ids (their result files are the caller's to remove).
+    pub async fn delete_jobs_finished_before(&self, before_us: i64) -> Result<Vec<JobId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM jobs WHERE status IN ('succeeded', 'failed', 'canceled') AND finished_us < ?
+                     AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        let ids = ids
+            .iter()
+            .map(|id| JobId::parse(id).map_err(|e| corrupt("jobs", e)))
+            .collect::<Result<Vec<_>, _>>()?;
+        for id in &ids {
+            self.cache.invalidate(*id);
+        }
+        Ok(ids)
+    }
+
+    /// Retention: delete the datasets created before `before_us` that no queued or running job uses.
+    pub async fn delete_datasets_created_before(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<DatasetId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM datasets WHERE created_us < ? AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| DatasetId::parse(id).map_err(|e| corrupt("datasets", e)))
+            .collect()
+    }
+
+    /// Retention: delete the series created before `before_us` that no queued or running job uses.
+    pub async fn delete_series_created_before(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<SeriesId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM series WHERE created_us < ? AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| SeriesId::parse(id).map_err(|e| corrupt("series", e)))
+            .collect()
+    }
+
+    /// Retention: delete the uploads completed before `before_us` that no series comes from any more.
+    pub async fn delete_uploads_without_series(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<UploadId>, DbError> {
+        let ids = self
+            .delete_returning(
+                "DELETE FROM uploads WHERE status = 'completed' AND completed_us < ?
+                 AND id NOT IN (SELECT upload_id FROM series) RETURNING id",
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| UploadId::parse(id).map_err(|e| corrupt("uploads", e)))
+            .collect()
     }
 
     /// Ids of jobs that are not `succeeded` (their result directories may hold partial files).

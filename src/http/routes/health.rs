@@ -39,6 +39,14 @@ pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
 }
 
 pub async fn metrics(State(st): State<AppState>) -> ApiResult<Response> {
+    let store = st.store.clone();
+    if let Ok(held) =
+        tokio::task::spawn_blocking(move || crate::jobs::retention::storage_bytes(&store)).await
+    {
+        for (kind, bytes) in held {
+            metrics::gauge!(names::STORAGE_BYTES, "kind" => kind).set(bytes as f64);
+        }
+    }
     for (status, n) in st.db.counts().await? {
         metrics::gauge!(names::JOBS, "status" => status.as_str()).set(n as f64);
         if status == crate::jobs::JobStatus::Queued {

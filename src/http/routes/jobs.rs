@@ -1,7 +1,8 @@
 //! `POST /v1/jobs`, `GET /v1/jobs`, `GET /v1/jobs/{id}`, `POST /v1/jobs/{id}/cancel`,
 //! `DELETE /v1/jobs/{id}`.
 
-use axum::extract::{Path, State};
+use axum::body::Bytes;
+use axum::extract::{Path, RawQuery, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
@@ -16,13 +17,14 @@ use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us, parse_rfc3339
 use crate::jobs::plan::admit_job;
 use crate::jobs::{
     CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobSpec, JobStatus,
+    JobSummary,
 };
 use crate::storage::JobId;
 
 const ROUTE_JOBS: &str = "POST /v1/jobs";
 
 /// Links of a job: itself, its events, cancel, and its results once it succeeded.
-fn links(job: &Job) -> serde_json::Value {
+fn links(job: &JobSummary) -> serde_json::Value {
     let base = format!("/v1/jobs/{}", job.id);
     let mut l = json!({
         "self": base,
@@ -36,44 +38,136 @@ fn links(job: &Job) -> serde_json::Value {
         l["projection"] = json!(format!("{r}/projection?axis=axial&kind=mip"));
         l["mesh"] = json!(format!("{r}/mesh.stl?iso=<value>"));
         l["series"] = json!(format!("{r}/series.zip"));
-        if let Some(result) = &job.result {
-            if result.metrics.is_some() {
-                l["metrics"] = json!(format!("{r}/metrics"));
-            }
-            if !result.products.is_empty() {
-                l["products"] = json!(
-                    result
-                        .products
-                        .iter()
-                        .map(|p| format!("{r}/products/{}", p.index))
-                        .collect::<Vec<_>>()
-                );
-            }
+        if job.has_metrics {
+            l["metrics"] = json!(format!("{r}/metrics"));
+        }
+        if !job.product_indexes.is_empty() {
+            l["products"] = json!(
+                job.product_indexes
+                    .iter()
+                    .map(|i| format!("{r}/products/{i}"))
+                    .collect::<Vec<_>>()
+            );
         }
     }
     l
 }
 
+/// A field of a job's JSON view. `request` stands for the request's own fields (`input`, `algorithm`,
+/// `grid`, `outputs`; or `input`, `steps`, `products`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Field {
+    Id,
+    Kind,
+    Status,
+    Progress,
+    Stage,
+    CreatedAt,
+    StartedAt,
+    FinishedAt,
+    Links,
+    Attempts,
+    EstimateBytes,
+    Error,
+    Result,
+    Request,
+}
+
+/// Every field with its name in the API, in the order `?fields=` documents them.
+const FIELDS: [(&str, Field); 14] = [
+    ("id", Field::Id),
+    ("kind", Field::Kind),
+    ("status", Field::Status),
+    ("progress", Field::Progress),
+    ("stage", Field::Stage),
+    ("created_at", Field::CreatedAt),
+    ("started_at", Field::StartedAt),
+    ("finished_at", Field::FinishedAt),
+    ("links", Field::Links),
+    ("attempts", Field::Attempts),
+    ("estimate_bytes", Field::EstimateBytes),
+    ("error", Field::Error),
+    ("result", Field::Result),
+    ("request", Field::Request),
+];
+
+/// A set of fields of a job's view.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FieldSet(u16);
+
+impl FieldSet {
+    /// What `GET /v1/jobs` returns by default: id, kind, status, progress, stage, timestamps, links.
+    pub const SUMMARY: FieldSet = FieldSet(0b1_1111_1111);
+    /// The whole job, as `GET /v1/jobs/{id}` returns it.
+    pub const ALL: FieldSet = FieldSet((1 << FIELDS.len()) - 1);
+
+    fn bit(f: Field) -> u16 {
+        1 << (f as u16)
+    }
+
+    fn has(self, f: Field) -> bool {
+        self.0 & Self::bit(f) != 0
+    }
+
+    /// Every field of `self` is in `other`.
+    fn within(self, other: FieldSet) -> bool {
+        self.0 & !other.0 == 0
+    }
+
+    /// The fields named in a comma-separated list (`all` names every field); `Err` names an unknown one.
+    fn parse(list: &str) -> Result<FieldSet, String> {
+        let mut set = FieldSet(0);
+        for name in list.split(',').map(str::trim).filter(|n| !n.is_empty()) {
+            if name == "all" {
+                set = Self::ALL;
+                continue;
+            }
+            let (_, f) = FIELDS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+                format!(
+                    "unknown field `{}`",
+                    name.chars().take(64).collect::<String>()
+                )
+            })?;
+            set.0 |= Self::bit(*f);
+        }
+        Ok(set)
+    }
+
+    /// The view `GET /v1/jobs` answers for `fields` (exactly these, and the id) and `expand` (the summary
+    /// and these); both absent: the summary.
+    pub fn of_query(fields: Option<&str>, expand: Option<&str>) -> Result<FieldSet, String> {
+        let base = match fields {
+            Some(f) => FieldSet(Self::parse(f)?.0 | Self::bit(Field::Id)),
+            None => Self::SUMMARY,
+        };
+        let more = expand.map(Self::parse).transpose()?.unwrap_or(FieldSet(0));
+        Ok(FieldSet(base.0 | more.0))
+    }
+}
+
 /// The JSON view of a job.
 pub fn job_view(job: &Job) -> serde_json::Value {
-    let mut v = json!({
-        "id": job.id,
-        "kind": job.kind,
-        "status": job.status,
-        "progress": job.progress,
-        "stage": job.stage,
-        "attempts": job.attempts,
-        "created_at": rfc3339(job.created_us),
-        "started_at": job.started_us.map(rfc3339),
-        "finished_at": job.finished_us.map(rfc3339),
-        "estimate_bytes": job.estimate_bytes,
-        "error": job.error,
-        "result": job.result,
-        "links": links(job),
+    job_fields(job, FieldSet::ALL)
+}
+
+/// The fields `set` of a job's JSON view (only those are computed).
+pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
+    let mut m = serde_json::Map::new();
+    summary_fields(&mut m, &JobSummary::of(job), set);
+    let mut put = |f: Field, name: &str, v: &dyn Fn() -> serde_json::Value| {
+        if set.has(f) {
+            m.insert(name.to_string(), v());
+        }
+    };
+    put(Field::Attempts, "attempts", &|| json!(job.attempts));
+    put(Field::EstimateBytes, "estimate_bytes", &|| {
+        json!(job.estimate_bytes)
     });
+    put(Field::Error, "error", &|| json!(job.error));
+    put(Field::Result, "result", &|| json!(job.result));
     // The request's own fields (input, algorithm, grid, outputs; or input, steps, products).
-    if let (Some(m), Ok(serde_json::Value::Object(req))) =
-        (v.as_object_mut(), serde_json::to_value(&job.request))
+    if set.has(Field::Request)
+        && let Ok(serde_json::Value::Object(req)) = serde_json::to_value(&job.request)
     {
         for (k, x) in req {
             if k != "kind" {
@@ -81,7 +175,35 @@ pub fn job_view(job: &Job) -> serde_json::Value {
             }
         }
     }
-    v
+    serde_json::Value::Object(m)
+}
+
+/// The fields of `set` that a summary holds.
+fn summary_fields(
+    m: &mut serde_json::Map<String, serde_json::Value>,
+    job: &JobSummary,
+    set: FieldSet,
+) {
+    let mut put = |f: Field, name: &str, v: &dyn Fn() -> serde_json::Value| {
+        if set.has(f) {
+            m.insert(name.to_string(), v());
+        }
+    };
+    put(Field::Id, "id", &|| json!(job.id));
+    put(Field::Kind, "kind", &|| json!(job.kind));
+    put(Field::Status, "status", &|| json!(job.status));
+    put(Field::Progress, "progress", &|| json!(job.progress));
+    put(Field::Stage, "stage", &|| json!(job.stage));
+    put(Field::CreatedAt, "created_at", &|| {
+        json!(rfc3339(job.created_us))
+    });
+    put(Field::StartedAt, "started_at", &|| {
+        json!(job.started_us.map(rfc3339))
+    });
+    put(Field::FinishedAt, "finished_at", &|| {
+        json!(job.finished_us.map(rfc3339))
+    });
+    put(Field::Links, "links", &|| links(job));
 }
 
 fn accepted(job: &Job) -> Response {
@@ -219,12 +341,23 @@ pub struct ListQuery {
     pub limit: Option<u32>,
     /// `next_cursor` of the previous page.
     pub cursor: Option<String>,
+    /// Comma-separated: exactly these fields of each job (and its id).
+    pub fields: Option<String>,
+    /// Comma-separated: the summary and these fields (`all`: the whole job).
+    pub expand: Option<String>,
 }
 
 pub async fn list_jobs(
     State(st): State<AppState>,
+    RawQuery(raw): RawQuery,
     ApiQuery(q): ApiQuery<ListQuery>,
 ) -> ApiResult<Response> {
+    // Read before the rows: a page is reused only while no job was written since.
+    let generation = st.db.jobs_generation();
+    let key = raw.unwrap_or_default();
+    if let Some(body) = st.lists.get(&key, generation) {
+        return Ok(json_bytes(body));
+    }
     let bad = |m: String| api_error(ErrorCode::InvalidQuery, m);
     let mut statuses = Vec::new();
     for s in q.status.iter().flat_map(|s| s.split(',')) {
@@ -248,6 +381,12 @@ pub async fn list_jobs(
         .as_deref()
         .map(|c| JobId::parse(c).map_err(|_| bad("`cursor` is not a cursor from this API".into())))
         .transpose()?;
+    let view = FieldSet::of_query(q.fields.as_deref(), q.expand.as_deref()).map_err(|e| {
+        bad(format!(
+            "{e}; the fields are {} (or `all`)",
+            FIELDS.map(|(n, _)| n).join(", ")
+        ))
+    })?;
     let filter = JobFilter {
         statuses,
         kind: q.kind.clone(),
@@ -256,15 +395,47 @@ pub async fn list_jobs(
         before_id,
         limit: limit + 1,
     };
-    let mut jobs = st.db.list_jobs(&filter).await?;
-    let next = if jobs.len() > limit as usize {
-        jobs.truncate(limit as usize);
-        jobs.last().map(|j| j.id.to_string())
+    // A summary view reads neither requests nor results (most lists: status polls).
+    let (items, next) = if view.within(FieldSet::SUMMARY) {
+        let jobs = st.db.list_job_summaries(&filter).await?;
+        page(
+            &jobs,
+            limit,
+            |j| j.id,
+            |j| {
+                let mut m = serde_json::Map::new();
+                summary_fields(&mut m, j, view);
+                serde_json::Value::Object(m)
+            },
+        )
     } else {
-        None
+        let jobs = st.db.list_jobs(&filter).await?;
+        page(&jobs, limit, |j| j.id, |j| job_fields(j, view))
     };
-    let items: Vec<_> = jobs.iter().map(job_view).collect();
-    Ok(axum::Json(json!({ "jobs": items, "next_cursor": next })).into_response())
+    let body = Bytes::from(
+        serde_json::to_vec(&json!({ "jobs": items, "next_cursor": next })).unwrap_or_default(),
+    );
+    st.lists.put(&key, generation, body.clone());
+    Ok(json_bytes(body))
+}
+
+fn json_bytes(body: Bytes) -> Response {
+    ([(header::CONTENT_TYPE, "application/json")], body).into_response()
+}
+
+/// The first `limit` of `rows` as JSON, and the cursor of the next page (there is one when the query found
+/// more than `limit`).
+fn page<T>(
+    rows: &[T],
+    limit: u32,
+    id: impl Fn(&T) -> JobId,
+    view: impl Fn(&T) -> serde_json::Value,
+) -> (Vec<serde_json::Value>, Option<String>) {
+    let shown = &rows[..rows.len().min(limit as usize)];
+    let next = (rows.len() > limit as usize)
+        .then(|| shown.last().map(|r| id(r).to_string()))
+        .flatten();
+    (shown.iter().map(view).collect(), next)
 }
 
 pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
