@@ -535,6 +535,22 @@ async fn with_tokens_configured_only_bearers_of_a_valid_token_get_in() {
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
+    // The scheme is case-insensitive (RFC 9110), the token is not.
+    for (value, status) in [
+        ("bearer correct-horse-battery", 200),
+        ("BEARER  correct-horse-battery", 200),
+        ("bearer CORRECT-HORSE-BATTERY", 401),
+        ("Basic correct-horse-battery", 401),
+    ] {
+        let r = app
+            .client
+            .get(app.url("/v1/jobs"))
+            .header("authorization", value)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), status, "{value}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
