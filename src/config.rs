@@ -42,6 +42,16 @@ pub fn limit_simd_from_env() -> bool {
     crate::recon::cpu::limit(crate::recon::cpu::Simd::parse(value.as_deref()))
 }
 
+/// `CTRECON_*` variables that are not settings but are read elsewhere: the log format (telemetry), the SIMD
+/// cap (every command, [`limit_simd_from_env`]), the test-data rule of the test suite and the cone case of
+/// the iterative benchmark. Setting them never makes a command refuse to start.
+pub const READ_ELSEWHERE: &[&str] = &[
+    "CTRECON_LOG_FORMAT",
+    "CTRECON_SIMD",
+    "CTRECON_REQUIRE_TEST_DATA",
+    "CTRECON_BENCH_CONE",
+];
+
 /// Everything `ctrecon serve` can be told.
 #[derive(Debug, Clone, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -194,8 +204,7 @@ impl Settings {
             "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
             "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
             "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,
-            // Read by the logger and by the test suite, not settings.
-            "CTRECON_LOG_FORMAT" | "CTRECON_REQUIRE_TEST_DATA" => {}
+            other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
                     name: other.to_string(),
@@ -295,6 +304,42 @@ mod tests {
         assert_eq!(s.cors_origins, ["http://a.test", "http://b.test"]);
         assert!(Settings::load(None, env(&[("CTRECON_NOPE", "1")])).is_err());
         assert!(Settings::load(None, env(&[("CTRECON_MAX_ATTEMPTS", "x")])).is_err());
+    }
+
+    #[test]
+    fn every_documented_environment_variable_is_accepted() {
+        let docs = [
+            include_str!("../README.md"),
+            include_str!("../benches/README.md"),
+            include_str!("../Dockerfile"),
+            include_str!("config.rs"),
+        ];
+        let mut names: Vec<&str> = Vec::new();
+        for d in docs {
+            for (at, _) in d.match_indices("CTRECON_") {
+                let end = d[at..]
+                    .find(|c: char| !(c.is_ascii_uppercase() || c.is_ascii_digit() || c == '_'))
+                    .map_or(d.len(), |e| at + e);
+                names.push(&d[at..end]);
+            }
+        }
+        names.sort_unstable();
+        names.dedup();
+        names.retain(|n| *n != "CTRECON_NOPE" && *n != "CTRECON_");
+        assert!(names.len() >= 20, "{names:?}");
+        for name in names {
+            // A value every setting parses: a number where a number is wanted, else any text.
+            let value = match name {
+                "CTRECON_BIND" => "127.0.0.1:0",
+                "CTRECON_ALLOW_INSECURE" => "true",
+                "CTRECON_MU_WATER_PER_MM" => "0.02",
+                "CTRECON_DATA_DIR" | "CTRECON_LOG_FORMAT" | "CTRECON_SIMD" => "avx2",
+                n if n.ends_with("TOKENS") || n.ends_with("ORIGINS") || n.ends_with("SHA256") => "",
+                _ => "1",
+            };
+            let r = Settings::load(None, env(&[(name, value)]));
+            assert!(r.is_ok(), "{name}={value}: {:?}", r.err());
+        }
     }
 
     #[test]

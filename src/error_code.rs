@@ -79,6 +79,7 @@ catalogue! {
     EmptyImage = ("empty_image", 422, "The image is empty"),
     EncodingFailed = ("encoding_failed", 500, "The image could not be encoded"),
     InvalidMeshOptions = ("invalid_mesh_options", 422, "The mesh options are out of range"),
+    IsoOutOfRange = ("iso_out_of_range", 422, "The iso-value is above every value of the volume"),
     // DICOM uploads and series (the codes of `DicomError` and `SeriesError`).
     UploadNotFound = ("upload_not_found", 404, "No such upload"),
     UploadClosed = ("upload_closed", 409, "The upload is completed: no more instances"),

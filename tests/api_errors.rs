@@ -293,6 +293,9 @@ async fn json_requests_with_bad_syntax_fields_or_values_are_refused_with_their_c
         (json!({"name": "sirt", "iterations": 0}), cube.clone()),
         (json!({"name": "sirt", "relaxation": -1}), cube.clone()),
         (json!({"name": "os_sart", "subsets": 0}), cube.clone()),
+        // Rows of 32 samples are filtered with padding in [2·32 − 1, 2²⁰]: checked here, not when the job runs.
+        (json!({"name": "fdk", "padded_len": 2097152}), cube.clone()),
+        (json!({"name": "fdk", "padded_len": 40}), cube.clone()),
         (
             json!({"name": "fdk"}),
             json!({"nx": 0, "ny": 16, "nz": 16, "spacing_mm": [1, 1, 1]}),
@@ -307,6 +310,27 @@ async fn json_requests_with_bad_syntax_fields_or_values_are_refused_with_their_c
         ),
     ] {
         let body = job(alg.clone(), grid.clone());
+        assert_problem(
+            app.post_json("/v1/jobs", &body).await,
+            422,
+            "invalid_parameter",
+        )
+        .await;
+    }
+    // FBP refuses a parallel beam over 90°: at submission, also for an iterative method that starts from it.
+    let narrow = app
+        .simulate(
+            json!({"type": "parallel", "angles": {"count": 8, "range_deg": 90},
+                   "det_count": 16, "det_spacing_mm": 1.0}),
+            5.0,
+        )
+        .await;
+    for alg in [
+        json!({"name": "fbp"}),
+        json!({"name": "sirt", "initial": "fbp"}),
+    ] {
+        let body = json!({"input": narrow, "algorithm": alg,
+                          "grid": {"nx": 8, "ny": 8, "dx_mm": 1, "dy_mm": 1}});
         assert_problem(
             app.post_json("/v1/jobs", &body).await,
             422,
@@ -535,6 +559,22 @@ async fn with_tokens_configured_only_bearers_of_a_valid_token_get_in() {
         .await
         .unwrap();
     assert_eq!(r.status(), 200);
+    // The scheme is case-insensitive (RFC 9110), the token is not.
+    for (value, status) in [
+        ("bearer correct-horse-battery", 200),
+        ("BEARER  correct-horse-battery", 200),
+        ("bearer CORRECT-HORSE-BATTERY", 401),
+        ("Basic correct-horse-battery", 401),
+    ] {
+        let r = app
+            .client
+            .get(app.url("/v1/jobs"))
+            .header("authorization", value)
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), status, "{value}");
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

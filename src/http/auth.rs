@@ -65,6 +65,14 @@ fn is_public(path: &str) -> bool {
     matches!(path, "/healthz" | "/readyz" | "/openapi.yaml")
 }
 
+/// The token of an `Authorization` value with the `Bearer` scheme; the scheme is case-insensitive (RFC 9110
+/// §11.1) and separated from the token by spaces.
+fn bearer_token(value: &str) -> Option<&str> {
+    let (scheme, token) = value.trim_start().split_once(' ')?;
+    let token = token.trim();
+    (scheme.eq_ignore_ascii_case("bearer") && !token.is_empty()).then_some(token)
+}
+
 /// Middleware: refuse requests without a valid `Authorization: Bearer <token>`.
 pub async fn require_token(State(tokens): State<Tokens>, req: Request, next: Next) -> Response {
     if !tokens.enabled() || is_public(req.uri().path()) {
@@ -74,8 +82,7 @@ pub async fn require_token(State(tokens): State<Tokens>, req: Request, next: Nex
         .headers()
         .get(header::AUTHORIZATION)
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(str::trim);
+        .and_then(bearer_token);
     match token {
         Some(t) if tokens.accepts(t) => next.run(req).await,
         _ => {
@@ -114,5 +121,29 @@ mod tests {
         assert!(!t.accepts("first-secret-token-12"));
         assert!(!t.accepts(""));
         assert!(!Tokens::default().enabled());
+    }
+
+    #[test]
+    fn the_bearer_scheme_is_case_insensitive_and_the_token_is_not() {
+        for v in [
+            "Bearer abc",
+            "bearer abc",
+            "BEARER abc",
+            "bEaReR   abc ",
+            " Bearer abc",
+        ] {
+            assert_eq!(bearer_token(v), Some("abc"), "{v:?}");
+        }
+        assert_eq!(bearer_token("Bearer ABC"), Some("ABC"));
+        for v in [
+            "Basic abc",
+            "Bearerabc",
+            "Bearer",
+            "Bearer   ",
+            "",
+            "Token abc",
+        ] {
+            assert_eq!(bearer_token(v), None, "{v:?}");
+        }
     }
 }

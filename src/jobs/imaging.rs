@@ -167,6 +167,9 @@ pub struct VolumeShape {
     /// `[nz, ny, nx]`.
     pub dim: (usize, usize, usize),
     pub frame: Frame,
+    /// No value of the volume exceeds this, when known (the stored maximum of a series or result; after a
+    /// step, at least 0, which covers the fill of resampling and the borders of smoothing).
+    pub max_value: Option<f32>,
 }
 
 impl VolumeShape {
@@ -432,6 +435,15 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
             m.validate().map_err(|e| {
                 Problem::new(ErrorCode::InvalidMeshOptions, format!("products[{i}]: {e}"))
             })?;
+            if let Some(max) = shape.max_value.filter(|&max| m.iso > max) {
+                return Err(Problem::new(
+                    ErrorCode::IsoOutOfRange,
+                    format!(
+                        "products[{i}]: `iso` {} is above every value of the volume (at most {max}): the surface would be empty",
+                        m.iso
+                    ),
+                ));
+            }
             // Marching cubes keeps a vertex index over two slices plus the mesh; bound it by the volume.
             Ok((Planned::Mesh(*m), shape.voxels() * 4))
         }
@@ -461,6 +473,7 @@ pub fn plan(
                 shape = VolumeShape {
                     dim: (n[2], n[1], n[0]),
                     frame,
+                    max_value: shape.max_value,
                 };
                 peak = peak.max((before + shape.voxels()) * 4);
             }
@@ -474,6 +487,7 @@ pub fn plan(
             }
             Step::Median => peak = peak.max(2 * shape.voxels() * 4),
         }
+        shape.max_value = shape.max_value.map(|m| m.max(0.0));
     }
     let mut products = Vec::with_capacity(req.products.len());
     let mut product_bytes = 0u64;
@@ -524,6 +538,7 @@ pub async fn resolve_input(db: &Db, store: &BlobStore, id: AnyId) -> Result<Volu
             shape: VolumeShape {
                 dim: (r.shape[0], r.shape[1], r.shape[2]),
                 frame: r.frame,
+                max_value: Some(r.hu_max),
             },
             units: VolumeUnits::Hu,
             source_series: Some(sid),
@@ -547,6 +562,7 @@ pub async fn resolve_input(db: &Db, store: &BlobStore, id: AnyId) -> Result<Volu
                 shape: VolumeShape {
                     dim: (r.shape[0], r.shape[1], r.shape[2]),
                     frame: r.frame(),
+                    max_value: Some(r.max),
                 },
                 units: r.units,
                 source_series: r.source_series,
@@ -885,6 +901,7 @@ mod tests {
                 origin_mm: [-12.25, -9.75, 100.0],
                 direction: Frame::AXIS_ALIGNED,
             },
+            max_value: None,
         }
     }
 

@@ -4,9 +4,10 @@
 
 use crate::error_code::{ErrorCode, Problem};
 use crate::recon::ReconError;
-use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, check_grid, estimate_bytes};
+use crate::recon::algorithm::{AlgorithmSpec, FbpParams, OutputGrid, check_grid, estimate_bytes};
 use crate::recon::geometry::Views;
 use crate::recon::grid::Limits;
+use crate::recon::iterative::params::InitialImage;
 use crate::recon::phantom::MAX_BODIES;
 
 use super::model::{Dataset, DatasetKind, JobRequest, SimulationRequest};
@@ -32,18 +33,30 @@ fn count_of_views(views: &Views) -> usize {
 pub fn check_algorithm(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconError> {
     let n_views = count_of_views(views);
     match spec {
-        AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) => {
-            p.validate()?;
-            if let Some(n) = p.padded_len
-                && (n == 0 || n > 1 << 22)
-            {
-                return Err(ReconError::param("padded_len", "must be in 1..=4194304"));
+        // The analytic family: everything FBP/FDK refuse about the orbit and the filtered row length.
+        AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) => crate::recon::analytic::check(views, p)?,
+        // The iterative family: the core's own checks (ranges, subsets against the views, box bounds), and
+        // those of the FBP that starts it when asked to.
+        _ => {
+            crate::recon::iterative::validate(spec, n_views)?;
+            if starts_from_fbp(spec) {
+                crate::recon::analytic::check(views, &FbpParams::default())?;
             }
         }
-        // The iterative family: the core's own checks (ranges, subsets against the views, box bounds).
-        _ => crate::recon::iterative::validate(spec, n_views)?,
     }
     Ok(())
+}
+
+fn starts_from_fbp(spec: &AlgorithmSpec) -> bool {
+    let initial = match spec {
+        AlgorithmSpec::Art(p) => p.initial,
+        AlgorithmSpec::Sart(p) | AlgorithmSpec::OsSart(p) => p.initial,
+        AlgorithmSpec::Sirt(p) => p.initial,
+        AlgorithmSpec::Cgls(p) => p.initial,
+        AlgorithmSpec::Tv(p) => p.initial,
+        AlgorithmSpec::Mlem(_) | AlgorithmSpec::Fbp(_) | AlgorithmSpec::Fdk(_) => return false,
+    };
+    initial == InitialImage::Fbp
 }
 
 fn grid_voxels(grid: &OutputGrid) -> u64 {

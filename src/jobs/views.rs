@@ -368,6 +368,17 @@ fn encode_view(
 
 fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
     let opts = mesh_options(q, ctx.mu_water, ctx.units);
+    let max = vol.data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    if opts.iso > max {
+        return Err(Problem::new(
+            ErrorCode::IsoOutOfRange,
+            format!(
+                "`iso` {} is above every value of the volume (its maximum is {max} in the volume's units): \
+                 the surface would be empty",
+                q.iso
+            ),
+        ));
+    }
     let (mesh, _) = extract(&vol, &opts)
         .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))?;
     let stl = mesh.to_stl_binary();

@@ -1,5 +1,5 @@
-//! Surface meshes: marching cubes, Taubin smoothing, decimation, measurements (area, enclosed volume, closedness),
-//! connected components and binary STL in patient millimetres (LPS).
+//! Surface meshes: marching cubes, Taubin smoothing, decimation, measurements (area, enclosed volume), topology
+//! (closed, manifold, Euler characteristic), connected components and binary STL in patient millimetres (LPS).
 
 mod cases;
 mod decimate;
@@ -7,18 +7,22 @@ mod marching;
 mod pipeline;
 mod smooth;
 mod stl;
+mod topology;
 
 use std::collections::HashMap;
 
 use crate::recon::geometry::vectors::{cross3 as cross, sub3 as sub};
 
 pub use decimate::decimate;
-pub use marching::marching_cubes;
+pub use marching::{SNAP, marching_cubes};
 pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
 pub use smooth::taubin;
 pub use stl::{StlError, parse_stl_binary};
+pub use topology::Topology;
 
 /// A triangle mesh with shared vertices (mm, patient LPS). Triangles wind counter-clockwise seen from outside.
+/// Marching cubes may leave vertices that no triangle uses (merged into another at the same place); the
+/// largest component and decimation drop them, and every measurement counts used vertices only.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Mesh {
     pub vertices: Vec<[f32; 3]>,
@@ -67,20 +71,9 @@ impl Mesh {
             .sum()
     }
 
-    /// True when every edge is shared by exactly two triangles that traverse it in opposite directions (a closed,
-    /// consistently oriented surface).
+    /// True when the mesh is watertight and consistently oriented (see [`Topology`]).
     pub fn is_closed(&self) -> bool {
-        let mut directed: HashMap<(u32, u32), i32> =
-            HashMap::with_capacity(self.triangles.len() * 3);
-        for t in &self.triangles {
-            for k in 0..3 {
-                *directed.entry((t[k], t[(k + 1) % 3])).or_default() += 1;
-            }
-        }
-        !self.triangles.is_empty()
-            && directed
-                .iter()
-                .all(|(&(a, b), &n)| n == 1 && directed.get(&(b, a)) == Some(&1))
+        self.topology().closed
     }
 
     /// The connected component (through shared vertices) with the most triangles; vertices re-indexed.

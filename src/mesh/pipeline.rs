@@ -31,14 +31,25 @@ pub struct MeshOptions {
     pub target_triangles: Option<usize>,
 }
 
-/// What was built.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// What was built, measured on the final mesh (after smoothing and decimation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct MeshStats {
     pub triangles: usize,
+    /// Vertices the triangles use.
     pub vertices: usize,
     pub area_mm2: f64,
     pub volume_mm3: f64,
+    /// Watertight and consistently oriented (see [`super::Topology`]).
     pub closed: bool,
+    /// Every edge in exactly two triangles of opposite orientation, one fan per vertex, no zero-area triangle.
+    #[serde(default)]
+    pub manifold: bool,
+    /// V − E + F: 2 for a sphere-like surface, 0 for a torus (summed over pieces).
+    #[serde(default)]
+    pub euler_characteristic: i64,
+    /// What the surface could not honour: an empty surface, a `target_triangles` not reached.
+    #[serde(default)]
+    pub warnings: Vec<String>,
 }
 
 /// A mesh request that cannot be honoured.
@@ -80,12 +91,16 @@ impl MeshOptions {
 
 impl Mesh {
     pub fn stats(&self) -> MeshStats {
+        let topology = self.topology();
         MeshStats {
             triangles: self.triangle_count(),
-            vertices: self.vertices.len(),
+            vertices: topology.vertices,
             area_mm2: self.area_mm2(),
             volume_mm3: self.volume_mm3(),
-            closed: self.is_closed(),
+            closed: topology.closed,
+            manifold: topology.manifold,
+            euler_characteristic: topology.euler_characteristic,
+            warnings: Vec::new(),
         }
     }
 }
@@ -101,7 +116,20 @@ pub fn extract(vol: &Volume, opts: &MeshOptions) -> Result<(Mesh, MeshStats), Me
     if let Some(t) = opts.target_triangles {
         mesh = decimate(&mesh, t);
     }
-    let stats = mesh.stats();
+    let mut stats = mesh.stats();
+    if mesh.triangles.is_empty() {
+        stats.warnings.push(format!(
+            "the iso-surface at {} is empty: no sample is above it, or the samples equal to it enclose no volume",
+            opts.iso
+        ));
+    }
+    if let Some(t) = opts.target_triangles.filter(|&t| stats.triangles > t) {
+        stats.warnings.push(format!(
+            "target_triangles {t} not reached: decimation stopped at {} triangles, where every further edge \
+             collapse would open, pinch or fold the surface",
+            stats.triangles
+        ));
+    }
     Ok((mesh, stats))
 }
 

@@ -4,6 +4,7 @@
 //! - [`filter`]: Kak–Slaney spatial ramp kernels (flat and equiangular), windows, cut-off, zero padding.
 //! - [`weights`]: which redundancy weighting a scan needs, Parker and Wang weights.
 //! - `fbp2d` / `fdk`: the algorithms ([`fbp_2d`], [`fdk`]); `backproject`: the hot kernels.
+//! - [`check`]: what the algorithms would refuse about a geometry and parameters, checked before any data.
 //!
 //! Every algorithm reads only the canonical per-view geometry; divergent beams must come from a planar
 //! circular orbit with a detector facing the rotation centre (every parametric geometry of ctrecon
@@ -12,6 +13,7 @@
 //! wrong image. Filtering runs in f64, backprojection in f32. Cancel is checked once per view while
 //! filtering and once per image row / view batch while backprojecting; progress is reported per view.
 
+mod admit;
 mod backproject;
 mod fbp2d;
 mod fdk;
@@ -30,6 +32,7 @@ use crate::recon::error::ReconError;
 use crate::recon::geometry::{Views, Views2, Views3};
 use crate::recon::grid::{ImageGrid, VolumeGrid};
 
+pub use admit::check;
 pub use fbp2d::ARC_OVERSAMPLING;
 
 /// Filtered backprojection of a 2D sinogram `[view][u]` (parallel or fan beam) onto `grid`; the result is

@@ -36,9 +36,10 @@ pub enum MatlabSensors {
 }
 
 /// `fanbeam(I, D, 'FanSensorGeometry', …, 'FanSensorSpacing', …, 'FanRotationIncrement', …)` for an
-/// image of `rows × cols` pixels of `pixel_mm`.
+/// image of `rows × cols` pixels of `pixel_mm`. JSON: `{"rows", "cols", "d_px", "sensor_geometry": "arc" |
+/// "line", "sensor_spacing", "rotation_increment_deg", "pixel_mm"}`; unknown fields are refused.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
+#[serde(from = "MatlabFanJson")]
 pub struct MatlabFan {
     pub rows: usize,
     pub cols: usize,
@@ -55,6 +56,47 @@ pub struct MatlabFan {
 
 fn one() -> f64 {
     1.0
+}
+
+/// `sensor_geometry` as JSON spells it.
+#[derive(Debug, Clone, Copy, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum SensorGeometry {
+    Arc,
+    Line,
+}
+
+/// The JSON form of [`MatlabFan`], flat, so that unknown fields can be refused (serde cannot refuse them
+/// beside a flattened enum).
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct MatlabFanJson {
+    rows: usize,
+    cols: usize,
+    d_px: f64,
+    sensor_geometry: SensorGeometry,
+    sensor_spacing: f64,
+    #[serde(default = "one")]
+    rotation_increment_deg: f64,
+    #[serde(default = "one")]
+    pixel_mm: f64,
+}
+
+impl From<MatlabFanJson> for MatlabFan {
+    fn from(j: MatlabFanJson) -> Self {
+        let sensor_spacing = j.sensor_spacing;
+        Self {
+            rows: j.rows,
+            cols: j.cols,
+            d_px: j.d_px,
+            sensors: match j.sensor_geometry {
+                SensorGeometry::Arc => MatlabSensors::Arc { sensor_spacing },
+                SensorGeometry::Line => MatlabSensors::Line { sensor_spacing },
+            },
+            rotation_increment_deg: j.rotation_increment_deg,
+            pixel_mm: j.pixel_mm,
+        }
+    }
 }
 
 impl MatlabFan {
