@@ -19,7 +19,8 @@ const S: [f64; 3] = [0.8, 1.0, 2.0];
 const O: [f64; 3] = [-7.0, -5.0, 40.0];
 
 /// Marker cubes (3 samples a side) centred on lattice indices `[x, y, z]`, with their HU.
-const MARKERS: [([usize; 3], f32); 3] = [([3, 3, 2], 300.0), ([13, 4, 6], 600.0), ([8, 10, 5], 900.0)];
+const MARKERS: [([usize; 3], f32); 3] =
+    [([3, 3, 2], 300.0), ([13, 4, 6], 600.0), ([8, 10, 5], 900.0)];
 
 /// HU of the patient at LPS point `p`: a marker inside its cube, 0 elsewhere.
 fn patient(p: [f64; 3]) -> f32 {
@@ -79,7 +80,11 @@ fn neg(v: [f64; 3]) -> [f64; 3] {
 fn acquisitions() -> Vec<(&'static str, [[f64; 3]; 3], bool)> {
     vec![
         ("head-first supine", [X, Y, Z], false),
-        ("feet-first supine (rows right to left)", [neg(X), Y, neg(Z)], false),
+        (
+            "feet-first supine (rows right to left)",
+            [neg(X), Y, neg(Z)],
+            false,
+        ),
         ("head-first prone", [neg(X), neg(Y), Z], false),
         ("feet-first prone", [X, neg(Y), neg(Z)], false),
         ("rows stored bottom to top", [X, neg(Y), neg(Z)], false),
@@ -303,12 +308,19 @@ async fn a_tilted_series_shows_its_markers_where_the_image_plane_says() {
     let app = spawn_app().await;
     let vol = tilted();
     let series = upload(&app, &vol, "tilted", false).await;
-    assert!((series["tilt_deg"].as_f64().unwrap() - 12.0).abs() < 0.01, "{series}");
+    assert!(
+        (series["tilt_deg"].as_f64().unwrap() - 12.0).abs() < 0.01,
+        "{series}"
+    );
     let job = volume_job(&app, series["id"].as_str().unwrap()).await;
     let id = job["id"].as_str().unwrap();
     // The projection products are the projection views, and say where they lie.
     for (p, axis) in AXES.iter().enumerate() {
-        let (_, product) = image(&app, &format!("/v1/jobs/{id}/result/products/{p}?format=npy")).await;
+        let (_, product) = image(
+            &app,
+            &format!("/v1/jobs/{id}/result/products/{p}?format=npy"),
+        )
+        .await;
         let (_, view) = image(
             &app,
             &format!("/v1/jobs/{id}/result/projection?axis={axis}&kind=mip&format=npy"),
@@ -322,12 +334,15 @@ async fn a_tilted_series_shows_its_markers_where_the_image_plane_says() {
         for (c, v) in MARKERS {
             let p: [f64; 3] = std::array::from_fn(|a| O[a] + c[a] as f64 * S[a]);
             // The index of the marker's plane on the display grid, from the middle image's placement.
-            let png = get_bytes(&app, &format!("/v1/jobs/{id}/result/slice?axis={axis}&index=0")).await;
-            let text = png_text(&png);
-            let plane: Value = serde_json::from_str(
-                &text.iter().find(|(k, _)| k == "ImagePlane").unwrap().1,
+            let png = get_bytes(
+                &app,
+                &format!("/v1/jobs/{id}/result/slice?axis={axis}&index=0"),
             )
-            .unwrap();
+            .await;
+            let text = png_text(&png);
+            let plane: Value =
+                serde_json::from_str(&text.iter().find(|(k, _)| k == "ImagePlane").unwrap().1)
+                    .unwrap();
             let first = |a: usize| plane["first_pixel_mm"][a].as_f64().unwrap();
             let fixed = match axis {
                 "axial" => 2,
@@ -335,9 +350,17 @@ async fn a_tilted_series_shows_its_markers_where_the_image_plane_says() {
                 _ => 0,
             };
             // Display grids are axis-aligned: the fixed coordinate of image `index` grows by the grid step.
-            let png1 = get_bytes(&app, &format!("/v1/jobs/{id}/result/slice?axis={axis}&index=1")).await;
+            let png1 = get_bytes(
+                &app,
+                &format!("/v1/jobs/{id}/result/slice?axis={axis}&index=1"),
+            )
+            .await;
             let plane1: Value = serde_json::from_str(
-                &png_text(&png1).iter().find(|(k, _)| k == "ImagePlane").unwrap().1,
+                &png_text(&png1)
+                    .iter()
+                    .find(|(k, _)| k == "ImagePlane")
+                    .unwrap()
+                    .1,
             )
             .unwrap();
             let d = plane1["first_pixel_mm"][fixed].as_f64().unwrap() - first(fixed);
@@ -351,14 +374,20 @@ async fn a_tilted_series_shows_its_markers_where_the_image_plane_says() {
             )
             .await;
             let plane: Value = serde_json::from_str(
-                &png_text(&png).iter().find(|(k, _)| k == "ImagePlane").unwrap().1,
+                &png_text(&png)
+                    .iter()
+                    .find(|(k, _)| k == "ImagePlane")
+                    .unwrap()
+                    .1,
             )
             .unwrap();
             let g = |k: &str, a: usize| plane[k][a].as_f64().unwrap();
             let rel: Vec<f64> = (0..3).map(|a| p[a] - g("first_pixel_mm", a)).collect();
-            let col = (0..3).map(|a| rel[a] * g("row_direction", a)).sum::<f64>()
-                / g("pixel_mm", 1);
-            let row = (0..3).map(|a| rel[a] * g("column_direction", a)).sum::<f64>()
+            let col =
+                (0..3).map(|a| rel[a] * g("row_direction", a)).sum::<f64>() / g("pixel_mm", 1);
+            let row = (0..3)
+                .map(|a| rel[a] * g("column_direction", a))
+                .sum::<f64>()
                 / g("pixel_mm", 0);
             // Centroid of the marker's bright pixels near where the plane puts it.
             let (rows, cols) = (shape[0], shape[1]);
@@ -374,7 +403,10 @@ async fn a_tilted_series_shows_its_markers_where_the_image_plane_says() {
                     }
                 }
             }
-            assert!(sw > 0.0, "{axis}: marker {c:?} not seen near ({row:.1}, {col:.1})");
+            assert!(
+                sw > 0.0,
+                "{axis}: marker {c:?} not seen near ({row:.1}, {col:.1})"
+            );
             let (cr, cc) = (sr / sw, sc / sw);
             assert!(
                 (cr - row).abs() < 1.0 && (cc - col).abs() < 1.0,
@@ -399,11 +431,14 @@ async fn png_and_dicom_outputs_carry_their_orientation() {
     for (axis, (l, r, t, b), patient_orientation) in want {
         let png = get_bytes(&app, &format!("/v1/jobs/{id}/result/slice?axis={axis}")).await;
         let text = png_text(&png);
-        let o: Value = serde_json::from_str(
-            &text.iter().find(|(k, _)| k == "Orientation").unwrap().1,
-        )
-        .unwrap();
-        assert_eq!(o, json!({"left": l, "right": r, "top": t, "bottom": b}), "{axis}");
+        let o: Value =
+            serde_json::from_str(&text.iter().find(|(k, _)| k == "Orientation").unwrap().1)
+                .unwrap();
+        assert_eq!(
+            o,
+            json!({"left": l, "right": r, "top": t, "bottom": b}),
+            "{axis}"
+        );
         let dcm = get_bytes(
             &app,
             &format!("/v1/jobs/{id}/result/projection?axis={axis}&format=dicom"),
@@ -421,7 +456,11 @@ async fn png_and_dicom_outputs_carry_their_orientation() {
                 .map(|s| s.trim().to_string())
                 .collect::<Vec<_>>()
         };
-        assert_eq!(strs(tags::PATIENT_ORIENTATION), patient_orientation, "{axis}");
+        assert_eq!(
+            strs(tags::PATIENT_ORIENTATION),
+            patient_orientation,
+            "{axis}"
+        );
         let iop: Vec<f64> = strs(tags::IMAGE_ORIENTATION_PATIENT)
             .iter()
             .map(|s| s.parse().unwrap())
@@ -444,7 +483,11 @@ async fn png_and_dicom_outputs_carry_their_orientation() {
             assert!((ipp[2] - top).abs() < 1e-3, "{axis}: {ipp:?}");
         }
         // A product frame too.
-        let dcm = get_bytes(&app, &format!("/v1/jobs/{id}/result/products/3?format=dicom")).await;
+        let dcm = get_bytes(
+            &app,
+            &format!("/v1/jobs/{id}/result/products/3?format=dicom"),
+        )
+        .await;
         let obj = dicom_object::OpenFileOptions::new()
             .from_reader(&dcm[128..])
             .unwrap();
@@ -476,18 +519,30 @@ async fn reconstructions_keep_their_row_convention_and_astra_rows_run_up() {
         let id = job["id"].as_str().unwrap().to_string();
         let done = app.finish(&id).await;
         assert_eq!(done["status"], "succeeded", "{done}");
-        let (shape, vol) = read_npy_f32(&get_bytes(&app, &format!("/v1/jobs/{id}/result/volume.npy")).await);
+        let (shape, vol) =
+            read_npy_f32(&get_bytes(&app, &format!("/v1/jobs/{id}/result/volume.npy")).await);
         assert_eq!(shape, vec![1, 64, 64]);
         let (_, img) = image(&app, &format!("/v1/jobs/{id}/result/slice?format=npy")).await;
         // Without a patient the image is the array as stored.
         assert_eq!(img, vol, "{convention}");
         let png = get_bytes(&app, &format!("/v1/jobs/{id}/result/slice")).await;
         let o: Value = serde_json::from_str(
-            &png_text(&png).iter().find(|(k, _)| k == "Orientation").unwrap().1,
+            &png_text(&png)
+                .iter()
+                .find(|(k, _)| k == "Orientation")
+                .unwrap()
+                .1,
         )
         .unwrap();
-        let (top, bottom) = if convention == "astra" { ("+y", "-y") } else { ("-y", "+y") };
-        assert_eq!(o, json!({"left": "-x", "right": "+x", "top": top, "bottom": bottom}));
+        let (top, bottom) = if convention == "astra" {
+            ("+y", "-y")
+        } else {
+            ("-y", "+y")
+        };
+        assert_eq!(
+            o,
+            json!({"left": "-x", "right": "+x", "top": top, "bottom": bottom})
+        );
         images.push(vol);
     }
     // ASTRA's rows are ctrecon's upside down.

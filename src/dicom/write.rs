@@ -504,15 +504,14 @@ pub fn write_secondary_capture_placed(
             }
         }
     }
-    b
-    .us(tags::SAMPLES_PER_PIXEL, 1)
-    .str(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2")
-    .us(tags::ROWS, h as u16)
-    .us(tags::COLUMNS, w as u16)
-    .us(tags::BITS_ALLOCATED, 8)
-    .us(tags::BITS_STORED, 8)
-    .us(tags::HIGH_BIT, 7)
-    .us(tags::PIXEL_REPRESENTATION, 0);
+    b.us(tags::SAMPLES_PER_PIXEL, 1)
+        .str(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2")
+        .us(tags::ROWS, h as u16)
+        .us(tags::COLUMNS, w as u16)
+        .us(tags::BITS_ALLOCATED, 8)
+        .us(tags::BITS_STORED, 8)
+        .us(tags::HIGH_BIT, 7)
+        .us(tags::PIXEL_REPRESENTATION, 0);
     let pixels: Vec<u8> = img
         .iter()
         .map(|&v| (window.unit(v) * 255.0).round() as u8)

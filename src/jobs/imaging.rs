@@ -24,9 +24,9 @@ use crate::recon::grid::VolumeGrid;
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::storage::{AnyId, BlobStore, JobId, ResultName, SeriesId};
 use crate::volume::{
-    Axis, DisplayGrid, Frame, ImagePlane, MAX_SIDE, Plane, ProjectionKind, ScreenSides, Slab, Volume,
-    curved, direction_label, gaussian, isotropic_grid, median3, oriented_projection, reformat,
-    resample_isotropic, rotating_projection, slab_series,
+    Axis, DisplayGrid, Frame, ImagePlane, MAX_SIDE, Plane, ProjectionKind, ScreenSides, Slab,
+    Volume, curved, direction_label, gaussian, isotropic_grid, median3, oriented_projection,
+    reformat, resample_isotropic, rotating_projection, slab_series,
 };
 
 /// The `kind` of a volume job request.
@@ -789,7 +789,11 @@ fn make_product(
             series,
         } => {
             let (images, first_offset, step) = match series {
-                None => (vec![reformat(vol, plane, *slab, fill).map_err(fail)?], 0.0, None),
+                None => (
+                    vec![reformat(vol, plane, *slab, fill).map_err(fail)?],
+                    0.0,
+                    None,
+                ),
                 Some((spacing, extent)) => {
                     let slab = slab.unwrap_or(Slab {
                         thickness_mm: 0.0,

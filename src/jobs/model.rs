@@ -13,10 +13,10 @@ use crate::error_code::Problem;
 use crate::mesh::MeshStats;
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
 use crate::recon::geometry::Geometry;
+use crate::recon::geometry::vectors::cross3;
 use crate::recon::grid::VolumeGrid;
 use crate::recon::phantom::PhantomSpec;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
-use crate::recon::geometry::vectors::cross3;
 use crate::volume::{Frame, ImagePlane, ScreenSides};
 
 use super::imaging::VolumeJobRequest;

@@ -5,8 +5,8 @@ use ndarray::{Array3, ArrayD, ArrayView3, Axis, Ix3};
 use sha2::{Digest, Sha256};
 
 use super::model::{
-    ImageConvention,
-    Dataset, FileInfo, Job, JobRequest, JobResult, Quality, SimulationRequest, VolumeUnits,
+    Dataset, FileInfo, ImageConvention, Job, JobRequest, JobResult, Quality, SimulationRequest,
+    VolumeUnits,
 };
 use super::plan::recon_problem;
 use super::quality::quality;

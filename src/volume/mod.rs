@@ -20,10 +20,11 @@ pub use frame::{Frame, IndexMap, Volume};
 pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, rotating_projection, slab_series};
 pub use orient::{
     AXIS_ALIGNED_TOLERANCE, DisplayGrid, ImagePlane, Reorientation, ScreenSides, closest_canonical,
-    direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice, to_closest_canonical,
+    direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice,
+    to_closest_canonical,
 };
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
 pub use window::{
-    BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_apng_annotated, encode_png,
-    encode_png_annotated, mu_to_hu,
+    BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_apng_annotated,
+    encode_png, encode_png_annotated, mu_to_hu,
 };

@@ -90,9 +90,9 @@ pub fn to_closest_canonical(vol: Volume) -> Volume {
     let n = [nx, ny, nz];
     // Array axis of index axis a is 2 − a ([k][j][i]); the new array is [z][y][x].
     let arr = |a: usize| 2 - a;
-    let mut data = vol
-        .data
-        .permuted_axes([arr(r.axis_of[2]), arr(r.axis_of[1]), arr(r.axis_of[0])]);
+    let mut data =
+        vol.data
+            .permuted_axes([arr(r.axis_of[2]), arr(r.axis_of[1]), arr(r.axis_of[0])]);
     for c in 0..3 {
         if r.flip[c] {
             data.invert_axis(NdAxis(2 - c));
@@ -265,7 +265,14 @@ impl DisplayGrid {
 
     /// Sample image `index` along `axis` of `vol` on this grid, in display orientation; `fill` outside the
     /// volume.
-    fn sample(&self, vol: &Volume, map: &super::frame::IndexMap, axis: Axis, index: usize, fill: f32) -> Array2<f32> {
+    fn sample(
+        &self,
+        vol: &Volume,
+        map: &super::frame::IndexMap,
+        axis: Axis,
+        index: usize,
+        fill: f32,
+    ) -> Array2<f32> {
         let plane = self.plane(axis, index as f64);
         let (rows, cols) = match axis {
             Axis::Axial => (self.dim.1, self.dim.2),
@@ -329,7 +336,11 @@ impl ImagePlane {
             let c = (0..3)
                 .max_by(|&a, &b| v[a].abs().total_cmp(&v[b].abs()))
                 .unwrap_or(0);
-            format!("{}{}", if v[c] < 0.0 { '-' } else { '+' }, ['x', 'y', 'z'][c])
+            format!(
+                "{}{}",
+                if v[c] < 0.0 { '-' } else { '+' },
+                ['x', 'y', 'z'][c]
+            )
         };
         let neg = |v: V3| v.map(|c| -c);
         ScreenSides {

@@ -81,11 +81,7 @@ fn an_oblique_frame_is_reordered_exactly_and_keeps_its_residual_rotation() {
         frame: Frame {
             spacing_mm: [0.7, 0.7, 2.5],
             origin_mm: [100.0, -50.0, 0.0],
-            direction: [
-                [-1.0, 0.0, 0.0],
-                [0.0, t.cos(), -t.sin()],
-                [0.0, 0.0, -1.0],
-            ],
+            direction: [[-1.0, 0.0, 0.0], [0.0, t.cos(), -t.sin()], [0.0, 0.0, -1.0]],
         },
     };
     let canon = to_closest_canonical(vol.clone());
@@ -139,9 +135,18 @@ fn the_image_plane_gives_the_patient_position_of_every_displayed_pixel() {
     };
     let map = vol.frame.index_map().unwrap();
     for (axis, index) in [(Axis::Axial, 1), (Axis::Coronal, 2), (Axis::Sagittal, 3)] {
-        let (img, plane) = oriented_slice(&vol, &DisplayGrid::of(&vol.frame, vol.data.dim()).unwrap(), axis, index, 0.0).unwrap();
+        let (img, plane) = oriented_slice(
+            &vol,
+            &DisplayGrid::of(&vol.frame, vol.data.dim()).unwrap(),
+            axis,
+            index,
+            0.0,
+        )
+        .unwrap();
         for ((r, c), &v) in img.indexed_iter() {
-            let idx = map.index(plane.position(r as f64, c as f64)).map(|x| x.round() as usize);
+            let idx = map
+                .index(plane.position(r as f64, c as f64))
+                .map(|x| x.round() as usize);
             assert_eq!(vol.data[[idx[0], idx[1], idx[2]]], v, "{axis:?} ({r}, {c})");
         }
     }
@@ -175,7 +180,8 @@ fn an_oblique_volume_is_shown_on_an_axis_aligned_grid_with_markers_where_the_pat
             Axis::Coronal => 1,
             Axis::Sagittal => 0,
         };
-        let index = ((marker[c] - grid.frame.origin_mm[c]) / grid.frame.spacing_mm[c]).round() as usize;
+        let index =
+            ((marker[c] - grid.frame.origin_mm[c]) / grid.frame.spacing_mm[c]).round() as usize;
         let (img, plane) = oriented_slice(&vol, &grid, axis, index, -1.0).unwrap();
         // Centroid of the bright pixels.
         let (mut sr, mut sc, mut sw) = (0.0, 0.0, 0.0);
@@ -190,7 +196,10 @@ fn an_oblique_volume_is_shown_on_an_axis_aligned_grid_with_markers_where_the_pat
         let p = plane.position(sr / sw, sc / sw);
         let in_plane: Vec<usize> = (0..3).filter(|&a| a != c).collect();
         for a in in_plane {
-            assert!((p[a] - marker[a]).abs() < 1.0, "{axis:?}: {p:?} vs {marker:?}");
+            assert!(
+                (p[a] - marker[a]).abs() < 1.0,
+                "{axis:?}: {p:?} vs {marker:?}"
+            );
         }
         // Outside the sheared volume (above and below it in coronal and sagittal images) the fill shows.
         if axis != Axis::Axial {
@@ -214,16 +223,35 @@ fn an_axis_aligned_volume_projects_as_the_array_functions_do() {
         },
     };
     let grid = DisplayGrid::of(&vol.frame, vol.data.dim()).unwrap();
-    let (a, plane) =
-        oriented_projection(&vol, &grid, Axis::Coronal, ProjectionKind::Mean, Some(1..3), 0.0)
-            .unwrap();
-    let b = project(vol.data.view(), Axis::Coronal, ProjectionKind::Mean, Some(1..3)).unwrap();
+    let (a, plane) = oriented_projection(
+        &vol,
+        &grid,
+        Axis::Coronal,
+        ProjectionKind::Mean,
+        Some(1..3),
+        0.0,
+    )
+    .unwrap();
+    let b = project(
+        vol.data.view(),
+        Axis::Coronal,
+        ProjectionKind::Mean,
+        Some(1..3),
+    )
+    .unwrap();
     assert_eq!(a, b);
     // The plane of a slab is its middle.
     assert!(close(plane.first_pixel_mm, [0.0, 1.5, 2.0], 1e-12));
     assert!(
-        oriented_projection(&vol, &grid, Axis::Axial, ProjectionKind::Max, Some(2..4), 0.0)
-            .is_err()
+        oriented_projection(
+            &vol,
+            &grid,
+            Axis::Axial,
+            ProjectionKind::Max,
+            Some(2..4),
+            0.0
+        )
+        .is_err()
     );
 }
 
