@@ -190,8 +190,11 @@ fn slice_index(axis: &str, c: [usize; 3]) -> usize {
 
 const AXES: [&str; 3] = ["axial", "coronal", "sagittal"];
 
+/// A 2D output: the path that asked for it, its shape and its values.
+type Output = (String, Vec<usize>, Vec<f32>);
+
 /// Every 2D output of a job as float images, keyed by what was asked.
-async fn outputs(app: &TestApp, job: &str) -> Vec<(String, Vec<usize>, Vec<f32>)> {
+async fn outputs(app: &TestApp, job: &str) -> Vec<Output> {
     let mut out = Vec::new();
     for axis in AXES {
         for (c, _) in MARKERS {
@@ -217,7 +220,7 @@ async fn outputs(app: &TestApp, job: &str) -> Vec<(String, Vec<usize>, Vec<f32>)
 #[tokio::test]
 async fn every_acquisition_shows_each_marker_at_the_same_screen_pixel() {
     let app = spawn_app().await;
-    let mut reference: Option<Vec<(String, Vec<usize>, Vec<f32>)>> = None;
+    let mut reference: Option<Vec<Output>> = None;
     for (name, direction, reverse) in acquisitions() {
         let vol = acquisition(direction);
         let series = upload(&app, &vol, name, reverse).await;

@@ -680,8 +680,10 @@ pub fn execute_volume(
             index,
             p,
             &req.products[index],
-            fill,
-            input.source_series.is_some(),
+            Looks {
+                fill,
+                patient: input.source_series.is_some(),
+            },
         )?);
     }
     ctl.check()?;
@@ -734,6 +736,14 @@ fn product_kind(p: &ProductSpec) -> &'static str {
     }
 }
 
+/// How a volume's products look: the value outside the volume, and whether the volume is a patient's (patient
+/// directions on screen) or a reconstruction's (its own axes).
+#[derive(Debug, Clone, Copy)]
+struct Looks {
+    fill: f32,
+    patient: bool,
+}
+
 fn make_product(
     store: &BlobStore,
     job: &Job,
@@ -741,9 +751,9 @@ fn make_product(
     index: usize,
     planned: &Planned,
     spec: &ProductSpec,
-    fill: f32,
-    patient: bool,
+    looks: Looks,
 ) -> Result<ProductResult, RunError> {
+    let Looks { fill, patient } = looks;
     let fail = |e: crate::volume::VolumeError| RunError::Failed(volume_problem(&e));
     // The plane of the first frame and the step between frames, for planar products.
     let mut placed: Option<(ImagePlane, Option<f64>)> = None;
