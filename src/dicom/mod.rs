@@ -13,13 +13,14 @@
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
 mod error;
+mod framing;
 mod read;
 mod scan;
 mod upload;
 mod write;
 
 pub use error::DicomError;
-pub use read::{Instance, ReadLimits, read_bytes, read_path};
+pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };

@@ -390,18 +390,21 @@ async fn append(
     {
         return Ok(r);
     }
-    let name = format!("instance-{}", &sha[..12]);
-    // Decode now, so that a broken file is refused at once and never reaches the upload.
-    let (body, series_uid) = {
-        let name = name.clone();
-        st.engine
-            .compute(move || {
-                let inst = read_bytes(&name, &body, &ReadLimits::default())
-                    .map_err(|e| dicom_problem(&e))?;
-                Ok((body, inst.series_uid))
-            })
-            .await?
-    };
+    // Decode now, so that a broken file is refused at once and never reaches the upload. The instance is
+    // labelled in messages by its SOP Instance UID (a body has no file name).
+    let (body, series_uid, name) = st
+        .engine
+        .compute(move || {
+            let inst = read_bytes("the instance", &body, &ReadLimits::default())
+                .map_err(|e| dicom_problem(&e))?;
+            let name = if inst.sop_instance_uid.is_empty() {
+                "an instance without a SOP Instance UID".to_string()
+            } else {
+                inst.sop_instance_uid
+            };
+            Ok((body, inst.series_uid, name))
+        })
+        .await?;
     let (id, new) = match existing {
         Some(id) => (id, false),
         None => {
