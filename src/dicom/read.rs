@@ -307,6 +307,25 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         });
     }
 
+    // RLE: dicom-rs trusts each fragment's 64-byte header (it allocates by the segment count and slices by
+    // the offsets), so the header is checked first.
+    if transfer_syntax == "1.2.840.10008.1.2.5"
+        && let Some(bad) = pixel
+            .fragments()
+            .into_iter()
+            .flatten()
+            .position(|f| !rle_header_fits(f))
+    {
+        return Err(DicomError::Decode {
+            label: label_s,
+            transfer_syntax,
+            reason: format!(
+                "RLE fragment {} has a header whose segment count or offsets do not fit it",
+                bad + 1
+            ),
+        });
+    }
+
     // Decode (codec panics on hostile data become errors).
     let decode_err = |reason: String| DicomError::Decode {
         label: label_s.clone(),
@@ -526,4 +545,28 @@ fn jpeg_colour_declared(jpeg: &[u8]) -> bool {
             ids
         })
         .is_some_and(|ids| ids == b"RGB")
+}
+
+/// Whether an RLE Lossless fragment's header (PS3.5 G.5: a segment count of 1 to 15, then 15 offsets) has
+/// offsets from the end of the header to the end of the fragment, in order.
+fn rle_header_fits(fragment: &[u8]) -> bool {
+    let word = |i: usize| {
+        fragment
+            .get(4 * i..4 * i + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    let (Some(n), true) = (word(0), fragment.len() >= 64) else {
+        return false;
+    };
+    if !(1..=15).contains(&n) {
+        return false;
+    }
+    let mut last = 64;
+    (1..=n).all(|i| {
+        let ok = word(i).is_some_and(|o| o >= last && o <= fragment.len());
+        if let Some(o) = word(i) {
+            last = o;
+        }
+        ok
+    })
 }

@@ -221,11 +221,8 @@ pub(super) fn meta(d: &[u8]) -> Result<Meta, Defect> {
     };
     let mut consumed: u32 = 0;
     let mut transfer_syntax = String::new();
-    loop {
-        let Some(h) = header(d, p, le) else {
-            // Ends inside a header: the parser reports the truncation.
-            break;
-        };
+    // Ending inside a header is left to the parser, which reports the truncation.
+    while let Some(h) = header(d, p, le) {
         match group_length {
             Some(g) if consumed >= g => break,
             None if h.tag.0 != 0x0002 => break,
