@@ -314,13 +314,13 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             .fragments()
             .into_iter()
             .flatten()
-            .position(|f| !rle_header_fits(f))
+            .position(|f| !rle_fragment_fits(f, rows * columns))
     {
         return Err(DicomError::Decode {
             label: label_s,
             transfer_syntax,
             reason: format!(
-                "RLE fragment {} has a header whose segment count or offsets do not fit it",
+                "RLE fragment {} has a header that does not fit it, or a segment shorter than a plane",
                 bad + 1
             ),
         });
@@ -548,8 +548,9 @@ fn jpeg_colour_declared(jpeg: &[u8]) -> bool {
 }
 
 /// Whether an RLE Lossless fragment's header (PS3.5 G.5: a segment count of 1 to 15, then 15 offsets) has
-/// offsets from the end of the header to the end of the fragment, in order.
-fn rle_header_fits(fragment: &[u8]) -> bool {
+/// offsets from the end of the header to the end of the fragment, in order, and every segment unpacks to at
+/// least `plane` bytes (dicom-rs indexes a short segment out of bounds).
+fn rle_fragment_fits(fragment: &[u8], plane: usize) -> bool {
     let word = |i: usize| {
         fragment
             .get(4 * i..4 * i + 4)
@@ -561,12 +562,38 @@ fn rle_header_fits(fragment: &[u8]) -> bool {
     if !(1..=15).contains(&n) {
         return false;
     }
-    let mut last = 64;
-    (1..=n).all(|i| {
-        let ok = word(i).is_some_and(|o| o >= last && o <= fragment.len());
-        if let Some(o) = word(i) {
-            last = o;
+    let mut offsets = Vec::with_capacity(n + 1);
+    for i in 1..=n {
+        match word(i) {
+            Some(o) if o >= offsets.last().copied().unwrap_or(64) && o <= fragment.len() => {
+                offsets.push(o)
+            }
+            _ => return false,
         }
-        ok
-    })
+    }
+    offsets.push(fragment.len());
+    offsets
+        .windows(2)
+        .all(|w| packbits_len(&fragment[w[0]..w[1]], plane) >= plane)
+}
+
+/// Bytes a PackBits segment unpacks to, counting up to `enough`.
+fn packbits_len(segment: &[u8], enough: usize) -> usize {
+    let (mut i, mut out) = (0usize, 0usize);
+    while i < segment.len() && out < enough {
+        let h = segment[i] as i8;
+        i += 1;
+        if h >= 0 {
+            let n = (h as usize + 1).min(segment.len() - i);
+            out += n;
+            i += n;
+        } else if h != -128 {
+            if i >= segment.len() {
+                break;
+            }
+            out += (1 - h as isize) as usize;
+            i += 1;
+        }
+    }
+    out
 }
