@@ -349,9 +349,7 @@ pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
                     p = start;
                     continue;
                 }
-                if h.tag.0 == 0xFFFE {
-                    return Ok(d.len());
-                }
+                // Other item tags here are read by dicom-rs as plain elements (tag and 4-byte length).
                 if h.tag == (0x7FE0, 0x0010) && !defined {
                     open.push((Open::Fragments, None));
                     p = start;
