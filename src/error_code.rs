@@ -90,6 +90,8 @@ catalogue! {
     DicomMissingAttribute = ("dicom_missing_attribute", 422, "A required DICOM attribute is missing"),
     DicomNoPixelData = ("dicom_no_pixel_data", 422, "A DICOM file has no pixel data"),
     DicomUnsupported = ("dicom_unsupported", 422, "A DICOM feature is not supported"),
+    DicomUnsupportedTransferSyntax = ("dicom_unsupported_transfer_syntax", 422, "A DICOM transfer syntax cannot be decoded"),
+    DicomUnsupportedPhotometric = ("dicom_unsupported_photometric", 422, "A DICOM colour image cannot make a volume of grey values"),
     DicomTooLarge = ("dicom_too_large", 413, "A DICOM image exceeds the size limits"),
     DicomPixelDataShort = ("dicom_pixel_data_short", 422, "The pixel data is shorter than declared"),
     DicomDecodeError = ("dicom_decode_error", 422, "The pixel data cannot be decoded"),
@@ -107,6 +109,7 @@ catalogue! {
     SeriesNotCollinear = ("series_not_collinear", 422, "Slice positions do not lie on a line"),
     SeriesMissingSlices = ("series_missing_slices", 422, "Slices are missing from the series"),
     SeriesUnevenSpacing = ("series_uneven_spacing", 422, "The slice spacing is uneven"),
+    SeriesSpacingJump = ("series_spacing_jump", 422, "A gap between slices is too wide to interpolate"),
     SeriesTooLarge = ("series_too_large", 413, "The assembled volume exceeds the size limit"),
     // Protocol.
     IdempotencyKeyReused = ("idempotency_key_reused", 422, "The Idempotency-Key was used with another request"),

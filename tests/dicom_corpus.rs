@@ -91,6 +91,7 @@ fn pydicom_corpus_decodes_like_pydicom_or_is_refused() {
     assert!(all.len() > 100, "{} files", all.len());
     let (mut equal, mut close, mut refused, mut unverified) = (vec![], vec![], vec![], vec![]);
     let mut mismatched = vec![];
+    let mut codes: Vec<(String, &'static str)> = vec![];
     for path in &all {
         let rel = path
             .strip_prefix(&dir)
@@ -115,6 +116,7 @@ fn pydicom_corpus_decodes_like_pydicom_or_is_refused() {
                 // Typed and clear: a stable code and a message naming the file.
                 assert!(e.code().starts_with("dicom_") || e.code().starts_with("zip_"));
                 assert!(e.to_string().contains(&rel), "{e}");
+                codes.push((rel.clone(), e.code()));
                 refused.push(format!("{rel} [{}]: {e}", e.code()));
             }
             (Ok(inst), Some("ok")) => {
@@ -201,4 +203,29 @@ fn pydicom_corpus_decodes_like_pydicom_or_is_refused() {
     ] {
         assert!(equal.iter().any(|e| e == must), "{must} not decoded equal");
     }
+    let code_of = |rel: &str| codes.iter().find(|(r, _)| r == rel).map(|(_, c)| *c);
+    // Without CharLS in the build, JPEG-LS (lossless and near-lossless) is refused by name.
+    for jls in [
+        "MR_small_jpeg_ls_lossless.dcm",
+        "JPEGLSNearLossless_08.dcm",
+        "JPEGLSNearLossless_16.dcm",
+        "SC_rgb_jls_lossy_line.dcm",
+        "SC_rgb_jls_lossy_sample.dcm",
+    ] {
+        assert_eq!(
+            code_of(jls),
+            Some("dicom_unsupported_transfer_syntax"),
+            "{jls}"
+        );
+    }
+    // Raw data sets (no preamble, DICM or meta group), explicit VR in either byte order, are parsed as
+    // pydicom's `force=True` reads them: these two hold no image, which is now what refuses them.
+    for raw in ["ExplVR_LitEndNoMeta.dcm", "ExplVR_BigEndNoMeta.dcm"] {
+        assert_eq!(code_of(raw), Some("dicom_no_pixel_data"), "{raw}");
+    }
+    // A meta group without its group length is read.
+    assert_eq!(
+        code_of("no_meta_group_length.dcm"),
+        Some("dicom_no_pixel_data")
+    );
 }

@@ -15,6 +15,20 @@ pub enum DicomError {
     NoPixelData { label: String },
     #[error("{label}: unsupported {what}")]
     Unsupported { label: String, what: String },
+    #[error("{label}: transfer syntax {uid} ({name}) cannot be decoded here")]
+    UnsupportedTransferSyntax {
+        label: String,
+        uid: String,
+        name: String,
+    },
+    #[error(
+        "{label}: photometric interpretation {photometric} cannot be read as grey values{hint}"
+    )]
+    UnsupportedPhotometric {
+        label: String,
+        photometric: String,
+        hint: &'static str,
+    },
     #[error("{label}: image of {detail} exceeds the limit of {limit}")]
     TooLarge {
         label: String,
@@ -65,6 +79,8 @@ impl DicomError {
             DicomError::MissingAttribute { .. } => "dicom_missing_attribute",
             DicomError::NoPixelData { .. } => "dicom_no_pixel_data",
             DicomError::Unsupported { .. } => "dicom_unsupported",
+            DicomError::UnsupportedTransferSyntax { .. } => "dicom_unsupported_transfer_syntax",
+            DicomError::UnsupportedPhotometric { .. } => "dicom_unsupported_photometric",
             DicomError::TooLarge { .. } => "dicom_too_large",
             DicomError::PixelDataShort { .. } => "dicom_pixel_data_short",
             DicomError::Decode { .. } => "dicom_decode_error",

@@ -15,6 +15,7 @@
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
 mod error;
+mod framing;
 mod read;
 mod scan;
 mod unzip;
@@ -22,7 +23,7 @@ mod upload;
 mod write;
 
 pub use error::DicomError;
-pub use read::{Instance, ReadLimits, read_bytes, read_path};
+pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,

@@ -8,9 +8,10 @@ use dicom_dictionary_std::tags;
 use dicom_object::file::ReadPreamble;
 use dicom_object::{InMemDicomObject, OpenFileOptions};
 use dicom_pixeldata::PixelDecoder;
+use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry};
 
 use super::error::DicomError;
-use super::scan;
+use super::framing::{self, FramingError};
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -32,6 +33,9 @@ impl Default for ReadLimits {
         }
     }
 }
+
+/// Room for the attributes beside the pixel data when a deflated data set is inflated (bytes).
+const MAX_HEADER_BYTES: usize = 64 << 20;
 
 /// A decoded DICOM image file.
 #[derive(Debug, Clone, PartialEq)]
@@ -116,34 +120,57 @@ pub fn read_path(path: &Path, limits: &ReadLimits) -> Result<Instance, DicomErro
     read_bytes(&label, &bytes, limits)
 }
 
-/// Read one DICOM Part 10 file held in memory. `label` names it in messages.
+/// The fuzz target's entry point (and the regression replay's): [`read_bytes`] under limits of 64 MiB of pixels.
+/// Every outcome but a panic is fine.
+#[doc(hidden)]
+pub fn fuzz_entry(data: &[u8]) {
+    let limits = ReadLimits {
+        max_pixel_bytes: 64 << 20,
+        ..ReadLimits::default()
+    };
+    let _ = read_bytes("fuzz input", data, &limits);
+}
+
+/// Read one DICOM file held in memory (Part 10, or a raw data set as pydicom reads with `force=True`). `label` names it
+/// in messages.
 pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Instance, DicomError> {
     let label_s = label.to_string();
-    let (preamble, body) = if bytes.len() >= 132 && &bytes[128..132] == b"DICM" {
-        (ReadPreamble::Always, bytes)
-    } else if bytes.len() >= 4 && &bytes[..4] == b"DICM" {
-        (ReadPreamble::Never, bytes)
-    } else {
-        return Err(DicomError::NotDicom { label: label_s });
+    // Framing and the pre-parse walk: no declared length past the end, no runaway nesting.
+    let framed = framing::frame(
+        bytes,
+        limits.max_pixel_bytes.saturating_add(MAX_HEADER_BYTES),
+    )
+    .map_err(|e| match e {
+        FramingError::NotDicom => DicomError::NotDicom {
+            label: label_s.clone(),
+        },
+        FramingError::Defect(d) => DicomError::Parse {
+            label: label_s.clone(),
+            reason: d.to_string(),
+        },
+    })?;
+    // A transfer syntax the registry does not know, or whose data set it cannot decode, is named as such.
+    let unsupported_ts = |name: &str| DicomError::UnsupportedTransferSyntax {
+        label: label_s.clone(),
+        uid: framed.transfer_syntax.clone(),
+        name: name.to_string(),
     };
-    // Declared lengths must fit in the file before the parser allocates for them.
-    let after_marker = if preamble == ReadPreamble::Always {
-        &bytes[132..]
-    } else {
-        &bytes[4..]
-    };
-    if let Some((group, element, declared, left)) = scan::overrun(after_marker) {
+    if framed.transfer_syntax.is_empty() {
         return Err(DicomError::Parse {
             label: label_s,
-            reason: format!(
-                "element ({group:04X},{element:04X}) declares {declared} bytes but only {left} remain (truncated or corrupt)"
-            ),
+            reason: "the file meta group ends before its Transfer Syntax UID (0002,0010)".into(),
         });
+    }
+    let ts_entry = TransferSyntaxRegistry
+        .get(&framed.transfer_syntax)
+        .ok_or_else(|| unsupported_ts("not a known transfer syntax"))?;
+    if !ts_entry.can_decode_dataset() {
+        return Err(unsupported_ts(ts_entry.name()));
     }
     let parse = || {
         OpenFileOptions::new()
-            .read_preamble(preamble)
-            .from_reader(body)
+            .read_preamble(ReadPreamble::Never)
+            .from_reader(&framed.bytes[..])
     };
     let obj = match catch_unwind(AssertUnwindSafe(parse)) {
         Ok(Ok(o)) => o,
@@ -160,11 +187,8 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             });
         }
     };
-    let transfer_syntax = obj
-        .meta()
-        .transfer_syntax()
-        .trim_end_matches('\0')
-        .to_string();
+    // As framed: a deflated data set reaches the parser inflated, and keeps its own name.
+    let transfer_syntax = framed.transfer_syntax.clone();
     let missing = |what| DicomError::MissingAttribute {
         label: label_s.clone(),
         what,
@@ -185,10 +209,13 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         })?;
     let rows = int(&obj, tags::ROWS).ok_or_else(|| missing("Rows (0028,0010)"))?;
     let columns = int(&obj, tags::COLUMNS).ok_or_else(|| missing("Columns (0028,0011)"))?;
-    let frames = match int(&obj, tags::NUMBER_OF_FRAMES) {
+    // Absent means one frame; present but unreadable, zero or negative is refused, never taken as one.
+    let frames = match obj.element_opt(tags::NUMBER_OF_FRAMES).ok().flatten() {
         None => 1,
-        Some(f) if f >= 1 => f,
-        Some(_) => return Err(missing("Number of Frames (0028,0008)")),
+        Some(e) => match e.to_int::<i64>() {
+            Ok(f) if f >= 1 => f,
+            _ => return Err(missing("Number of Frames (0028,0008)")),
+        },
     };
     let spp = int(&obj, tags::SAMPLES_PER_PIXEL).unwrap_or(1);
     let bits_allocated =
@@ -235,14 +262,23 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         frames as usize,
         spp as usize,
     );
-    let expected = rows * columns * frames * spp * (bits_allocated as usize / 8);
-    if expected > limits.max_pixel_bytes {
-        return Err(too_large(
-            format!("{expected} bytes of pixels"),
-            format!("{} bytes", limits.max_pixel_bytes),
-        ));
-    }
+    let expected = rows
+        .checked_mul(columns)
+        .and_then(|v| v.checked_mul(frames))
+        .and_then(|v| v.checked_mul(spp))
+        .and_then(|v| v.checked_mul(bits_allocated as usize / 8))
+        .filter(|&v| v <= limits.max_pixel_bytes)
+        .ok_or_else(|| {
+            too_large(
+                format!("{rows}×{columns} pixels × {frames} frames × {spp} samples × {bits_allocated} bits"),
+                format!("{} bytes", limits.max_pixel_bytes),
+            )
+        })?;
     let encapsulated = pixel.fragments().is_some();
+    // JPEG-LS (no CharLS in this build) and other codecs dicom-pixeldata lacks.
+    if encapsulated && !ts_entry.can_decode_all() {
+        return Err(unsupported_ts(ts_entry.name()));
+    }
     if !encapsulated {
         let got = pixel.to_bytes().map(|b| b.len()).unwrap_or(0);
         if got < expected {
@@ -268,6 +304,25 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         return Err(DicomError::Unsupported {
             label: label_s,
             what: "RGB JPEG without a colour-transform marker (Adobe APP14 or JFIF)".into(),
+        });
+    }
+
+    // RLE: dicom-rs trusts each fragment's 64-byte header (it allocates by the segment count and slices by
+    // the offsets), so the header is checked first.
+    if transfer_syntax == "1.2.840.10008.1.2.5"
+        && let Some(bad) = pixel
+            .fragments()
+            .into_iter()
+            .flatten()
+            .position(|f| !rle_fragment_fits(f, rows * columns))
+    {
+        return Err(DicomError::Decode {
+            label: label_s,
+            transfer_syntax,
+            reason: format!(
+                "RLE fragment {} has a header that does not fit it, or a segment shorter than a plane",
+                bad + 1
+            ),
         });
     }
 
@@ -330,6 +385,7 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
     let padding = float(&obj, tags::PIXEL_PADDING_VALUE)
         .map(|p| (p, float(&obj, tags::PIXEL_PADDING_RANGE_LIMIT).unwrap_or(p)));
     let mut slices = Vec::with_capacity(frames);
+    let mut rescale_missing = false;
     for f in 0..frames {
         let g = per_frame.and_then(|p| p.get(f));
         let from_group =
@@ -353,20 +409,20 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         let thickness = from_group(tags::PIXEL_MEASURES_SEQUENCE, tags::SLICE_THICKNESS)
             .and_then(|v| v.first().copied())
             .or_else(|| float(&obj, tags::SLICE_THICKNESS));
-        let slope = from_group(
+        let stated_slope = from_group(
             tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
             tags::RESCALE_SLOPE,
         )
         .and_then(|v| v.first().copied())
-        .or_else(|| float(&obj, tags::RESCALE_SLOPE))
-        .unwrap_or(1.0);
-        let intercept = from_group(
+        .or_else(|| float(&obj, tags::RESCALE_SLOPE));
+        let stated_intercept = from_group(
             tags::PIXEL_VALUE_TRANSFORMATION_SEQUENCE,
             tags::RESCALE_INTERCEPT,
         )
         .and_then(|v| v.first().copied())
-        .or_else(|| float(&obj, tags::RESCALE_INTERCEPT))
-        .unwrap_or(0.0);
+        .or_else(|| float(&obj, tags::RESCALE_INTERCEPT));
+        rescale_missing |= stated_slope.is_none() || stated_intercept.is_none();
+        let (slope, intercept) = (stated_slope.unwrap_or(1.0), stated_intercept.unwrap_or(0.0));
         let raw = &data[f * frame_bytes..(f + 1) * frame_bytes];
         let stored: Vec<f32> = match bytes_per {
             1 => raw.iter().map(|&b| convert(b as u64)).collect(),
@@ -403,6 +459,41 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         });
     }
     let mut warnings = Vec::new();
+    let modality = text(&obj, tags::MODALITY);
+    if rescale_missing && modality.as_deref() == Some("CT") {
+        warnings.push(Warning {
+            code: "rescale_assumed",
+            message: format!(
+                "{label}: no Rescale Slope/Intercept (0028,1053/1052): stored values taken as HU (slope 1, intercept 0)"
+            ),
+        });
+    }
+    if series_uid.is_empty() {
+        warnings.push(Warning {
+            code: "series_uid_missing",
+            message: format!(
+                "{label}: no Series Instance UID (0020,000E): grouped with the other files that lack one"
+            ),
+        });
+    }
+    if framed.raw_dataset {
+        warnings.push(Warning {
+            code: "transfer_syntax_guessed",
+            message: format!(
+                "{label}: no preamble, DICM marker or file meta group: read as {} from its first element",
+                framed.transfer_syntax
+            ),
+        });
+    }
+    if framed.trailing_bytes > 0 {
+        warnings.push(Warning {
+            code: "trailing_bytes_ignored",
+            message: format!(
+                "{label}: {} bytes of padding after the data set were ignored",
+                framed.trailing_bytes
+            ),
+        });
+    }
     if photometric == "MONOCHROME1" {
         warnings.push(Warning {
             code: "monochrome1",
@@ -417,7 +508,7 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         series_uid,
         study_uid: text(&obj, tags::STUDY_INSTANCE_UID),
         frame_of_reference_uid: text(&obj, tags::FRAME_OF_REFERENCE_UID),
-        modality: text(&obj, tags::MODALITY),
+        modality,
         transfer_syntax,
         photometric,
         samples_per_pixel: decoded_spp as u16,
@@ -454,4 +545,55 @@ fn jpeg_colour_declared(jpeg: &[u8]) -> bool {
             ids
         })
         .is_some_and(|ids| ids == b"RGB")
+}
+
+/// Whether an RLE Lossless fragment's header (PS3.5 G.5: a segment count of 1 to 15, then 15 offsets) has
+/// offsets from the end of the header to the end of the fragment, in order, and every segment unpacks to at
+/// least `plane` bytes (dicom-rs indexes a short segment out of bounds).
+fn rle_fragment_fits(fragment: &[u8], plane: usize) -> bool {
+    let word = |i: usize| {
+        fragment
+            .get(4 * i..4 * i + 4)
+            .map(|b| u32::from_le_bytes([b[0], b[1], b[2], b[3]]) as usize)
+    };
+    let (Some(n), true) = (word(0), fragment.len() >= 64) else {
+        return false;
+    };
+    if !(1..=15).contains(&n) {
+        return false;
+    }
+    let mut offsets = Vec::with_capacity(n + 1);
+    for i in 1..=n {
+        match word(i) {
+            Some(o) if o >= offsets.last().copied().unwrap_or(64) && o <= fragment.len() => {
+                offsets.push(o)
+            }
+            _ => return false,
+        }
+    }
+    offsets.push(fragment.len());
+    offsets
+        .windows(2)
+        .all(|w| packbits_len(&fragment[w[0]..w[1]], plane) >= plane)
+}
+
+/// Bytes a PackBits segment unpacks to, counting up to `enough`.
+fn packbits_len(segment: &[u8], enough: usize) -> usize {
+    let (mut i, mut out) = (0usize, 0usize);
+    while i < segment.len() && out < enough {
+        let h = segment[i] as i8;
+        i += 1;
+        if h >= 0 {
+            let n = (h as usize + 1).min(segment.len() - i);
+            out += n;
+            i += n;
+        } else if h != -128 {
+            if i >= segment.len() {
+                break;
+            }
+            out += (1 - h as isize) as usize;
+            i += 1;
+        }
+    }
+    out
 }

@@ -1,30 +1,112 @@
-//! A pre-parse walk over element headers: every declared value length must fit in the bytes that remain, so a
-//! hostile header cannot make the parser allocate far more memory than the file holds.
+//! A pre-parse walk over element headers that mirrors how dicom-rs will read the same bytes: every declared
+//! value length must fit in the bytes that remain and sequences may nest only so deep, so a hostile header
+//! can neither make the parser allocate far more memory than the file holds nor recurse until the stack
+//! overflows.
+//!
+//! The walk follows dicom-rs 0.10's rules: the file meta group is read while the bytes consumed are below
+//! its group length (0002,0000); in explicit VR, the VRs with a 2-byte length are exactly the 21 of PS3.5
+//! Table 7.1-2 and every other VR, unknown ones included, has 2 reserved bytes and a 4-byte length; in
+//! implicit VR the data dictionary gives the VR; an undefined length opens a sequence, except on Pixel Data
+//! where it opens a run of fragments.
 
-/// The first element (group, element, declared length, bytes left) whose value runs past the end of the file.
-pub(super) type Overrun = (u16, u16, u64, usize);
+use dicom_core::dictionary::{DataDictionary, DataDictionaryEntry};
+use dicom_core::{Tag, VR};
+use dicom_dictionary_std::StandardDataDictionary;
+
+/// Deepest nesting of sequences accepted. Real files nest a few levels (Enhanced CT: three or four).
+pub(super) const MAX_SEQUENCE_DEPTH: usize = 32;
 
 const UNDEFINED: u32 = u32::MAX;
 
-/// Walk `data` (a Part 10 stream after the `DICM` marker). `None` when all lengths fit or the stream ends early
-/// in a header (the parser reports that), `Some` with the first overrun otherwise. Deflated data sets are not
-/// walked.
-pub(super) fn overrun(data: &[u8]) -> Option<Overrun> {
-    let (start, ts) = match walk_meta(data) {
-        Ok(m) => m,
-        Err(o) => return Some(o),
-    };
-    let (explicit, big) = match ts.as_str() {
-        "1.2.840.10008.1.2" => (false, false),
-        "1.2.840.10008.1.2.2" => (true, true),
-        "1.2.840.10008.1.2.1.99" => return None,
-        _ => (true, false),
-    };
-    walk(&data[start..], explicit, big)
+/// What the walk found wrong before the parser saw it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) enum Defect {
+    /// Element (group, element) declares more bytes than remain.
+    Overrun {
+        tag: (u16, u16),
+        declared: u64,
+        left: usize,
+    },
+    /// Sequences nest deeper than [`MAX_SEQUENCE_DEPTH`] at element (group, element).
+    TooDeep { tag: (u16, u16) },
+    /// An item inside encapsulated pixel data has an undefined length.
+    UndefinedFragment,
+    /// A deflated data set is not a valid deflate stream.
+    Inflate,
+    /// A deflated data set inflates past the limit (bytes).
+    InflatesTooFar { limit: usize },
+}
+
+impl std::fmt::Display for Defect {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Defect::Overrun {
+                tag: (g, e),
+                declared,
+                left,
+            } => write!(
+                f,
+                "element ({g:04X},{e:04X}) declares {declared} bytes but only {left} remain (truncated or corrupt)"
+            ),
+            Defect::TooDeep { tag: (g, e) } => write!(
+                f,
+                "sequence ({g:04X},{e:04X}) nests deeper than {MAX_SEQUENCE_DEPTH} levels"
+            ),
+            Defect::UndefinedFragment => {
+                write!(f, "a pixel data fragment has an undefined length")
+            }
+            Defect::Inflate => write!(f, "the deflated data set is not a valid deflate stream"),
+            Defect::InflatesTooFar { limit } => {
+                write!(
+                    f,
+                    "the deflated data set inflates to more than {limit} bytes"
+                )
+            }
+        }
+    }
+}
+
+/// How a data set is encoded.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) struct Encoding {
+    pub explicit: bool,
+    pub big_endian: bool,
+}
+
+impl Encoding {
+    /// The encoding of a transfer syntax; `None` for a deflated data set (walked after inflation, if at all).
+    pub fn of(transfer_syntax: &str) -> Option<Self> {
+        match transfer_syntax {
+            "1.2.840.10008.1.2" => Some(Self {
+                explicit: false,
+                big_endian: false,
+            }),
+            "1.2.840.10008.1.2.2" => Some(Self {
+                explicit: true,
+                big_endian: true,
+            }),
+            "1.2.840.10008.1.2.1.99" | "1.2.840.10008.1.2.4.95" => None,
+            _ => Some(Self {
+                explicit: true,
+                big_endian: false,
+            }),
+        }
+    }
+}
+
+/// The file meta group as dicom-rs reads it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(super) struct Meta {
+    /// Offset of the data set (after the meta group) from the start of the walked bytes.
+    pub end: usize,
+    /// Transfer syntax UID, trimmed of padding.
+    pub transfer_syntax: String,
+    /// Whether the group opens with its group length (0002,0000), as dicom-rs requires.
+    pub group_length: bool,
 }
 
 fn u16_at(d: &[u8], p: usize, big: bool) -> Option<u16> {
-    let b = [*d.get(p)?, *d.get(p + 1)?];
+    let b = [*d.get(p)?, *d.get(p.checked_add(1)?)?];
     Some(if big {
         u16::from_be_bytes(b)
     } else {
@@ -33,7 +115,8 @@ fn u16_at(d: &[u8], p: usize, big: bool) -> Option<u16> {
 }
 
 fn u32_at(d: &[u8], p: usize, big: bool) -> Option<u32> {
-    let b = [*d.get(p)?, *d.get(p + 1)?, *d.get(p + 2)?, *d.get(p + 3)?];
+    let b = d.get(p..p.checked_add(4)?)?;
+    let b = [b[0], b[1], b[2], b[3]];
     Some(if big {
         u32::from_be_bytes(b)
     } else {
@@ -41,129 +124,312 @@ fn u32_at(d: &[u8], p: usize, big: bool) -> Option<u32> {
     })
 }
 
-/// VRs with a 4-byte length in explicit VR encodings.
-fn long_vr(vr: [u8; 2]) -> bool {
+/// VRs with a 2-byte length in explicit VR encodings (PS3.5 Table 7.1-2), as dicom-rs decodes them.
+fn short_length(vr: [u8; 2]) -> bool {
     matches!(
         &vr,
-        b"OB"
-            | b"OD"
-            | b"OF"
-            | b"OL"
-            | b"OV"
-            | b"OW"
-            | b"SQ"
-            | b"SV"
-            | b"UC"
-            | b"UN"
-            | b"UR"
-            | b"UT"
-            | b"UV"
+        b"AE"
+            | b"AS"
+            | b"AT"
+            | b"CS"
+            | b"DA"
+            | b"DS"
+            | b"DT"
+            | b"FL"
+            | b"FD"
+            | b"IS"
+            | b"LO"
+            | b"LT"
+            | b"PN"
+            | b"SH"
+            | b"SL"
+            | b"SS"
+            | b"ST"
+            | b"TM"
+            | b"UI"
+            | b"UL"
+            | b"US"
     )
 }
 
-/// Walk the group 0002 elements (explicit VR little endian); returns where the data set starts and the
-/// transfer syntax UID.
-fn walk_meta(d: &[u8]) -> Result<(usize, String), Overrun> {
-    let mut p = 0;
-    let mut ts = String::new();
-    while let (Some(group), Some(element)) = (u16_at(d, p, false), u16_at(d, p + 2, false)) {
-        if group != 0x0002 {
-            break;
-        }
-        let vr = [
-            d.get(p + 4).copied().unwrap_or(0),
-            d.get(p + 5).copied().unwrap_or(0),
-        ];
-        let (len, header) = if long_vr(vr) {
-            (u32_at(d, p + 8, false).unwrap_or(0), 12)
+/// An element header: tag, whether it opens a sequence, value length and header size.
+struct Header {
+    tag: (u16, u16),
+    sequence: bool,
+    len: u32,
+    size: usize,
+}
+
+/// The header at `p`; `None` when the bytes end inside it.
+fn header(d: &[u8], p: usize, enc: Encoding) -> Option<Header> {
+    let big = enc.big_endian;
+    let tag = (u16_at(d, p, big)?, u16_at(d, p + 2, big)?);
+    if tag.0 == 0xFFFE {
+        return Some(Header {
+            tag,
+            sequence: false,
+            len: u32_at(d, p + 4, big)?,
+            size: 8,
+        });
+    }
+    if enc.explicit {
+        let vr = [*d.get(p + 4)?, *d.get(p + 5)?];
+        if short_length(vr) {
+            Some(Header {
+                tag,
+                sequence: false,
+                len: u16_at(d, p + 6, big)? as u32,
+                size: 8,
+            })
         } else {
-            (u16_at(d, p + 6, false).unwrap_or(0) as u32, 8)
-        };
-        let left = d.len().saturating_sub(p + header);
-        if len as usize > left {
-            return Err((group, element, len as u64, left));
+            Some(Header {
+                tag,
+                sequence: &vr == b"SQ",
+                len: u32_at(d, p + 8, big)?,
+                size: 12,
+            })
         }
-        if element == 0x0010 {
-            ts = String::from_utf8_lossy(&d[p + header..p + header + len as usize])
+    } else {
+        let sequence = StandardDataDictionary
+            .by_tag(Tag(tag.0, tag.1))
+            .is_some_and(|e| e.vr().relaxed() == VR::SQ);
+        Some(Header {
+            tag,
+            sequence,
+            len: u32_at(d, p + 4, big)?,
+            size: 8,
+        })
+    }
+}
+
+/// Walk the file meta group of `d` (the bytes after the `DICM` marker, explicit VR little endian). With a group
+/// length (0002,0000) first, as dicom-rs reads it: elements until that many bytes are consumed. Without one:
+/// the elements of group 0002.
+pub(super) fn meta(d: &[u8]) -> Result<Meta, Defect> {
+    let le = Encoding {
+        explicit: true,
+        big_endian: false,
+    };
+    let first = header(d, 0, le);
+    let group_length = first
+        .as_ref()
+        .filter(|h| h.tag == (0x0002, 0x0000) && h.len == 4)
+        .and_then(|h| u32_at(d, h.size, false));
+    let mut p = match (&first, group_length) {
+        (Some(h), Some(_)) => h.size + 4,
+        _ => 0,
+    };
+    let mut consumed: u32 = 0;
+    let mut transfer_syntax = String::new();
+    // Ending inside a header is left to the parser, which reports the truncation.
+    while let Some(h) = header(d, p, le) {
+        match group_length {
+            Some(g) if consumed >= g => break,
+            None if h.tag.0 != 0x0002 => break,
+            _ => {}
+        }
+        let left = d.len().saturating_sub(p + h.size);
+        if h.len as usize > left {
+            return Err(Defect::Overrun {
+                tag: h.tag,
+                declared: h.len as u64,
+                left,
+            });
+        }
+        let value = &d[p + h.size..p + h.size + h.len as usize];
+        if h.tag == (0x0002, 0x0010) {
+            transfer_syntax = String::from_utf8_lossy(value)
                 .trim_end_matches(['\0', ' '])
                 .to_string();
         }
-        p += header + len as usize;
+        p += h.size + h.len as usize;
+        consumed = consumed.saturating_add(h.size as u32).saturating_add(h.len);
     }
-    Ok((p, ts))
+    Ok(Meta {
+        end: p,
+        transfer_syntax,
+        group_length: group_length.is_some(),
+    })
 }
 
-fn walk(d: &[u8], explicit: bool, big: bool) -> Option<Overrun> {
+/// The elements of a walked meta group (`d` up to [`Meta::end`]): tag and the element's bytes, header included.
+pub(super) fn meta_elements(d: &[u8]) -> Vec<((u16, u16), &[u8])> {
+    let le = Encoding {
+        explicit: true,
+        big_endian: false,
+    };
+    let mut out = Vec::new();
     let mut p = 0;
-    // Inside encapsulated pixel data, items are opaque fragments.
-    let mut in_fragments = false;
-    while let (Some(group), Some(element)) = (u16_at(d, p, big), u16_at(d, p + 2, big)) {
-        if group == 0xFFFE {
-            // Item and delimiters: tag + 4-byte length, no VR.
-            let len = u32_at(d, p + 4, big)?;
-            p += 8;
-            match element {
-                0xE000 if in_fragments && len != UNDEFINED => {
-                    let left = d.len().saturating_sub(p);
-                    if len as usize > left {
-                        return Some((group, element, len as u64, left));
-                    }
-                    p += len as usize;
-                }
-                0xE0DD => in_fragments = false,
-                // Items of sequences: descend into their elements.
-                _ => {}
-            }
-            continue;
-        }
-        let (len, header, sequence) = if explicit {
-            let vr = [*d.get(p + 4)?, *d.get(p + 5)?];
-            if long_vr(vr) {
-                (u32_at(d, p + 8, big)?, 12, &vr == b"SQ")
-            } else {
-                (u16_at(d, p + 6, big)? as u32, 8, false)
-            }
-        } else {
-            let len = u32_at(d, p + 4, big)?;
-            // Implicit VR: a value that opens with an item tag is a sequence.
-            let opens_item =
-                u16_at(d, p + 8, big) == Some(0xFFFE) && u16_at(d, p + 10, big) == Some(0xE000);
-            (len, 8, opens_item)
+    while let Some(h) = header(d, p, le) {
+        let Some(end) = (p + h.size)
+            .checked_add(h.len as usize)
+            .filter(|&e| e <= d.len())
+        else {
+            break;
         };
-        p += header;
-        if len == UNDEFINED {
-            // Undefined length: a sequence or encapsulated pixel data; walk into it.
-            in_fragments = (group, element) == (0x7FE0, 0x0010);
-            continue;
+        out.push((h.tag, &d[p..end]));
+        p = end;
+    }
+    out
+}
+
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Open {
+    /// A sequence: items come next.
+    Sequence,
+    /// An item of a sequence: elements come next.
+    Item,
+    /// Encapsulated pixel data: fragments come next.
+    Fragments,
+}
+
+/// Walk a data set (elements, sequences, items and fragments) checking every declared length against the bytes
+/// that remain and the nesting depth against [`MAX_SEQUENCE_DEPTH`]. Returns how many bytes to parse: all of
+/// them, less trailing padding (zero bytes, or Data Set Trailing Padding (FFFC,FFFC)) after the last element
+/// of the top level. Stops without a defect where the bytes end inside a header or where the structure is
+/// one the parser refuses by itself.
+pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
+    // Open containers with the offset where a defined length ends them.
+    let mut open: Vec<(Open, Option<usize>)> = Vec::new();
+    let mut p = 0usize;
+    loop {
+        while let Some(&(_, Some(end))) = open.last() {
+            if p < end {
+                break;
+            }
+            open.pop();
         }
-        let left = d.len().saturating_sub(p);
-        if len as usize > left {
-            return Some((group, element, len as u64, left));
+        let top = open.last().map(|o| o.0);
+        if top.is_none() && p < d.len() && d[p..].iter().all(|&b| b == 0) {
+            return Ok(p);
         }
-        if !sequence {
-            p += len as usize;
+        let Some(h) = header(d, p, enc) else {
+            return Ok(d.len());
+        };
+        if top.is_none() && h.tag == (0xFFFC, 0xFFFC) {
+            return Ok(p);
+        }
+        let start = p + h.size;
+        let left = d.len().saturating_sub(start);
+        let defined = h.len != UNDEFINED;
+        if defined && h.len as usize > left {
+            return Err(Defect::Overrun {
+                tag: h.tag,
+                declared: h.len as u64,
+                left,
+            });
+        }
+        let end = defined.then(|| start + h.len as usize);
+        match top {
+            Some(Open::Fragments) => match h.tag {
+                (0xFFFE, 0xE000) if defined => p = start + h.len as usize,
+                (0xFFFE, 0xE000) => return Err(Defect::UndefinedFragment),
+                (0xFFFE, 0xE0DD) => {
+                    open.pop();
+                    p = start;
+                }
+                _ => return Ok(d.len()),
+            },
+            Some(Open::Sequence) => match h.tag {
+                (0xFFFE, 0xE000) => {
+                    open.push((Open::Item, end));
+                    p = start;
+                }
+                (0xFFFE, 0xE0DD) => {
+                    open.pop();
+                    p = start;
+                }
+                _ => return Ok(d.len()),
+            },
+            None | Some(Open::Item) => {
+                if h.tag == (0xFFFE, 0xE00D) {
+                    if top == Some(Open::Item) {
+                        open.pop();
+                    }
+                    p = start;
+                    continue;
+                }
+                // Other item tags here are read by dicom-rs as plain elements (tag and 4-byte length).
+                if h.tag == (0x7FE0, 0x0010) && !defined {
+                    open.push((Open::Fragments, None));
+                    p = start;
+                } else if h.sequence || !defined {
+                    let depth = open.iter().filter(|o| o.0 == Open::Sequence).count();
+                    if depth >= MAX_SEQUENCE_DEPTH {
+                        return Err(Defect::TooDeep { tag: h.tag });
+                    }
+                    open.push((Open::Sequence, end));
+                    p = start;
+                } else {
+                    p = start + h.len as usize;
+                }
+            }
         }
     }
-    None
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    const EXPLICIT: Encoding = Encoding {
+        explicit: true,
+        big_endian: false,
+    };
+
     #[test]
     fn a_length_past_the_end_is_found_and_a_fitting_one_is_not() {
-        // Meta: (0002,0010) UI "1.2.840.10008.1.2.1" padded to 20 bytes.
-        let mut d = Vec::new();
-        d.extend_from_slice(&[0x02, 0x00, 0x10, 0x00, b'U', b'I', 20, 0]);
-        d.extend_from_slice(b"1.2.840.10008.1.2.1\0");
         // (0028,0010) US 2 bytes, then (7FE0,0010) OW with 8 bytes.
+        let mut d = Vec::new();
         d.extend_from_slice(&[0x28, 0x00, 0x10, 0x00, b'U', b'S', 2, 0, 4, 0]);
         d.extend_from_slice(&[0xE0, 0x7F, 0x10, 0x00, b'O', b'W', 0, 0, 8, 0, 0, 0]);
         d.extend_from_slice(&[0u8; 8]);
-        assert_eq!(overrun(&d), None);
+        assert_eq!(dataset(&d, EXPLICIT), Ok(d.len()));
         let n = d.len();
         d[n - 12..n - 8].copy_from_slice(&0xFFFF_FFF0u32.to_le_bytes());
-        assert_eq!(overrun(&d), Some((0x7FE0, 0x0010, 0xFFFF_FFF0, 8)));
+        assert_eq!(
+            dataset(&d, EXPLICIT),
+            Err(Defect::Overrun {
+                tag: (0x7FE0, 0x0010),
+                declared: 0xFFFF_FFF0,
+                left: 8
+            })
+        );
+    }
+
+    #[test]
+    fn an_unknown_vr_takes_a_four_byte_length_as_the_parser_does() {
+        // (0008,0018) with VR "ZZ": reserved 2 bytes then a 4-byte length made of the UID's first bytes.
+        let mut d = vec![0x08, 0x00, 0x18, 0x00, b'Z', b'Z', 8, 0];
+        d.extend_from_slice(b"1.2.3.4\0");
+        assert_eq!(
+            dataset(&d, EXPLICIT),
+            Err(Defect::Overrun {
+                tag: (0x0008, 0x0018),
+                declared: u32::from_le_bytes(*b"1.2.") as u64,
+                left: 4
+            })
+        );
+    }
+
+    #[test]
+    fn sequences_nested_too_deep_are_found_before_parsing() {
+        let mut d = Vec::new();
+        for _ in 0..=MAX_SEQUENCE_DEPTH {
+            // (0008,1115) SQ undefined length, then an item of undefined length.
+            d.extend_from_slice(&[
+                0x08, 0x00, 0x15, 0x11, b'S', b'Q', 0, 0, 0xFF, 0xFF, 0xFF, 0xFF,
+            ]);
+            d.extend_from_slice(&[0xFE, 0xFF, 0x00, 0xE0, 0xFF, 0xFF, 0xFF, 0xFF]);
+        }
+        assert_eq!(
+            dataset(&d, EXPLICIT),
+            Err(Defect::TooDeep {
+                tag: (0x0008, 0x1115)
+            })
+        );
+        // One level fewer is fine.
+        let one = 12 + 8;
+        assert_eq!(dataset(&d[one..], EXPLICIT), Ok(d.len() - one));
     }
 }

@@ -261,13 +261,17 @@ pub fn unpack_file(
     Ok(())
 }
 
-/// Whether `head` (the first bytes of a file) can start a DICOM Part 10 file.
+/// Whether `head` (the first bytes of a file) can start DICOM: a Part 10 file (`DICM` after the preamble or
+/// first), or a raw data set whose first element is in the file meta (0002) or identification (0008) group,
+/// little or big endian (what the reader's framing accepts).
 fn may_be_dicom(head: &[u8], len: u64) -> bool {
+    let group = |b: &[u8]| [u16::from_le_bytes([b[0], b[1]]), u16::from_be_bytes([b[0], b[1]])];
     (len >= 132 && head.len() >= 132 && &head[128..132] == b"DICM")
         || (head.len() >= 4 && &head[..4] == b"DICM")
+        || (head.len() >= 8 && group(head).iter().any(|g| matches!(g, 0x0002 | 0x0008)))
 }
 
-/// Read and decode one file from disk; a file without the DICM marker is refused from its first 132 bytes
+/// Read and decode one file from disk; a file that cannot start DICOM is refused from its first 132 bytes
 /// (never read whole).
 pub fn read_upload_file(file: &UploadFile, limits: &ReadLimits) -> Result<Instance, DicomError> {
     let mut f = File::open(&file.path).map_err(|e| io_error(&file.label, e))?;

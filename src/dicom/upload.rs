@@ -112,6 +112,15 @@ pub fn unpack(
     Ok(out)
 }
 
+/// Warning codes of [`read_bytes`] that every file of a series may carry; a report keeps the first of each.
+const PER_FILE_NOTES: &[&str] = &[
+    "monochrome1",
+    "rescale_assumed",
+    "series_uid_missing",
+    "transfer_syntax_guessed",
+    "trailing_bytes_ignored",
+];
+
 /// A file that was not accepted, and why.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Rejected {
@@ -252,7 +261,9 @@ impl SeriesGroup {
         for i in &self.instances {
             warnings.extend(i.warnings.iter().cloned());
         }
-        warnings.dedup_by(|a, b| a.code == b.code && a.code == "monochrome1");
+        // Per-file notes repeat on every file of a series: keep the first of each.
+        let mut seen = std::collections::HashSet::new();
+        warnings.retain(|w| !PER_FILE_NOTES.contains(&w.code) || seen.insert(w.code));
         SeriesReport {
             series_uid: self.series_uid.clone(),
             study_uid: self.study_uid.clone(),
@@ -288,13 +299,23 @@ impl SeriesGroup {
                 },
             });
         }
-        if let Some(i) = self.instances.iter().find(|i| i.samples_per_pixel != 1) {
-            return Err(DicomError::Unsupported {
+        // Colour (RGB, YBR) and palette indices are not grey values: refused rather than read as HU.
+        if let Some(i) = self
+            .instances
+            .iter()
+            .find(|i| i.samples_per_pixel == 1 && !i.photometric.starts_with("MONOCHROME"))
+        {
+            return Err(DicomError::UnsupportedPhotometric {
                 label: i.label.clone(),
-                what: format!(
-                    "{} samples per pixel ({}) in a volume",
-                    i.samples_per_pixel, i.photometric
-                ),
+                photometric: i.photometric.clone(),
+                hint: " (palette indices are not intensities)",
+            });
+        }
+        if let Some(i) = self.instances.iter().find(|i| i.samples_per_pixel != 1) {
+            return Err(DicomError::UnsupportedPhotometric {
+                label: i.label.clone(),
+                photometric: i.photometric.clone(),
+                hint: " (a colour image has several samples per pixel)",
             });
         }
         let mut w = self.report().warnings;

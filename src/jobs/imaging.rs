@@ -714,7 +714,16 @@ pub fn execute_volume(
         frame: Some(vol.frame),
         source_series: input.source_series,
         products,
-        warnings: input.warnings.clone(),
+        // An isotropic resample makes the grid orthogonal: warnings about the input grid no longer apply.
+        warnings: input
+            .warnings
+            .iter()
+            .filter(|w| {
+                !(req.steps.iter().any(|s| matches!(s, Step::Resample { .. }))
+                    && crate::series::stale_after_resample(&w.code))
+            })
+            .cloned()
+            .collect(),
     })
 }
 

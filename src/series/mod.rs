@@ -19,6 +19,20 @@ use crate::volume::{Frame, Volume, to_closest_canonical};
 /// HU given to pixels marked as padding (outside the scanned field).
 pub const PADDING_HU: f32 = -1024.0;
 
+/// Tilt below which the angle between the slice axis and the image normal is rounding noise in the stored
+/// positions (degrees): not reported as gantry tilt. Real gantry tilts are whole degrees (commonly 5–30°).
+pub const TILT_TOLERANCE_DEG: f64 = 0.1;
+
+/// Widest gap, in nominal slice spacings, that resampling may bridge (four missing slices). A wider gap is
+/// two stacks or a lost part of the series and is refused under every [`UnevenPolicy`].
+pub const MAX_BRIDGED_GAP: f64 = 5.0;
+
+/// Whether a warning of [`assemble`] describes the assembled grid itself, so that an isotropic resample onto an
+/// orthogonal grid makes it stale: gantry tilt (the sheared slice axis is gone after the resample).
+pub fn stale_after_resample(code: &str) -> bool {
+    code == "gantry_tilt"
+}
+
 /// One decoded image plane with its placement.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Slice {
@@ -140,6 +154,17 @@ pub enum SeriesError {
         gap_mm: f64,
         spacing_mm: f64,
     },
+    #[error(
+        "gap of {gap_mm:.3} mm between {a} and {b}, {slices:.1}× the {spacing_mm:.3} mm slice spacing: \
+         two stacks or a large part of the series missing, too wide to interpolate; upload the stacks as separate series"
+    )]
+    SpacingJump {
+        a: String,
+        b: String,
+        gap_mm: f64,
+        spacing_mm: f64,
+        slices: f64,
+    },
     #[error("the volume would have {voxels} voxels, more than the limit of {limit}")]
     TooLarge { voxels: usize, limit: usize },
     #[error("canceled")]
@@ -160,6 +185,7 @@ impl SeriesError {
             SeriesError::NotCollinear { .. } => "series_not_collinear",
             SeriesError::MissingSlices { .. } => "series_missing_slices",
             SeriesError::UnevenSpacing { .. } => "series_uneven_spacing",
+            SeriesError::SpacingJump { .. } => "series_spacing_jump",
             SeriesError::TooLarge { .. } => "series_too_large",
             SeriesError::Canceled => "canceled",
         }
@@ -244,6 +270,37 @@ pub fn assemble(
             });
         }
     };
+    if single && first.orientation.is_none() {
+        warnings.push(Warning {
+            code: "orientation_assumed",
+            message: format!(
+                "slice {} has no image orientation (0020,0037): axial (rows along +x, columns along +y) assumed",
+                first.label
+            ),
+        });
+    }
+    if single && first.position_mm.is_none() {
+        warnings.push(Warning {
+            code: "position_assumed",
+            message: format!(
+                "slice {} has no image position (0020,0032): its first pixel is placed at the origin",
+                first.label
+            ),
+        });
+    }
+    if single
+        && first
+            .slice_thickness_mm
+            .is_none_or(|t| !(t.is_finite() && t > 0.0))
+    {
+        warnings.push(Warning {
+            code: "slice_thickness_assumed",
+            message: format!(
+                "slice {} has no slice thickness (0018,0050): 1 mm assumed for the volume's third axis",
+                first.label
+            ),
+        });
+    }
     let [row_dir, col_dir, normal] = axes(&first.label, orientation)?;
     let pixel_spacing = match first.pixel_spacing_mm {
         Some(ps) => ps,
@@ -402,13 +459,28 @@ pub fn assemble(
     let step_len = norm(step);
     let slice_dir = scale(step, 1.0 / step_len);
     let tilt_deg = dot(slice_dir, normal).clamp(-1.0, 1.0).acos().to_degrees();
-    if tilt_deg > 0.01 {
+    if tilt_deg > TILT_TOLERANCE_DEG {
         warnings.push(Warning {
             code: "gantry_tilt",
             message: format!(
                 "gantry tilt of {tilt_deg:.2}°: the slice axis is not orthogonal to the image plane; \
                  the volume keeps the sheared geometry"
             ),
+        });
+    }
+
+    // A gap too wide to bridge is refused whatever the policy.
+    if let Some(w) = kept
+        .windows(2)
+        .find(|w| w[1].0 - w[0].0 > MAX_BRIDGED_GAP * spacing_n * (1.0 + opts.spacing_tolerance))
+    {
+        let gap = w[1].0 - w[0].0;
+        return Err(SeriesError::SpacingJump {
+            a: slices[w[0].1].label.clone(),
+            b: slices[w[1].1].label.clone(),
+            gap_mm: gap,
+            spacing_mm: spacing_n,
+            slices: gap / spacing_n,
         });
     }
 
@@ -481,18 +553,22 @@ pub fn assemble(
     // Rescale to HU.
     let plane = rows * columns;
     let mut data = vec![0f32; voxels];
+    let padded = std::cell::Cell::new(0usize);
     let hu_of = |s: &Slice, out: &mut [f32]| {
         let (m, b) = (s.rescale_slope, s.rescale_intercept);
+        let mut n = 0usize;
         for (o, &v) in out.iter_mut().zip(&s.stored) {
             let pad = s
                 .padding
                 .is_some_and(|(lo, hi)| (v as f64) >= lo.min(hi) && (v as f64) <= lo.max(hi));
+            n += pad as usize;
             *o = if pad {
                 PADDING_HU
             } else {
                 (v as f64 * m + b) as f32
             };
         }
+        padded.set(padded.get() + n);
     };
     if resample {
         let d0 = kept[0].0;
@@ -531,6 +607,22 @@ pub fn assemble(
         }
     }
     ctl.step("assemble", 1.0);
+    if padded.get() > 0 && !resample {
+        warnings.push(Warning {
+            code: "pixel_padding_replaced",
+            message: format!(
+                "{} pixels equal to the Pixel Padding Value (0028,0120) were set to {PADDING_HU} HU",
+                padded.get()
+            ),
+        });
+    } else if padded.get() > 0 {
+        warnings.push(Warning {
+            code: "pixel_padding_replaced",
+            message: format!(
+                "pixels equal to the Pixel Padding Value (0028,0120) were set to {PADDING_HU} HU before resampling"
+            ),
+        });
+    }
     let data = ndarray::Array3::from_shape_vec((out_nz, rows, columns), data).map_err(|e| {
         SeriesError::InvalidAttribute {
             label: first.label.clone(),

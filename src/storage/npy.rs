@@ -494,6 +494,26 @@ pub fn hex(bytes: &[u8]) -> String {
     bytes.iter().map(|b| format!("{b:02x}")).collect()
 }
 
+/// The fuzz targets' entry point (and the regression replay's): a whole-file decode, then the streamed
+/// validator fed in 7-byte chunks under 64 MiB limits. Every outcome but a panic is fine.
+#[doc(hidden)]
+pub fn fuzz_entry(data: &[u8]) {
+    let _ = decode_f32(data);
+    let mut s = NpyStream::new(
+        StreamLimits {
+            max_file_bytes: 64 << 20,
+            max_elements: 16 << 20,
+        },
+        None,
+    );
+    for chunk in data.chunks(7) {
+        if s.feed(chunk).is_err() {
+            return;
+        }
+    }
+    let _ = s.finish();
+}
+
 /// Decode a whole `.npy` file as an f32 array (float64 rounds, uint16 converts exactly).
 pub fn decode_f32(bytes: &[u8]) -> Result<ArrayD<f32>, NpyError> {
     let h = parse_header(bytes)?.ok_or_else(|| malformed("the file ends inside its header"))?;

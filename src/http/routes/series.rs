@@ -454,23 +454,30 @@ async fn append(
             }
         }
     }
-    let name = format!("instance-{}", &sha[..12]);
-    // Decode now, so that a broken file is refused at once and never reaches the upload.
+    // Decode now, so that a broken file is refused at once and never reaches the upload. The instance is
+    // labelled in messages by its SOP Instance UID (a body has no file name).
     let decoded = {
         let file = UploadFile {
-            label: name.clone(),
+            label: "the instance".to_string(),
             path: body.temp.path().to_path_buf(),
         };
         st.engine
             .compute(move || {
                 read_upload_file(&file, &ReadLimits::default())
-                    .map(|inst| inst.series_uid)
+                    .map(|inst| {
+                        let name = if inst.sop_instance_uid.is_empty() {
+                            "an instance without a SOP Instance UID".to_string()
+                        } else {
+                            inst.sop_instance_uid
+                        };
+                        (inst.series_uid, name)
+                    })
                     .map_err(|e| dicom_problem(&e))
             })
             .await
     };
-    let series_uid = match decoded {
-        Ok(uid) => uid,
+    let (series_uid, name) = match decoded {
+        Ok(v) => v,
         Err(e) => {
             body.temp.discard().await;
             return Err(e.into());
