@@ -265,7 +265,12 @@ pub fn unpack_file(
 /// first), or a raw data set whose first element is in the file meta (0002) or identification (0008) group,
 /// little or big endian (what the reader's framing accepts).
 fn may_be_dicom(head: &[u8], len: u64) -> bool {
-    let group = |b: &[u8]| [u16::from_le_bytes([b[0], b[1]]), u16::from_be_bytes([b[0], b[1]])];
+    let group = |b: &[u8]| {
+        [
+            u16::from_le_bytes([b[0], b[1]]),
+            u16::from_be_bytes([b[0], b[1]]),
+        ]
+    };
     (len >= 132 && head.len() >= 132 && &head[128..132] == b"DICM")
         || (head.len() >= 4 && &head[..4] == b"DICM")
         || (head.len() >= 8 && group(head).iter().any(|g| matches!(g, 0x0002 | 0x0008)))
