@@ -10,6 +10,7 @@
 //!
 //! This module knows nothing about file formats: the reader that fills [`Slice`] lives elsewhere.
 
+use rayon::prelude::*;
 use serde::Serialize;
 
 use crate::recon::control::Control;
@@ -553,7 +554,7 @@ pub fn assemble(
     // Rescale to HU.
     let plane = rows * columns;
     let mut data = vec![0f32; voxels];
-    let padded = std::cell::Cell::new(0usize);
+    let padded = std::sync::atomic::AtomicUsize::new(0);
     let hu_of = |s: &Slice, out: &mut [f32]| {
         let (m, b) = (s.rescale_slope, s.rescale_intercept);
         let mut n = 0usize;
@@ -568,7 +569,7 @@ pub fn assemble(
                 (v as f64 * m + b) as f32
             };
         }
-        padded.set(padded.get() + n);
+        padded.fetch_add(n, std::sync::atomic::Ordering::Relaxed);
     };
     if resample {
         let d0 = kept[0].0;
@@ -600,22 +601,30 @@ pub fn assemble(
             }
         }
     } else {
-        for (k, out) in data.chunks_exact_mut(plane).enumerate() {
-            ctl.check()?;
-            ctl.step("assemble", k as f64 / out_nz as f64);
-            hu_of(&slices[kept[k].1], out);
-        }
+        // Slices convert independently: one task per slice on the caller's pool.
+        let done = std::sync::atomic::AtomicUsize::new(0);
+        data.par_chunks_exact_mut(plane).enumerate().try_for_each(
+            |(k, out)| -> Result<(), SeriesError> {
+                ctl.check()?;
+                hu_of(&slices[kept[k].1], out);
+                let n = done.fetch_add(1, std::sync::atomic::Ordering::Relaxed) + 1;
+                if n.is_multiple_of(16) {
+                    ctl.step("assemble", n as f64 / out_nz as f64);
+                }
+                Ok(())
+            },
+        )?;
     }
     ctl.step("assemble", 1.0);
-    if padded.get() > 0 && !resample {
+    if padded.load(std::sync::atomic::Ordering::Relaxed) > 0 && !resample {
         warnings.push(Warning {
             code: "pixel_padding_replaced",
             message: format!(
                 "{} pixels equal to the Pixel Padding Value (0028,0120) were set to {PADDING_HU} HU",
-                padded.get()
+                padded.load(std::sync::atomic::Ordering::Relaxed)
             ),
         });
-    } else if padded.get() > 0 {
+    } else if padded.load(std::sync::atomic::Ordering::Relaxed) > 0 {
         warnings.push(Warning {
             code: "pixel_padding_replaced",
             message: format!(
