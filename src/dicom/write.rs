@@ -227,14 +227,19 @@ fn check_volume(vol: &Volume) -> Result<(usize, usize, usize), DicomError> {
 
 /// Image attributes common to classic and enhanced CT.
 fn image_pixel(b: &mut Builder, ny: usize, nx: usize) {
+    grey_pixels(b, ny, nx, 16, true);
+}
+
+/// The Image Pixel module of a MONOCHROME2 image of `bits` bits, signed or not.
+fn grey_pixels(b: &mut Builder, ny: usize, nx: usize, bits: u16, signed: bool) {
     b.us(tags::SAMPLES_PER_PIXEL, 1)
         .str(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2")
         .us(tags::ROWS, ny as u16)
         .us(tags::COLUMNS, nx as u16)
-        .us(tags::BITS_ALLOCATED, 16)
-        .us(tags::BITS_STORED, 16)
-        .us(tags::HIGH_BIT, 15)
-        .us(tags::PIXEL_REPRESENTATION, 1);
+        .us(tags::BITS_ALLOCATED, bits)
+        .us(tags::BITS_STORED, bits)
+        .us(tags::HIGH_BIT, bits - 1)
+        .us(tags::PIXEL_REPRESENTATION, signed as u16);
 }
 
 fn plane_bytes(vol: &Volume, k: usize, slope: f64, intercept: f64) -> Vec<u8> {
@@ -504,14 +509,7 @@ pub fn write_secondary_capture_placed(
             }
         }
     }
-    b.us(tags::SAMPLES_PER_PIXEL, 1)
-        .str(tags::PHOTOMETRIC_INTERPRETATION, VR::CS, "MONOCHROME2")
-        .us(tags::ROWS, h as u16)
-        .us(tags::COLUMNS, w as u16)
-        .us(tags::BITS_ALLOCATED, 8)
-        .us(tags::BITS_STORED, 8)
-        .us(tags::HIGH_BIT, 7)
-        .us(tags::PIXEL_REPRESENTATION, 0);
+    grey_pixels(&mut b, h, w, 8, false);
     let pixels: Vec<u8> = img
         .iter()
         .map(|&v| (window.unit(v) * 255.0).round() as u8)

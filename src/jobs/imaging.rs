@@ -185,14 +185,7 @@ impl VolumeShape {
     }
     /// Patient positions of the eight corner voxels.
     fn corners(&self) -> [[f64; 3]; 8] {
-        let (nz, ny, nx) = self.dim;
-        std::array::from_fn(|c| {
-            self.frame.position(
-                ((c >> 2) & 1) as f64 * (nz.max(1) - 1) as f64,
-                ((c >> 1) & 1) as f64 * (ny.max(1) - 1) as f64,
-                (c & 1) as f64 * (nx.max(1) - 1) as f64,
-            )
-        })
+        self.frame.corners(self.dim)
     }
     fn centre(&self) -> [f64; 3] {
         let c = self.corners();

@@ -81,6 +81,19 @@ impl Frame {
         })
     }
 
+    /// Patient positions (mm) of the eight corner samples of a `[z][y][x]` grid of `dim` samples (bit 2 of
+    /// the corner number picks the last slice, bit 1 the last row, bit 0 the last column).
+    pub fn corners(&self, dim: (usize, usize, usize)) -> [[f64; 3]; 8] {
+        let (nz, ny, nx) = dim;
+        std::array::from_fn(|c| {
+            self.position(
+                ((c >> 2) & 1) as f64 * nz.saturating_sub(1) as f64,
+                ((c >> 1) & 1) as f64 * ny.saturating_sub(1) as f64,
+                (c & 1) as f64 * nx.saturating_sub(1) as f64,
+            )
+        })
+    }
+
     /// Unit normal of the slice planes (column axis × row axis).
     pub fn slice_normal(&self) -> [f64; 3] {
         let [a, b, _] = self.direction;

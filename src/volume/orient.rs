@@ -161,12 +161,7 @@ impl DisplayGrid {
         let r = closest_canonical(frame);
         let mut lo = [f64::INFINITY; 3];
         let mut hi = [f64::NEG_INFINITY; 3];
-        for c in 0..8 {
-            let p = frame.position(
-                ((c >> 2) & 1) as f64 * (nz - 1) as f64,
-                ((c >> 1) & 1) as f64 * (ny - 1) as f64,
-                (c & 1) as f64 * (nx - 1) as f64,
-            );
+        for p in frame.corners(dim) {
             for a in 0..3 {
                 lo[a] = lo[a].min(p[a]);
                 hi[a] = hi[a].max(p[a]);

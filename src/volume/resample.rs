@@ -60,12 +60,7 @@ pub fn isotropic_grid(
     let dot = |a: [f64; 3], b: [f64; 3]| a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
     let mut lo = [f64::INFINITY; 3];
     let mut hi = [f64::NEG_INFINITY; 3];
-    for c in 0..8 {
-        let p = f.position(
-            ((c >> 2) & 1) as f64 * (nz - 1) as f64,
-            ((c >> 1) & 1) as f64 * (ny - 1) as f64,
-            (c & 1) as f64 * (nx - 1) as f64,
-        );
+    for p in f.corners(dim) {
         for a in 0..3 {
             let t = dot(p, axes[a]);
             lo[a] = lo[a].min(t);

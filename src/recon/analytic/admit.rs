@@ -2,13 +2,13 @@
 //! orbit, the redundancy weighting the scan needs, and the padded length of the rows as they will be filtered
 //! (offset detectors are filtered on extended rows). A job passes this at submission or it fails later.
 
-use super::fbp2d::fan_extent;
+use super::fbp2d::{fan_extent, parallel_beam};
 use super::filter::padded_len;
 use super::orbit::{cone_frames, fan_frames};
 use super::weights::{Redundancy, extension, parallel_factor};
 use crate::recon::algorithm::FbpParams;
 use crate::recon::error::ReconError;
-use crate::recon::geometry::{DetectorShape, Source2, Views, Views2, Views3};
+use crate::recon::geometry::{DetectorShape, Views, Views2, Views3};
 
 /// Check `params` against `views` as [`super::fbp_2d`] and [`super::fdk`] will.
 pub fn check(views: &Views, params: &FbpParams) -> Result<(), ReconError> {
@@ -20,23 +20,10 @@ pub fn check(views: &Views, params: &FbpParams) -> Result<(), ReconError> {
 }
 
 fn check_2d(views: &Views2, params: &FbpParams) -> Result<(), ReconError> {
-    let Some(first) = views.views.first() else {
-        return Err(ReconError::param("geometry", "no views"));
-    };
+    let parallel = parallel_beam(views)?;
     let angles: Vec<f64> = views.views.iter().map(|v| v.angle_rad).collect();
     let det = views.detector;
     let n = det.count;
-    let parallel = matches!(first.source, Source2::Parallel { .. });
-    if views
-        .views
-        .iter()
-        .any(|v| matches!(v.source, Source2::Parallel { .. }) != parallel)
-    {
-        return Err(ReconError::param(
-            "geometry",
-            "mixed parallel and fan views",
-        ));
-    }
     if parallel {
         parallel_factor(&angles)?;
         padded_len(n, params.padded_len)?;

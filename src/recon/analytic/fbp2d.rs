@@ -62,6 +62,25 @@ pub(super) fn check_sinogram(views: &Views2, sino: &ArrayView2<'_, f32>) -> Resu
     Ok(())
 }
 
+/// True for a parallel-beam scan, false for a fan beam; a scan that mixes both, or has no view, is refused.
+pub(super) fn parallel_beam(views: &Views2) -> Result<bool, ReconError> {
+    let Some(first) = views.views.first() else {
+        return Err(ReconError::param("geometry", "no views"));
+    };
+    let parallel = matches!(first.source, Source2::Parallel { .. });
+    if views
+        .views
+        .iter()
+        .any(|v| matches!(v.source, Source2::Parallel { .. }) != parallel)
+    {
+        return Err(ReconError::param(
+            "geometry",
+            "mixed parallel and fan views",
+        ));
+    }
+    Ok(parallel)
+}
+
 /// Parallel or fan-beam FBP; see the module docs.
 pub fn fbp_2d(
     views: &Views2,
@@ -73,18 +92,7 @@ pub fn fbp_2d(
     grid.validate()?;
     params.validate()?;
     check_sinogram(views, &sino)?;
-    let parallel = matches!(views.views[0].source, Source2::Parallel { .. });
-    if views
-        .views
-        .iter()
-        .any(|v| matches!(v.source, Source2::Parallel { .. }) != parallel)
-    {
-        return Err(ReconError::param(
-            "geometry",
-            "mixed parallel and fan views",
-        ));
-    }
-    if parallel {
+    if parallel_beam(views)? {
         parallel_fbp(views, sino, grid, params, ctl)
     } else {
         fan_fbp(views, sino, grid, params, ctl)
