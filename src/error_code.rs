@@ -206,6 +206,70 @@ impl<'de> serde::Deserialize<'de> for Problem {
     }
 }
 
+// Each layer's error enum to its catalogue code: the one table, matched exhaustively (a new variant does not
+// compile until it has a code; no lookup by string).
+
+impl From<&crate::volume::VolumeError> for ErrorCode {
+    fn from(e: &crate::volume::VolumeError) -> Self {
+        use crate::volume::VolumeError as E;
+        match e {
+            E::IndexOutOfRange { .. } => ErrorCode::SliceOutOfRange,
+            E::BadSlab { .. } => ErrorCode::InvalidSlab,
+            E::BadWindow { .. } => ErrorCode::InvalidWindow,
+            E::Empty => ErrorCode::EmptyImage,
+            E::InvalidParameter { .. } => ErrorCode::InvalidParameter,
+            E::Encode(_) => ErrorCode::EncodingFailed,
+        }
+    }
+}
+
+impl From<&crate::series::SeriesError> for ErrorCode {
+    /// A canceled assembly is no client fault: `internal` (the job or request reports the cancel itself).
+    fn from(e: &crate::series::SeriesError) -> Self {
+        use crate::series::SeriesError as E;
+        match e {
+            E::Empty => ErrorCode::SeriesEmpty,
+            E::SizeMismatch { .. } => ErrorCode::SeriesSizeMismatch,
+            E::MissingAttribute { .. } => ErrorCode::SeriesMissingAttribute,
+            E::InvalidAttribute { .. } => ErrorCode::SeriesInvalidAttribute,
+            E::OrientationMismatch { .. } => ErrorCode::SeriesOrientationMismatch,
+            E::SpacingMismatch { .. } => ErrorCode::SeriesSpacingMismatch,
+            E::DuplicatePosition { .. } => ErrorCode::SeriesDuplicatePosition,
+            E::NotCollinear { .. } => ErrorCode::SeriesNotCollinear,
+            E::MissingSlices { .. } => ErrorCode::SeriesMissingSlices,
+            E::UnevenSpacing { .. } => ErrorCode::SeriesUnevenSpacing,
+            E::SpacingJump { .. } => ErrorCode::SeriesSpacingJump,
+            E::TooLarge { .. } => ErrorCode::SeriesTooLarge,
+            E::Canceled => ErrorCode::Internal,
+        }
+    }
+}
+
+impl From<&crate::dicom::DicomError> for ErrorCode {
+    /// Writing failures and cancels are ours, not the client's: `internal`.
+    fn from(e: &crate::dicom::DicomError) -> Self {
+        use crate::dicom::DicomError as E;
+        match e {
+            E::NotDicom { .. } => ErrorCode::DicomNotDicom,
+            E::Parse { .. } => ErrorCode::DicomParseError,
+            E::MissingAttribute { .. } => ErrorCode::DicomMissingAttribute,
+            E::NoPixelData { .. } => ErrorCode::DicomNoPixelData,
+            E::Unsupported { .. } => ErrorCode::DicomUnsupported,
+            E::UnsupportedTransferSyntax { .. } => ErrorCode::DicomUnsupportedTransferSyntax,
+            E::UnsupportedPhotometric { .. } => ErrorCode::DicomUnsupportedPhotometric,
+            E::TooLarge { .. } => ErrorCode::DicomTooLarge,
+            E::PixelDataShort { .. } => ErrorCode::DicomPixelDataShort,
+            E::Decode { .. } => ErrorCode::DicomDecodeError,
+            E::NotCt { .. } => ErrorCode::DicomNotCt,
+            E::Zip { .. } => ErrorCode::ZipInvalid,
+            E::ZipBomb { .. } => ErrorCode::ZipLimitsExceeded,
+            E::NoImages => ErrorCode::DicomNoImages,
+            E::Series { source, .. } => source.into(),
+            E::Canceled | E::Write(_) => ErrorCode::Internal,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -224,5 +288,29 @@ mod tests {
             );
             assert!((400..600).contains(&c.status()), "{}", c.code());
         }
+    }
+
+    #[test]
+    fn layer_errors_keep_the_codes_they_name_themselves() {
+        use crate::dicom::DicomError;
+        use crate::series::SeriesError;
+        use crate::volume::VolumeError;
+        let v = VolumeError::BadWindow {
+            width: 0.0,
+            level: 0.0,
+        };
+        assert_eq!(ErrorCode::from(&v).code(), v.code());
+        let s = SeriesError::TooLarge {
+            voxels: 9,
+            limit: 1,
+        };
+        assert_eq!(ErrorCode::from(&s).code(), s.code());
+        let d = DicomError::Series {
+            series_uid: "1.2".into(),
+            source: s,
+        };
+        assert_eq!(ErrorCode::from(&d), ErrorCode::SeriesTooLarge);
+        let z = DicomError::ZipBomb { reason: "x".into() };
+        assert_eq!(ErrorCode::from(&z).code(), z.code());
     }
 }

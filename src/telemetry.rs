@@ -44,6 +44,8 @@ pub mod names {
     pub const QUEUE_DEPTH: &str = "ctrecon_queue_depth";
     pub const JOBS_FINISHED: &str = "ctrecon_jobs_finished_total";
     pub const JOB_DURATION: &str = "ctrecon_job_duration_seconds";
+    /// The latest residual an iterative job reported (relative, ‖Ax − b‖ / ‖b‖).
+    pub const JOB_RESIDUAL: &str = "ctrecon_job_last_residual";
     /// Bytes the data directory holds, by `kind` (datasets, series, results, uploads).
     pub const STORAGE_BYTES: &str = "ctrecon_storage_bytes";
     /// Resources removed by retention, by `kind` (jobs, datasets, series, uploads).

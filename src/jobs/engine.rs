@@ -21,22 +21,46 @@ use tokio::sync::{Notify, broadcast, oneshot};
 use tracing::Instrument;
 
 use super::imaging::{VolumeInput, VolumeJobRequest, execute_volume, resolve_input};
-use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus};
+use super::lifecycle::{Lease, Outcome};
+use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus, now_us};
 use super::repo::{Db, DbError};
 use super::run::{RunError, execute};
+use super::store::{JobStore, StoreError};
 use crate::error_code::{ErrorCode, Problem};
 use crate::recon::control::{Cancel, Control, Progress};
 use crate::recon::grid::Limits;
 use crate::storage::{BlobStore, JobId};
 use crate::telemetry::names;
 
-/// A change of a job's status, progress or stage, as sent to event subscribers.
+/// A change of a job's status, progress or stage, as sent to event subscribers: the one progress type that
+/// the core's [`Progress`] reports become (SSE `progress` events; the CLI bar reads the same reports).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct JobEvent {
     pub id: JobId,
     pub status: JobStatus,
+    /// 0–100 (never 100 while running).
     pub progress: u8,
     pub stage: String,
+    /// The iteration an iterative algorithm is at, when it reports one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub iteration: Option<usize>,
+    /// The residual of that iteration (‖Ax − b‖ / ‖b‖), when the algorithm reports one.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub residual: Option<f64>,
+}
+
+impl JobEvent {
+    /// The event of a job as it is stored (no iteration or residual).
+    pub fn of(job: &Job) -> Self {
+        JobEvent {
+            id: job.id,
+            status: job.status,
+            progress: job.progress,
+            stage: job.stage.clone(),
+            iteration: None,
+            residual: None,
+        }
+    }
 }
 
 /// Engine limits.
@@ -52,6 +76,15 @@ pub struct EngineConfig {
 struct Running {
     cancel: Cancel,
     estimate: u64,
+}
+
+/// How long a claim holds a job without a heartbeat; running jobs renew it every third of that.
+pub const LEASE: Duration = Duration::from_secs(30);
+
+fn lease_from_now() -> Lease {
+    Lease {
+        expires_us: now_us() + LEASE.as_micros() as i64,
+    }
 }
 
 struct Inner {
@@ -86,6 +119,7 @@ pub struct Engine {
 struct Latest {
     progress: u8,
     stage: String,
+    iteration: Option<usize>,
     dirty: bool,
 }
 
@@ -97,14 +131,19 @@ struct Sink {
 }
 
 impl Progress for Sink {
-    fn report(&self, stage: &str, fraction: f64, _: Option<usize>, _: Option<f64>) {
+    fn report(&self, stage: &str, fraction: f64, iteration: Option<usize>, residual: Option<f64>) {
         // Never 100 while running: 100 means succeeded.
         let pct = (fraction.clamp(0.0, 1.0) * 100.0).floor().min(99.0) as u8;
         let Ok(mut l) = self.latest.lock() else {
             return;
         };
-        if l.progress == pct && l.stage == stage {
+        let new_residual = residual.is_some() && iteration != l.iteration;
+        if l.progress == pct && l.stage == stage && !new_residual {
             return;
+        }
+        l.iteration = iteration;
+        if let Some(r) = residual {
+            metrics::gauge!(names::JOB_RESIDUAL).set(r);
         }
         l.progress = pct;
         if l.stage != stage {
@@ -116,6 +155,8 @@ impl Progress for Sink {
             status: JobStatus::Running,
             progress: pct,
             stage: l.stage.clone(),
+            iteration,
+            residual,
         });
     }
 }
@@ -210,12 +251,7 @@ impl Engine {
     }
 
     pub fn publish(&self, job: &Job) {
-        let _ = self.inner.events.send(JobEvent {
-            id: job.id,
-            status: job.status,
-            progress: job.progress,
-            stage: job.stage.clone(),
-        });
+        let _ = self.inner.events.send(JobEvent::of(job));
     }
 
     /// Run `f` on the worker pool and await its result; a panic becomes an internal error.
@@ -323,15 +359,20 @@ impl Engine {
                     },
                 );
             }
-            match self.inner.db.claim(id).await {
-                Ok(true) => {
+            match JobStore::claim(&self.inner.db, id, lease_from_now()).await {
+                Ok(attempt) => {
                     let engine = self.clone();
-                    let span = tracing::info_span!("job", job_id = %id);
-                    tokio::spawn(async move { engine.supervise(id).await }.instrument(span));
+                    let span = tracing::info_span!("job", job_id = %id, attempt);
+                    tokio::spawn(
+                        async move { engine.supervise(id, attempt).await }.instrument(span),
+                    );
                 }
-                other => {
+                // Claimed or canceled by someone else since it was listed.
+                Err(StoreError::Illegal(_) | StoreError::LeaseLost) => self.release(id),
+                Err(StoreError::Backend(e)) => {
                     self.release(id);
-                    other?;
+                    tracing::error!(error = %e, "claiming a job failed");
+                    return Ok(());
                 }
             }
         }
@@ -346,14 +387,14 @@ impl Engine {
         self.inner.released.notify_waiters();
     }
 
-    async fn supervise(self, id: JobId) {
+    async fn supervise(self, id: JobId, attempt: u32) {
         let started = Instant::now();
-        let (status, error, result) = self.run(id).await;
+        let outcome = self.run(id, attempt).await;
         let db = &self.inner.db;
-        if status == JobStatus::Canceled && self.is_stopping() {
+        if outcome == Outcome::Canceled && self.is_stopping() {
             // Stopped by a graceful stop, unless a client asked to cancel it (that ends canceled).
-            match db.hand_back(id).await {
-                Ok(true) => {
+            match JobStore::hand_back(db, id).await {
+                Ok(()) => {
                     tracing::info!("job handed back to the queue");
                     self.release(id);
                     if let Ok(Some(job)) = db.get_job(id).await {
@@ -361,8 +402,8 @@ impl Engine {
                     }
                     return;
                 }
-                Ok(false) => {}
-                Err(e) => {
+                Err(StoreError::Illegal(_) | StoreError::LeaseLost) => {}
+                Err(StoreError::Backend(e)) => {
                     // Left running: the next start recovers it (counting the attempt, as after a crash).
                     tracing::error!(error = %e, "handing a job back failed");
                     self.release(id);
@@ -370,12 +411,12 @@ impl Engine {
                 }
             }
         }
-        let ok = db
-            .finish(id, status, error.as_ref(), result.as_ref())
+        let status = outcome.status();
+        let recorded = JobStore::finish(db, id, &outcome)
             .await
             .inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"));
         self.release(id);
-        if let Ok(true) = ok {
+        if recorded.is_ok() {
             tracing::info!(status = status.as_str(), "job finished");
             metrics::counter!(names::JOBS_FINISHED, "status" => status.as_str()).increment(1);
             metrics::histogram!(names::JOB_DURATION, "status" => status.as_str())
@@ -388,11 +429,8 @@ impl Engine {
         }
     }
 
-    async fn run(
-        &self,
-        id: JobId,
-    ) -> (JobStatus, Option<Problem>, Option<super::model::JobResult>) {
-        let failed = |p: Problem| (JobStatus::Failed, Some(p), None);
+    async fn run(&self, id: JobId, attempt: u32) -> Outcome {
+        let failed = Outcome::Failed;
         let db = &self.inner.db;
         let job = match db.get_job(id).await {
             Ok(Some(j)) => j,
@@ -432,6 +470,7 @@ impl Engine {
         if job.cancel_requested {
             cancel.cancel();
         }
+        let cancel_flag = cancel.clone();
         let latest = Arc::new(Mutex::new(Latest::default()));
         let sink = Sink {
             id,
@@ -467,20 +506,34 @@ impl Engine {
             let _ = tx.send(r);
         });
         let mut tick = tokio::time::interval(self.inner.config.progress_interval);
+        let mut heartbeat = tokio::time::interval(LEASE / 3);
         let outcome = loop {
             tokio::select! {
                 r = &mut rx => break r,
                 _ = tick.tick() => self.persist_progress(id, &latest).await,
+                _ = heartbeat.tick() => self.renew(id, attempt, &cancel_flag).await,
             }
         };
         match outcome {
-            Ok(Ok(Ok(result))) => (JobStatus::Succeeded, None, Some(result)),
-            Ok(Ok(Err(RunError::Canceled))) => (JobStatus::Canceled, None, None),
+            Ok(Ok(Ok(result))) => Outcome::Succeeded(Box::new(result)),
+            Ok(Ok(Err(RunError::Canceled))) => Outcome::Canceled,
             Ok(Ok(Err(RunError::Failed(p)))) => failed(p),
             _ => {
                 tracing::error!("a job panicked");
                 failed(Problem::internal())
             }
+        }
+    }
+
+    /// Renew the lease of a running job; a job whose lease was lost (another worker took it over) stops.
+    async fn renew(&self, id: JobId, attempt: u32, cancel: &Cancel) {
+        match JobStore::heartbeat(&self.inner.db, id, attempt, lease_from_now()).await {
+            Ok(()) => {}
+            Err(StoreError::LeaseLost | StoreError::Illegal(_)) => {
+                tracing::warn!("the job's lease was lost: stopping it");
+                cancel.cancel();
+            }
+            Err(StoreError::Backend(e)) => tracing::warn!(error = %e, "renewing a lease failed"),
         }
     }
 

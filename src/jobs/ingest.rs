@@ -28,10 +28,7 @@ pub fn dicom_problem(e: &DicomError) -> Problem {
         tracing::error!(error = %e, "DICOM processing failed");
         return Problem::internal();
     }
-    Problem::new(
-        ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidRequest),
-        e.to_string(),
-    )
+    Problem::new(ErrorCode::from(e), e.to_string())
 }
 
 /// How an upload is turned into series.
@@ -51,6 +48,9 @@ pub struct RejectedFile {
     pub file: String,
     pub code: String,
     pub detail: String,
+    /// The catalogue code `code` spells.
+    #[serde(skip)]
+    pub error_code: ErrorCode,
 }
 
 /// What became of one series of an upload.
@@ -97,12 +97,11 @@ impl Ingested {
             .filter_map(|s| s.error.as_ref())
             .map(|p| (p.code, p.detail.clone()))
             .collect();
-        reasons.extend(self.rejected.iter().map(|r| {
-            (
-                ErrorCode::from_code(&r.code).unwrap_or(ErrorCode::InvalidRequest),
-                r.detail.clone(),
-            )
-        }));
+        reasons.extend(
+            self.rejected
+                .iter()
+                .map(|r| (r.error_code, r.detail.clone())),
+        );
         let Some((code, _)) = reasons.first().cloned() else {
             return Problem::new(
                 ErrorCode::DicomNoImages,
@@ -176,6 +175,7 @@ pub fn ingest(
                 file: r.label.clone(),
                 code: p.code.code().into(),
                 detail: p.public_detail().into(),
+                error_code: p.code,
             }
         })
         .collect();

@@ -19,7 +19,7 @@ use crate::recon::phantom::PhantomSpec;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
 use crate::volume::{Frame, ImagePlane, ScreenSides};
 
-use super::imaging::VolumeJobRequest;
+use super::volume_spec::VolumeJobRequest;
 
 /// Where a job is in its life.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]
@@ -446,6 +446,67 @@ pub fn parse_rfc3339(s: &str) -> Option<i64> {
     time::OffsetDateTime::parse(s, &time::format_description::well_known::Rfc3339)
         .ok()
         .map(|t| (t.unix_timestamp_nanos() / 1000) as i64)
+}
+
+/// Value given to samples outside the input volume: air for HU, nothing for μ.
+pub fn fill_value(units: VolumeUnits) -> f32 {
+    match units {
+        VolumeUnits::Hu => crate::series::PADDING_HU,
+        VolumeUnits::MuPerMm => 0.0,
+    }
+}
+
+/// An Idempotency-Key record to insert with a new resource.
+#[derive(Debug, Clone)]
+pub struct IdempotencyKey {
+    pub route: &'static str,
+    pub key: String,
+    pub fingerprint: String,
+}
+
+/// Outcome of an insert guarded by an Idempotency-Key.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Inserted {
+    New,
+    /// The key was already used: the earlier resource id and request fingerprint.
+    Existing {
+        resource_id: String,
+        fingerprint: String,
+    },
+}
+
+/// Filters of `GET /v1/jobs`.
+#[derive(Debug, Clone, Default)]
+pub struct JobFilter {
+    pub statuses: Vec<JobStatus>,
+    pub kind: Option<String>,
+    pub created_after_us: Option<i64>,
+    pub created_before_us: Option<i64>,
+    /// Return jobs older than this one (ids are time-ordered).
+    pub before_id: Option<JobId>,
+    pub limit: u32,
+}
+
+impl Job {
+    /// A new job, `queued`, created at `created_us`.
+    pub fn queued(request: JobSpec, estimate_bytes: u64, created_us: i64) -> Self {
+        Job {
+            id: JobId::generate(),
+            kind: request.kind().into(),
+            status: JobStatus::Queued,
+            progress: 0,
+            stage: "queued".into(),
+            request,
+            estimate_bytes,
+            attempts: 0,
+            cancel_requested: false,
+            error: None,
+            result: None,
+            created_us,
+            started_us: None,
+            finished_us: None,
+        }
+    }
 }
 
 #[cfg(test)]

@@ -13,6 +13,7 @@ use sqlx::sqlite::{
 use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
+mod job_store;
 
 pub use blobs::{Deleted, SweepReport, sweep_blobs};
 
@@ -21,6 +22,7 @@ use super::model::{
     Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
     UploadRecord, now_us,
 };
+pub use super::model::{IdempotencyKey, Inserted, JobFilter};
 use crate::error_code::Problem;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
 
@@ -33,25 +35,6 @@ pub enum DbError {
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("corrupt row in {table}: {reason}")]
     Corrupt { table: &'static str, reason: String },
-}
-
-/// An Idempotency-Key record to insert with a new resource.
-#[derive(Debug, Clone)]
-pub struct IdempotencyKey {
-    pub route: &'static str,
-    pub key: String,
-    pub fingerprint: String,
-}
-
-/// Outcome of an insert guarded by an Idempotency-Key.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Inserted {
-    New,
-    /// The key was already used: the earlier resource id and request fingerprint.
-    Existing {
-        resource_id: String,
-        fingerprint: String,
-    },
 }
 
 /// Outcome of appending an instance to an open upload.
@@ -76,18 +59,6 @@ pub enum Completed {
     Closed,
     /// Instances were appended while the series were assembled.
     Changed,
-}
-
-/// Filters of `GET /v1/jobs`.
-#[derive(Debug, Clone, Default)]
-pub struct JobFilter {
-    pub statuses: Vec<JobStatus>,
-    pub kind: Option<String>,
-    pub created_after_us: Option<i64>,
-    pub created_before_us: Option<i64>,
-    /// Return jobs older than this one (ids are time-ordered).
-    pub before_id: Option<JobId>,
-    pub limit: u32,
 }
 
 /// The inputs (datasets, series, jobs) of queued and running jobs: never removed.
@@ -479,28 +450,13 @@ impl Db {
             .collect()
     }
 
-    /// `queued → running`, counting the attempt. False when the job was not queued.
-    pub async fn claim(&self, id: JobId) -> Result<bool, DbError> {
-        let done = sqlx::query(
-            "UPDATE jobs SET status = 'running', attempts = attempts + 1, started_us = ?,
-                    progress = 0, stage = 'starting'
-             WHERE id = ? AND status = 'queued'",
-        )
-        .bind(now_us())
-        .bind(id.to_string())
-        .execute(&self.pool)
-        .await?;
-        self.cache.invalidate(id);
-        Ok(done.rows_affected() == 1)
-    }
-
     /// `running → queued` by a graceful hand-back (the server is stopping): the run is given back, not
     /// spent, so the attempt its claim counted is returned. False when the job was not running, or was asked
     /// to cancel (it then ends canceled).
     pub async fn hand_back(&self, id: JobId) -> Result<bool, DbError> {
         let done = sqlx::query(
             "UPDATE jobs SET status = 'queued', stage = 'requeued', progress = 0, started_us = NULL,
-                    attempts = MAX(attempts - 1, 0)
+                    attempts = MAX(attempts - 1, 0), lease_expires_us = NULL
              WHERE id = ? AND status = 'running' AND cancel_requested = 0",
         )
         .bind(id.to_string())
@@ -520,37 +476,6 @@ impl Db {
             .await?;
         self.cache.invalidate(id);
         Ok(())
-    }
-
-    /// `running → succeeded | failed | canceled`. False when the job was not running.
-    pub async fn finish(
-        &self,
-        id: JobId,
-        status: JobStatus,
-        error: Option<&Problem>,
-        result: Option<&JobResult>,
-    ) -> Result<bool, DbError> {
-        let progress = if status == JobStatus::Succeeded {
-            100
-        } else {
-            0
-        };
-        let done = sqlx::query(
-            "UPDATE jobs SET status = ?, stage = ?, error = ?, result = ?, finished_us = ?,
-                    progress = CASE WHEN ? = 100 THEN 100 ELSE progress END
-             WHERE id = ? AND status = 'running'",
-        )
-        .bind(status.as_str())
-        .bind(status.as_str())
-        .bind(error.map(to_json))
-        .bind(result.map(to_json))
-        .bind(now_us())
-        .bind(progress)
-        .bind(id.to_string())
-        .execute(&self.pool)
-        .await?;
-        self.cache.invalidate(id);
-        Ok(done.rows_affected() == 1)
     }
 
     /// `queued → canceled`. False when the job was not queued.

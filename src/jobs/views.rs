@@ -16,9 +16,8 @@ use ndarray::{Array2, Array3, Ix3};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 
-use super::imaging::fill_value;
 use super::ingest::dicom_problem;
-use super::model::{ProductResult, VolumeUnits};
+use super::model::{ProductResult, VolumeUnits, fill_value};
 use crate::dicom::{
     ScOrientation, SeriesMeta, write_ct_series, write_encapsulated_stl, write_enhanced_ct,
     write_secondary_capture_placed, write_zip,
@@ -289,10 +288,7 @@ fn mesh_options(q: &MeshQuery, mu_water: f64, units: VolumeUnits) -> MeshOptions
 
 /// The catalogue problem of an image-domain error.
 pub fn volume_problem(e: &VolumeError) -> Problem {
-    Problem::new(
-        ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidParameter),
-        e.to_string(),
-    )
+    Problem::new(ErrorCode::from(e), e.to_string())
 }
 
 /// The image in display units and its window.

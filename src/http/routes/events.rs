@@ -33,12 +33,7 @@ fn final_event(job: &Job) -> Event {
 }
 
 fn snapshot(job: &Job) -> JobEvent {
-    JobEvent {
-        id: job.id,
-        status: job.status,
-        progress: job.progress,
-        stage: job.stage.clone(),
-    }
+    JobEvent::of(job)
 }
 
 pub async fn job_events(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {

@@ -1,0 +1,141 @@
+//! The request of a volume job (`"kind": "volume"`): its input, the `steps` applied to the volume in order,
+//! and the `products` made from the result, with their defaults and limits. Model types only: planning and
+//! execution live in `imaging`.
+
+use serde::{Deserialize, Serialize};
+
+use crate::mesh::MeshOptions;
+use crate::storage::AnyId;
+use crate::volume::{Axis, ProjectionKind, Slab};
+
+/// The `kind` of a volume job request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum VolumeKind {
+    Volume,
+}
+
+/// `POST /v1/jobs` with `"kind": "volume"`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeJobRequest {
+    pub kind: VolumeKind,
+    /// A series id (from `POST /v1/series`) or the id of a succeeded job whose volume is the input.
+    pub input: AnyId,
+    #[serde(default)]
+    pub steps: Vec<Step>,
+    #[serde(default)]
+    pub products: Vec<ProductSpec>,
+}
+
+/// An operation on the whole volume.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "op", rename_all = "snake_case", deny_unknown_fields)]
+pub enum Step {
+    /// Trilinear resampling onto cubic voxels of `spacing_mm` (default: the smallest spacing); a tilted series
+    /// becomes orthogonal. Interpolation adds no information.
+    Resample {
+        #[serde(default)]
+        spacing_mm: Option<f64>,
+    },
+    /// Separable Gaussian smoothing, σ in millimetres.
+    Gaussian { sigma_mm: f64 },
+    /// 3×3×3 median filter.
+    Median,
+}
+
+fn axial() -> Axis {
+    Axis::Axial
+}
+fn mip() -> ProjectionKind {
+    ProjectionKind::Max
+}
+fn thirty_six() -> usize {
+    36
+}
+
+/// Something a volume job makes besides the processed volume.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ProductSpec {
+    /// MIP (`mip`), MinIP (`minip`) or `average` along an array axis, optionally over slices
+    /// `slab[0]..slab[1]`.
+    Projection(ProjectionSpec),
+    /// A reformatted plane, or a series of them.
+    Mpr(MprSpec),
+    /// A curved plane along a polyline.
+    Curved(CurvedSpec),
+    /// Projections seen from `frames` angles evenly spread over 360° around the patient's long axis.
+    Rotating(RotatingSpec),
+    /// An iso-surface (mm, LPS) with its measurements.
+    Mesh(MeshOptions),
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ProjectionSpec {
+    #[serde(default = "axial")]
+    pub axis: Axis,
+    #[serde(default = "mip")]
+    pub kind: ProjectionKind,
+    #[serde(default)]
+    pub slab: Option<[usize; 2]>,
+}
+
+/// An MPR request. The plane is a principal one (`plane`: axial, coronal, sagittal, through the volume's centre
+/// unless `centre_mm` says otherwise) or oblique (`normal`). With `spacing_mm`, a series of planes every
+/// `spacing_mm` along the normal covering ±`extent_mm` (default: the whole volume); with `slab`, each plane is a
+/// slab `thickness_mm` thick combined by `kind` (e.g. 3 mm MIP every 3 mm).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct MprSpec {
+    #[serde(default)]
+    pub plane: Option<Axis>,
+    #[serde(default)]
+    pub normal: Option<[f64; 3]>,
+    #[serde(default)]
+    pub centre_mm: Option<[f64; 3]>,
+    /// Image size in pixels (columns, rows); default: the volume's extent in the plane.
+    #[serde(default)]
+    pub size: Option<[usize; 2]>,
+    /// Pixel size (mm); default the smallest voxel spacing.
+    #[serde(default)]
+    pub pixel_mm: Option<f64>,
+    #[serde(default)]
+    pub slab: Option<Slab>,
+    #[serde(default)]
+    pub spacing_mm: Option<f64>,
+    #[serde(default)]
+    pub extent_mm: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurvedSpec {
+    /// The polyline (patient mm, LPS), at least two points.
+    pub points_mm: Vec<[f64; 3]>,
+    /// Direction of image rows (default inferior, −z).
+    #[serde(default)]
+    pub down: Option<[f64; 3]>,
+    /// Rows, centred on the curve.
+    pub height: usize,
+    /// Pixel size along the curve and across it (mm); default the smallest voxel spacing.
+    #[serde(default)]
+    pub pixel_mm: Option<f64>,
+}
+
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RotatingSpec {
+    #[serde(default = "thirty_six")]
+    pub frames: usize,
+    #[serde(default = "mip")]
+    pub kind: ProjectionKind,
+}
+
+/// Largest number of polyline points of a curved MPR.
+pub const MAX_CURVE_POINTS: usize = 10_000;
+/// Largest number of products or steps in one job.
+pub const MAX_ITEMS: usize = 64;
+/// Largest number of frames of a rotating projection.
+pub const MAX_ROTATING_FRAMES: usize = 720;
