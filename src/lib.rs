@@ -1,16 +1,20 @@
 //! ctrecon: CT reconstruction as a library, a command-line tool and an HTTP service.
 //!
-//! Module map and the dependency rule, `http → jobs → {dicom, storage} → {recon, volume, mesh}`:
+//! Module map and the dependency rule, `{http, cli} → app → jobs → {dicom, storage} → {recon, volume, mesh}`
+//! (see `ARCHITECTURE.md`):
 //! - [`recon`]: the pure reconstruction core (geometry, phantoms, projectors, filters, algorithms, metrics);
 //! - [`volume`]: pure image-domain operations (slices, MPR, MIP, window/level, PNG encoding);
 //! - [`mesh`]: pure surface extraction and STL;
 //! - [`series`]: pure assembly of image slices into a volume; [`dicom`]: DICOM reading and writing;
-//! - [`storage`]: blob store; [`jobs`]: job model, repository, queue and worker pool;
+//! - [`storage`]: blob store (and its port, [`storage::port::Blobs`]); [`jobs`]: job model, lifecycle, the
+//!   `JobStore` port and its SQLite adapter, the engine and the job kinds;
+//! - [`app`]: the application layer (commands and queries every front door calls);
 //! - [`http`]: the axum service; [`cli`]: the `ctrecon` command line.
 //!
 //! The pure modules (`recon`, `volume`, `mesh`, `series`) import no async runtime, HTTP, database or DICOM crate and
 //! read no clock, environment or path; `tests/purity.rs` enforces it.
 
+pub mod app;
 pub mod cli;
 pub mod config;
 pub mod dicom;

@@ -78,21 +78,54 @@ fn hv(s: &str) -> HeaderValue {
     HeaderValue::from_str(s).unwrap_or_else(|_| HeaderValue::from_static(""))
 }
 
-/// Serve `meta` answering the conditional and range headers of `req`.
-pub async fn serve_file(req: &HeaderMap, meta: FileMeta) -> ApiResult<Response> {
-    let quoted = format!("\"{}\"", meta.etag);
-    let mut builder = Response::builder()
-        .header(header::ETAG, hv(&quoted))
-        .header(header::CACHE_CONTROL, "public, max-age=31536000, immutable")
-        .header(header::ACCEPT_RANGES, "bytes");
+/// The start of a response for an immutable representation with strong validator `quoted`: its `ETag`
+/// and `Cache-Control`, and `Err` with the whole `304 Not Modified` answer when `If-None-Match` matches.
+/// The one place conditional GETs are decided.
+fn conditional(
+    req: &HeaderMap,
+    quoted: &str,
+) -> ApiResult<Result<axum::http::response::Builder, Response>> {
+    let builder = Response::builder()
+        .header(header::ETAG, hv(quoted))
+        .header(header::CACHE_CONTROL, "public, max-age=31536000, immutable");
     if let Some(inm) = req.get(header::IF_NONE_MATCH).and_then(|v| v.to_str().ok())
-        && etag_matches(inm, &quoted)
+        && etag_matches(inm, quoted)
     {
         return builder
             .status(StatusCode::NOT_MODIFIED)
             .body(Body::empty())
+            .map(Err)
             .map_err(|_| api_error(ErrorCode::Internal, "building a response"));
     }
+    Ok(Ok(builder))
+}
+
+/// Serve a small immutable body held in memory, with strong ETag `etag` (without quotes) and conditional
+/// GETs answered as [`serve_file`] answers them.
+pub fn serve_bytes(
+    req: &HeaderMap,
+    etag: &str,
+    content_type: &'static str,
+    body: Vec<u8>,
+) -> ApiResult<Response> {
+    let builder = match conditional(req, &format!("\"{etag}\""))? {
+        Ok(b) => b,
+        Err(not_modified) => return Ok(not_modified),
+    };
+    builder
+        .status(StatusCode::OK)
+        .header(header::CONTENT_TYPE, content_type)
+        .body(Body::from(body))
+        .map_err(|_| api_error(ErrorCode::Internal, "building a response"))
+}
+
+/// Serve `meta` answering the conditional and range headers of `req`.
+pub async fn serve_file(req: &HeaderMap, meta: FileMeta) -> ApiResult<Response> {
+    let quoted = format!("\"{}\"", meta.etag);
+    let mut builder = match conditional(req, &quoted)? {
+        Ok(b) => b.header(header::ACCEPT_RANGES, "bytes"),
+        Err(not_modified) => return Ok(not_modified),
+    };
     let mut file = tokio::fs::File::open(&meta.path).await?;
     let len = file.metadata().await?.len();
     let if_range_ok = req

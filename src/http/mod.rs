@@ -1,8 +1,9 @@
 //! The HTTP layer: the only module that imports axum (router, extractors, errors, routes).
 //!
-//! [`Application::build`] opens the data directory and the database, recovers jobs, starts the engine and
-//! binds the listener (port 0 picks a free port: tests run the real server); [`Application::run_until`]
-//! serves until the shutdown signal, then lets open requests finish for at most the drain timeout.
+//! [`Application::build`] opens the application ([`App::open`]: data directory, database, recovery,
+//! engine) and binds the listener (port 0 picks a free port: tests run the real server);
+//! [`Application::run_until`] serves until the shutdown signal, then lets open requests finish for at most
+//! the drain timeout. Routes extract, call the application layer and map its answers to responses.
 
 pub mod auth;
 pub mod drain;
@@ -36,21 +37,18 @@ use tower_http::cors::{AllowOrigin, CorsLayer};
 use tower_http::request_id::{MakeRequestUuid, PropagateRequestIdLayer, SetRequestIdLayer};
 use tower_http::trace::TraceLayer;
 
-use crate::config::{ConfigError, Settings};
+use crate::app::{App, OpenError};
+use crate::config::Settings;
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::retention::{self, Retention};
-use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
-use crate::storage::BlobStore;
+use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
 use routes::{datasets, events, health, jobs, results, series};
 
-/// What every handler can reach.
+/// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
+/// and what only the HTTP layer needs.
 pub struct Shared {
-    pub db: Db,
-    pub store: BlobStore,
-    pub engine: Engine,
-    pub settings: Settings,
+    pub app: App,
     pub metrics: PrometheusHandle,
     /// Turns true when the server shuts down (ends event streams).
     pub shutdown: watch::Receiver<bool>,
@@ -69,17 +67,18 @@ impl Deref for AppState {
     }
 }
 
+impl Deref for Shared {
+    type Target = App;
+    fn deref(&self) -> &App {
+        &self.app
+    }
+}
+
 /// Why the service could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum BuildError {
     #[error(transparent)]
-    Config(#[from] ConfigError),
-    #[error("data directory: {0}")]
-    DataDir(std::io::Error),
-    #[error("database: {0}")]
-    Db(#[from] DbError),
-    #[error("engine: {0}")]
-    Engine(#[from] StartError),
+    App(#[from] OpenError),
     #[error("binding {addr}: {source}")]
     Bind {
         addr: SocketAddr,
@@ -244,42 +243,11 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
 }
 
 impl Application {
-    /// Validate the settings, open storage and database, recover jobs, start the engine, bind.
+    /// Open the application (settings, storage, database, recovery, engine), then bind.
     pub async fn build(settings: Settings) -> Result<Self, BuildError> {
-        settings.validate()?;
-        std::fs::create_dir_all(&settings.data_dir).map_err(BuildError::DataDir)?;
-        let store = BlobStore::open(&settings.data_dir).map_err(BuildError::DataDir)?;
-        let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let app = App::open(settings).await?;
         let metrics = metrics_handle();
-        let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
-        tracing::info!(?swept, "blob files paired with their rows");
-        let retention = Retention::from_secs(
-            settings.retain_finished_jobs_secs,
-            settings.retain_datasets_secs,
-            settings.retain_series_secs,
-        );
-        if !retention.is_off() {
-            let s = retention::sweep(&db, &store, &retention).await?;
-            tracing::info!(
-                jobs = s.jobs,
-                datasets = s.datasets,
-                series = s.series,
-                uploads = s.uploads,
-                "retention at start: removed"
-            );
-        }
-        let engine = Engine::start(
-            db.clone(),
-            store.clone(),
-            EngineConfig {
-                worker_threads: settings.resolved_worker_threads(),
-                max_concurrent_jobs: settings.max_concurrent_jobs,
-                memory_budget_bytes: settings.memory_budget_bytes,
-                max_attempts: settings.max_attempts,
-                progress_interval: Duration::from_millis(settings.progress_interval_ms.max(10)),
-            },
-        )
-        .await?;
+        let settings = &app.settings;
         let listener = tokio::net::TcpListener::bind(settings.bind)
             .await
             .map_err(|source| BuildError::Bind {
@@ -291,20 +259,12 @@ impl Application {
             source,
         })?;
         let (shutdown, shutdown_rx) = watch::channel(false);
-        retention::spawn(
-            db.clone(),
-            store.clone(),
-            retention,
-            Duration::from_secs(settings.retention_sweep_secs),
-            shutdown_rx.clone(),
-        );
+        app.spawn_retention(shutdown_rx.clone());
         let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
-        let tokens = auth::Tokens::from_settings(&settings);
+        let tokens = auth::Tokens::from_settings(settings);
+        let engine = app.engine.clone();
         let state = AppState(Arc::new(Shared {
-            db,
-            store,
-            engine: engine.clone(),
-            settings,
+            app,
             metrics,
             shutdown: shutdown_rx,
             lists: Default::default(),

@@ -3,6 +3,7 @@
 use axum::http::{HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 
+use crate::app::AppError;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::DbError;
 
@@ -20,6 +21,12 @@ pub fn api_error(code: ErrorCode, detail: impl Into<String>) -> ApiError {
 impl From<Problem> for ApiError {
     fn from(p: Problem) -> Self {
         ApiError(p)
+    }
+}
+
+impl From<AppError> for ApiError {
+    fn from(e: AppError) -> Self {
+        ApiError(e.into_problem())
     }
 }
 

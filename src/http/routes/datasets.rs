@@ -14,6 +14,8 @@ use super::super::extract::{
 };
 use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{UploadSink, Uploaded, paced};
+use crate::app::Replay;
+use crate::app::idempotency::settle;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::plan::{admit_simulation, recon_problem};
@@ -54,25 +56,11 @@ fn created(d: &Dataset) -> Response {
 
 /// The dataset an earlier request with the same Idempotency-Key created, if any; 422 when that request
 /// differed.
-async fn replay(
-    st: &AppState,
-    route: &'static str,
-    key: Option<&str>,
-    fingerprint: &str,
-) -> ApiResult<Option<Response>> {
-    let Some(key) = key else { return Ok(None) };
-    match st.db.idempotency_lookup(route, key).await? {
-        None => Ok(None),
-        Some((_, fp)) if fp != fingerprint => Err(reused()),
-        Some((id, _)) => existing(st, &id).await.map(Some),
+async fn replay(st: &AppState, key: Option<&IdempotencyKey>) -> ApiResult<Option<Response>> {
+    match st.replay(key).await? {
+        Replay::New => Ok(None),
+        Replay::Existing(id) => existing(st, &id).await.map(Some),
     }
-}
-
-fn reused() -> super::super::problem::ApiError {
-    api_error(
-        ErrorCode::IdempotencyKeyReused,
-        "this Idempotency-Key was used with a different request",
-    )
 }
 
 async fn existing(st: &AppState, id: &str) -> ApiResult<Response> {
@@ -115,15 +103,12 @@ async fn insert(
             tracing::info!(dataset_id = %d.id, kind = d.kind.as_str(), "dataset stored");
             Ok(created(&d))
         }
-        Inserted::Existing {
-            resource_id,
-            fingerprint,
-        } => {
+        existing @ Inserted::Existing { .. } => {
             temp.discard().await;
-            if key.is_some_and(|k| k.fingerprint != fingerprint) {
-                return Err(reused());
+            match settle(existing, key.as_ref())? {
+                Replay::Existing(id) => self::existing(st, &id).await,
+                Replay::New => Err(Problem::internal().into()),
             }
-            existing(st, &resource_id).await
         }
     }
 }
@@ -140,8 +125,12 @@ pub async fn post_simulation(
     headers: HeaderMap,
     body: ApiJson<SimulationRequest>,
 ) -> ApiResult<Response> {
-    let key = idempotency_key(&headers)?;
-    if let Some(r) = replay(&st, ROUTE_SIMULATIONS, key.as_deref(), &body.fingerprint).await? {
+    let key = idempotency_key(&headers)?.map(|key| IdempotencyKey {
+        route: ROUTE_SIMULATIONS,
+        key,
+        fingerprint: body.fingerprint.clone(),
+    });
+    if let Some(r) = replay(&st, key.as_ref()).await? {
         return Ok(r);
     }
     let req = body.value;
@@ -178,11 +167,6 @@ pub async fn post_simulation(
         noise: req.noise,
         created_us: now_us(),
     };
-    let key = key.map(|key| IdempotencyKey {
-        route: ROUTE_SIMULATIONS,
-        key,
-        fingerprint: body.fingerprint,
-    });
     insert(&st, d, key, temp).await
 }
 
@@ -247,7 +231,12 @@ pub async fn post_sinogram(
     let fingerprint = hex(&Sha256::digest(
         format!("{}:{}", geometry.fingerprint, upload.sha256).as_bytes(),
     ));
-    if let Some(r) = replay(&st, ROUTE_SINOGRAMS, key.as_deref(), &fingerprint).await? {
+    let key = key.map(|key| IdempotencyKey {
+        route: ROUTE_SINOGRAMS,
+        key,
+        fingerprint,
+    });
+    if let Some(r) = replay(&st, key.as_ref()).await? {
         return Ok(r);
     }
     let id = DatasetId::generate();
@@ -263,11 +252,6 @@ pub async fn post_sinogram(
         noise: None,
         created_us: now_us(),
     };
-    let key = key.map(|key| IdempotencyKey {
-        route: ROUTE_SINOGRAMS,
-        key,
-        fingerprint,
-    });
     insert(&st, d, key, upload.temp).await
 }
 

@@ -9,16 +9,11 @@ use serde::Deserialize;
 use serde_json::json;
 
 use super::super::AppState;
-use super::super::extract::{ApiJson, ApiQuery, from_value, idempotency_key, job_id};
+use super::super::extract::{ApiJson, ApiQuery, idempotency_key, job_id};
 use super::super::problem::{ApiResult, api_error};
 use crate::error_code::ErrorCode;
-use crate::jobs::imaging::{VolumeJobRequest, plan, resolve_input};
-use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us, parse_rfc3339, rfc3339};
-use crate::jobs::plan::admit_job;
-use crate::jobs::{
-    CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobSpec, JobStatus,
-    JobSummary,
-};
+use crate::jobs::model::{parse_rfc3339, rfc3339};
+use crate::jobs::{IdempotencyKey, Job, JobFilter, JobStatus, JobSummary};
 use crate::storage::JobId;
 
 const ROUTE_JOBS: &str = "POST /v1/jobs";
@@ -214,116 +209,22 @@ fn accepted(job: &Job) -> Response {
     r
 }
 
-async fn load(st: &AppState, id: JobId) -> ApiResult<Job> {
-    st.db
-        .get_job(id)
-        .await?
-        .ok_or_else(|| api_error(ErrorCode::JobNotFound, format!("no job {id}")))
-}
-
-fn reused() -> super::super::problem::ApiError {
-    api_error(
-        ErrorCode::IdempotencyKeyReused,
-        "this Idempotency-Key was used with a different request",
-    )
-}
-
-/// Admit a request: a reconstruction (the default `kind`) of a dataset, or a volume job on a series or a
-/// succeeded job's volume. Returns the typed spec and its memory estimate.
-async fn admit(st: &AppState, body: serde_json::Value) -> ApiResult<(JobSpec, u64)> {
-    let kind = body
-        .get("kind")
-        .map(|k| k.as_str().unwrap_or("").to_string());
-    match kind.as_deref() {
-        Some(KIND_VOLUME) => {
-            let req: VolumeJobRequest = from_value(body)?;
-            let input = resolve_input(&st.db, &st.store, req.input).await?;
-            let planned = plan(&req, input.shape, st.settings.memory_budget_bytes)?;
-            Ok((JobSpec::Volume(req), planned.estimate_bytes))
-        }
-        None | Some(KIND_RECONSTRUCTION) => {
-            let mut body = body;
-            if let Some(m) = body.as_object_mut() {
-                m.remove("kind");
-            }
-            let req: JobRequest = from_value(body)?;
-            let dataset = st.db.get_dataset(req.input).await?.ok_or_else(|| {
-                api_error(
-                    ErrorCode::DatasetNotFound,
-                    format!("no dataset {}", req.input),
-                )
-            })?;
-            let estimate = admit_job(&req, &dataset, st.settings.memory_budget_bytes)?;
-            Ok((JobSpec::Reconstruction(req), estimate))
-        }
-        Some(other) => Err(api_error(
-            ErrorCode::InvalidRequest,
-            format!("unknown job kind `{other}`: `reconstruction` (default) or `volume`"),
-        )),
-    }
-}
-
 pub async fn post_job(
     State(st): State<AppState>,
     headers: HeaderMap,
     body: ApiJson<serde_json::Value>,
 ) -> ApiResult<Response> {
-    let key = idempotency_key(&headers)?;
-    if let Some(k) = &key
-        && let Some((id, fp)) = st.db.idempotency_lookup(ROUTE_JOBS, k).await?
-    {
-        if fp != body.fingerprint {
-            return Err(reused());
-        }
-        return Ok(accepted(&load(&st, job_id(&id)?).await?));
-    }
-    let (spec, estimate) = admit(&st, body.value).await?;
-    let job = Job {
-        id: JobId::generate(),
-        kind: spec.kind().into(),
-        status: JobStatus::Queued,
-        progress: 0,
-        stage: "queued".into(),
-        request: spec,
-        estimate_bytes: estimate,
-        attempts: 0,
-        cancel_requested: false,
-        error: None,
-        result: None,
-        created_us: now_us(),
-        started_us: None,
-        finished_us: None,
-    };
-    let key = key.map(|key| IdempotencyKey {
+    let key = idempotency_key(&headers)?.map(|key| IdempotencyKey {
         route: ROUTE_JOBS,
         key,
         fingerprint: body.fingerprint.clone(),
     });
-    match st.db.insert_job(&job, key.as_ref()).await? {
-        Inserted::New => {
-            let what = match &job.request {
-                JobSpec::Reconstruction(r) => r.algorithm.name(),
-                JobSpec::Volume(_) => KIND_VOLUME,
-            };
-            tracing::info!(job_id = %job.id, kind = %job.kind, what, "job queued");
-            st.engine.publish(&job);
-            st.engine.wake();
-            Ok(accepted(&job))
-        }
-        Inserted::Existing {
-            resource_id,
-            fingerprint,
-        } => {
-            if fingerprint != body.fingerprint {
-                return Err(reused());
-            }
-            Ok(accepted(&load(&st, job_id(&resource_id)?).await?))
-        }
-    }
+    let submitted = st.submit_job(body.value, key).await?;
+    Ok(accepted(&submitted.job))
 }
 
 pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
-    let job = load(&st, job_id(&id)?).await?;
+    let job = st.get_job(job_id(&id)?).await?;
     Ok(axum::Json(job_view(&job)).into_response())
 }
 
@@ -393,25 +294,27 @@ pub async fn list_jobs(
         created_after_us: time(&q.created_after, "created_after")?,
         created_before_us: time(&q.created_before, "created_before")?,
         before_id,
-        limit: limit + 1,
+        limit,
     };
     // A summary view reads neither requests nor results (most lists: status polls).
     let (items, next) = if view.within(FieldSet::SUMMARY) {
-        let jobs = st.db.list_job_summaries(&filter).await?;
-        page(
-            &jobs,
-            limit,
-            |j| j.id,
-            |j| {
+        let page = st.list_job_summaries(&filter).await?;
+        let items: Vec<_> = page
+            .items
+            .iter()
+            .map(|j| {
                 let mut m = serde_json::Map::new();
                 summary_fields(&mut m, j, view);
                 serde_json::Value::Object(m)
-            },
-        )
+            })
+            .collect();
+        (items, page.next)
     } else {
-        let jobs = st.db.list_jobs(&filter).await?;
-        page(&jobs, limit, |j| j.id, |j| job_fields(j, view))
+        let page = st.list_jobs(&filter).await?;
+        let items: Vec<_> = page.items.iter().map(|j| job_fields(j, view)).collect();
+        (items, page.next)
     };
+    let next = next.map(|id| id.to_string());
     let body = Bytes::from(
         serde_json::to_vec(&json!({ "jobs": items, "next_cursor": next })).unwrap_or_default(),
     );
@@ -423,46 +326,12 @@ fn json_bytes(body: Bytes) -> Response {
     ([(header::CONTENT_TYPE, "application/json")], body).into_response()
 }
 
-/// The first `limit` of `rows` as JSON, and the cursor of the next page (there is one when the query found
-/// more than `limit`).
-fn page<T>(
-    rows: &[T],
-    limit: u32,
-    id: impl Fn(&T) -> JobId,
-    view: impl Fn(&T) -> serde_json::Value,
-) -> (Vec<serde_json::Value>, Option<String>) {
-    let shown = &rows[..rows.len().min(limit as usize)];
-    let next = (rows.len() > limit as usize)
-        .then(|| shown.last().map(|r| id(r).to_string()))
-        .flatten();
-    (shown.iter().map(view).collect(), next)
-}
-
 pub async fn cancel_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
-    let id = job_id(&id)?;
-    match st.engine.cancel(id).await {
-        Ok(()) => Ok(accepted(&load(&st, id).await?)),
-        Err(CancelError::NotFound) => {
-            Err(api_error(ErrorCode::JobNotFound, format!("no job {id}")))
-        }
-        Err(CancelError::Finished(s)) => Err(api_error(
-            ErrorCode::JobAlreadyFinished,
-            format!("the job has already {}; it cannot be canceled", s.as_str()),
-        )),
-        Err(CancelError::Db(e)) => Err(e.into()),
-    }
+    let job = st.cancel_job(job_id(&id)?).await?;
+    Ok(accepted(&job))
 }
 
 pub async fn delete_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
-    let id = job_id(&id)?;
-    let job = load(&st, id).await?;
-    if !job.status.is_terminal() || !st.db.delete_finished(id).await? {
-        return Err(api_error(
-            ErrorCode::JobActive,
-            "cancel the job and wait for it to finish before deleting it",
-        ));
-    }
-    st.store.remove_results(id)?;
-    tracing::info!(job_id = %id, "job deleted");
+    st.delete_job(job_id(&id)?).await?;
     Ok(StatusCode::NO_CONTENT.into_response())
 }

@@ -4,13 +4,13 @@
 //! `Cache-Control: immutable` and range support.
 
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, HeaderValue, header};
-use axum::response::{IntoResponse, Response};
+use axum::http::HeaderMap;
+use axum::response::Response;
 use sha2::{Digest, Sha256};
 
 use super::super::AppState;
 use super::super::extract::{ApiQuery, job_id};
-use super::super::files::{FileMeta, serve_file};
+use super::super::files::{FileMeta, serve_bytes, serve_file};
 use super::super::problem::{ApiResult, api_error};
 use crate::dicom::SeriesMeta;
 use crate::error_code::{ErrorCode, Problem};
@@ -74,30 +74,8 @@ pub async fn metrics(
         ));
     };
     let body = serde_json::to_vec(&m).unwrap_or_default();
-    let etag = format!("\"{}\"", hex(&Sha256::digest(&body)));
-    if headers
-        .get(header::IF_NONE_MATCH)
-        .and_then(|v| v.to_str().ok())
-        .is_some_and(|v| v.split(',').any(|t| t.trim() == etag || t.trim() == "*"))
-    {
-        let mut r = axum::http::StatusCode::NOT_MODIFIED.into_response();
-        if let Ok(v) = HeaderValue::from_str(&etag) {
-            r.headers_mut().insert(header::ETAG, v);
-        }
-        return Ok(r);
-    }
-    let mut resp = (
-        [
-            (header::CONTENT_TYPE, "application/json"),
-            (header::CACHE_CONTROL, "public, max-age=31536000, immutable"),
-        ],
-        body,
-    )
-        .into_response();
-    if let Ok(v) = HeaderValue::from_str(&etag) {
-        resp.headers_mut().insert(header::ETAG, v);
-    }
-    Ok(resp)
+    let etag = hex(&Sha256::digest(&body));
+    serve_bytes(&headers, &etag, "application/json", body)
 }
 
 /// How DICOM results of `r` are labelled: the source series' study, frame of reference and patient when the

@@ -22,12 +22,14 @@ use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::files::{FileMeta, serve_file};
 use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{Spooled, paced, spool, too_large};
+use crate::app::Replay;
+use crate::app::idempotency::settle;
 use crate::dicom::{ReadLimits, UploadFile, ZipLimits, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::ingest::{IngestOptions, Ingested, Staged, dicom_problem, ingest};
 use crate::jobs::model::rfc3339;
 use crate::jobs::repo::Deleted;
-use crate::jobs::{Appended, Completed, IdempotencyKey, Inserted, SeriesRecord, UploadRecord};
+use crate::jobs::{Appended, Completed, IdempotencyKey, SeriesRecord, UploadRecord};
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
@@ -244,28 +246,24 @@ async fn record_upload(
         .db
         .insert_completed_upload(id, instances, bytes, view, records, key)
         .await?;
-    match (inserted, key) {
-        (Inserted::New, _) => Ok(None),
-        (Inserted::Existing { .. }, Some(k)) => replay(st, k)
-            .await?
-            .map(Some)
-            .ok_or_else(|| Problem::internal().into()),
-        (Inserted::Existing { .. }, None) => Err(Problem::internal().into()),
+    match settle(inserted, key)? {
+        Replay::New => Ok(None),
+        Replay::Existing(id) => {
+            let u = load_upload(st, &id).await?;
+            Ok(Some(created(
+                &format!("/v1/uploads/{}", u.id),
+                upload_view(&u),
+            )))
+        }
     }
 }
 
 /// The upload an earlier request with the same Idempotency-Key created (201 with its view), or 422 when that
 /// request differed; `None` when the key is new.
 async fn replay(st: &AppState, key: &IdempotencyKey) -> ApiResult<Option<Response>> {
-    let Some((id, fingerprint)) = st.db.idempotency_lookup(key.route, &key.key).await? else {
+    let Replay::Existing(id) = st.replay(Some(key)).await? else {
         return Ok(None);
     };
-    if fingerprint != key.fingerprint {
-        return Err(api_error(
-            ErrorCode::IdempotencyKeyReused,
-            "this Idempotency-Key was used with a different request",
-        ));
-    }
     let u = load_upload(st, &id).await?;
     Ok(Some(created(
         &format!("/v1/uploads/{}", u.id),
@@ -487,14 +485,11 @@ async fn append(
         Some(id) => (id, false),
         None => {
             let id = UploadId::generate();
-            if let Inserted::Existing { .. } = st.db.insert_open_upload(id, key.as_ref()).await? {
+            let inserted = st.db.insert_open_upload(id, key.as_ref()).await?;
+            if let Replay::Existing(winner) = settle(inserted, key.as_ref())? {
                 // Lost a race with the same key: answer the winner.
-                if let Some(k) = &key
-                    && let Some(r) = replay(st, k).await?
-                {
-                    return Ok(r);
-                }
-                return Err(Problem::internal().into());
+                let u = load_upload(st, &winner).await?;
+                return Ok(created(&format!("/v1/uploads/{}", u.id), upload_view(&u)));
             }
             (id, true)
         }

@@ -1,0 +1,182 @@
+//! Job commands and queries: submit (admission, Idempotency-Key), fetch, list a page, cancel, delete.
+
+use super::App;
+use super::error::{AppError, AppResult, refused};
+use super::idempotency::{Replay, settle};
+use crate::error_code::ErrorCode;
+use crate::jobs::imaging::{VolumeJobRequest, plan, resolve_input};
+use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us};
+use crate::jobs::plan::admit_job;
+use crate::jobs::{CancelError, IdempotencyKey, Job, JobFilter, JobRequest, JobSpec, JobSummary};
+use crate::storage::JobId;
+
+/// The job a submission answers: the one it queued, or the one an identical earlier request queued.
+#[derive(Debug, Clone)]
+pub struct Submitted {
+    pub job: Job,
+    /// False when the Idempotency-Key replayed an earlier submission.
+    pub created: bool,
+}
+
+/// One page of a job list, newest first, and the cursor of the next page.
+#[derive(Debug, Clone)]
+pub struct Page<T> {
+    pub items: Vec<T>,
+    /// Pass as [`JobFilter::before_id`] for the next page; `None` on the last page.
+    pub next: Option<JobId>,
+}
+
+impl<T> Page<T> {
+    /// The first `limit` of `rows` (fetched with `limit + 1`), with a cursor when there were more.
+    fn of(mut rows: Vec<T>, limit: u32, id: impl Fn(&T) -> JobId) -> Self {
+        let more = rows.len() > limit as usize;
+        rows.truncate(limit as usize);
+        let next = if more { rows.last().map(&id) } else { None };
+        Page { items: rows, next }
+    }
+}
+
+fn parse<T: serde::de::DeserializeOwned>(v: serde_json::Value) -> AppResult<T> {
+    serde_json::from_value(v).map_err(|e| refused(ErrorCode::InvalidRequest, e.to_string()))
+}
+
+fn job_not_found(id: JobId) -> AppError {
+    refused(ErrorCode::JobNotFound, format!("no job {id}"))
+}
+
+impl App {
+    /// Admit a request: a reconstruction (the default `kind`) of a dataset, or a volume job on a series or a
+    /// succeeded job's volume. Returns the typed spec and its memory estimate.
+    pub async fn admit(&self, body: serde_json::Value) -> AppResult<(JobSpec, u64)> {
+        let kind = body
+            .get("kind")
+            .map(|k| k.as_str().unwrap_or("").to_string());
+        let budget = self.settings.memory_budget_bytes;
+        match kind.as_deref() {
+            Some(KIND_VOLUME) => {
+                let req: VolumeJobRequest = parse(body)?;
+                let input = resolve_input(&self.db, &self.store, req.input).await?;
+                let planned = plan(&req, input.shape, budget)?;
+                Ok((JobSpec::Volume(req), planned.estimate_bytes))
+            }
+            None | Some(KIND_RECONSTRUCTION) => {
+                let mut body = body;
+                if let Some(m) = body.as_object_mut() {
+                    m.remove("kind");
+                }
+                let req: JobRequest = parse(body)?;
+                let dataset = self.db.get_dataset(req.input).await?.ok_or_else(|| {
+                    refused(
+                        ErrorCode::DatasetNotFound,
+                        format!("no dataset {}", req.input),
+                    )
+                })?;
+                let estimate = admit_job(&req, &dataset, budget)?;
+                Ok((JobSpec::Reconstruction(req), estimate))
+            }
+            Some(other) => Err(refused(
+                ErrorCode::InvalidRequest,
+                format!("unknown job kind `{other}`: `reconstruction` (default) or `volume`"),
+            )),
+        }
+    }
+
+    /// Submit a job (a JSON request as `POST /v1/jobs` takes it) under an optional Idempotency-Key: it is
+    /// persisted as `queued` before this returns, and the engine is woken.
+    pub async fn submit_job(
+        &self,
+        body: serde_json::Value,
+        key: Option<IdempotencyKey>,
+    ) -> AppResult<Submitted> {
+        if let Replay::Existing(id) = self.replay(key.as_ref()).await? {
+            return self.replayed_job(&id).await;
+        }
+        let (spec, estimate) = self.admit(body).await?;
+        let job = Job::queued(spec, estimate, now_us());
+        let inserted = self.db.insert_job(&job, key.as_ref()).await?;
+        match settle(inserted, key.as_ref())? {
+            Replay::New => {
+                let what = match &job.request {
+                    JobSpec::Reconstruction(r) => r.algorithm.name(),
+                    JobSpec::Volume(_) => KIND_VOLUME,
+                };
+                tracing::info!(job_id = %job.id, kind = %job.kind, what, "job queued");
+                self.engine.publish(&job);
+                self.engine.wake();
+                Ok(Submitted { job, created: true })
+            }
+            Replay::Existing(id) => self.replayed_job(&id).await,
+        }
+    }
+
+    async fn replayed_job(&self, id: &str) -> AppResult<Submitted> {
+        let id = JobId::parse(id).map_err(|e| {
+            AppError::Db(crate::jobs::DbError::Corrupt {
+                table: "idempotency_keys",
+                reason: e.to_string(),
+            })
+        })?;
+        Ok(Submitted {
+            job: self.get_job(id).await?,
+            created: false,
+        })
+    }
+
+    /// A job by id.
+    pub async fn get_job(&self, id: JobId) -> AppResult<Job> {
+        self.db.get_job(id).await?.ok_or_else(|| job_not_found(id))
+    }
+
+    /// The summaries of the jobs matching `filter` (its `limit`: the page size), newest first.
+    pub async fn list_job_summaries(&self, filter: &JobFilter) -> AppResult<Page<JobSummary>> {
+        let limit = filter.limit;
+        let f = JobFilter {
+            limit: limit.saturating_add(1),
+            ..filter.clone()
+        };
+        let rows = self.db.list_job_summaries(&f).await?;
+        Ok(Page::of(rows, limit, |j| j.id))
+    }
+
+    /// The whole jobs matching `filter` (its `limit`: the page size), newest first.
+    pub async fn list_jobs(&self, filter: &JobFilter) -> AppResult<Page<Job>> {
+        let limit = filter.limit;
+        let f = JobFilter {
+            limit: limit.saturating_add(1),
+            ..filter.clone()
+        };
+        let rows = self.db.list_jobs(&f).await?;
+        Ok(Page::of(rows, limit, |j| j.id))
+    }
+
+    /// Cancel a job: a queued job ends `canceled` at once, a running one stops at its next check. Answers
+    /// the job as it is now.
+    pub async fn cancel_job(&self, id: JobId) -> AppResult<Job> {
+        match self.engine.cancel(id).await {
+            Ok(()) => self.get_job(id).await,
+            Err(CancelError::NotFound) => Err(job_not_found(id)),
+            Err(CancelError::Finished(s)) => Err(refused(
+                ErrorCode::JobAlreadyFinished,
+                format!("the job has already {}; it cannot be canceled", s.as_str()),
+            )),
+            Err(CancelError::Db(e)) => Err(e.into()),
+        }
+    }
+
+    /// Delete a finished job and its results.
+    pub async fn delete_job(&self, id: JobId) -> AppResult<()> {
+        let job = self.get_job(id).await?;
+        if !job.status.is_terminal() || !self.db.delete_finished(id).await? {
+            return Err(refused(
+                ErrorCode::JobActive,
+                "cancel the job and wait for it to finish before deleting it",
+            ));
+        }
+        let store = self.store.clone();
+        tokio::task::spawn_blocking(move || store.remove_results(id))
+            .await
+            .map_err(std::io::Error::other)??;
+        tracing::info!(job_id = %id, "job deleted");
+        Ok(())
+    }
+}

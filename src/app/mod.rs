@@ -1,0 +1,111 @@
+//! The application layer: the commands and queries every front door calls (the HTTP routes, the CLI, and
+//! later the DIMSE listener and `ctrecon worker`) — submit, cancel, list, fetch and delete jobs; the
+//! Idempotency-Key rule — over the job store, the blob store and the engine.
+//!
+//! It imports no web framework: answers are domain values or an [`AppError`], which each front door maps
+//! to its own wire form (the HTTP layer to problem+json, in one place).
+
+pub mod error;
+pub mod idempotency;
+pub mod jobs;
+
+use std::time::Duration;
+
+use tokio::sync::watch;
+
+use crate::config::{ConfigError, Settings};
+use crate::jobs::retention::{self, Retention};
+use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
+use crate::storage::BlobStore;
+
+pub use error::{AppError, AppResult};
+pub use idempotency::{Fingerprinted, Replay};
+pub use jobs::{Page, Submitted};
+
+/// Why the application could not open.
+#[derive(Debug, thiserror::Error)]
+pub enum OpenError {
+    #[error(transparent)]
+    Config(#[from] ConfigError),
+    #[error("data directory: {0}")]
+    DataDir(std::io::Error),
+    #[error("database: {0}")]
+    Db(#[from] DbError),
+    #[error("engine: {0}")]
+    Engine(#[from] StartError),
+}
+
+/// The application: the job database, the blob store, the engine and the settings (limits). Cheap to
+/// clone (every part is a handle).
+#[derive(Clone)]
+pub struct App {
+    pub db: Db,
+    pub store: BlobStore,
+    pub engine: Engine,
+    pub settings: Settings,
+    retention: Retention,
+}
+
+impl App {
+    /// Validate the settings, open the data directory and the database, pair blob files with their rows,
+    /// apply retention once, recover jobs left running and start the engine.
+    pub async fn open(settings: Settings) -> Result<Self, OpenError> {
+        settings.validate()?;
+        let dir = settings.data_dir.clone();
+        let store = tokio::task::spawn_blocking(move || {
+            std::fs::create_dir_all(&dir)?;
+            BlobStore::open(&dir)
+        })
+        .await
+        .map_err(|e| OpenError::DataDir(std::io::Error::other(e)))?
+        .map_err(OpenError::DataDir)?;
+        let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
+        tracing::info!(?swept, "blob files paired with their rows");
+        let retention = Retention::from_secs(
+            settings.retain_finished_jobs_secs,
+            settings.retain_datasets_secs,
+            settings.retain_series_secs,
+        );
+        if !retention.is_off() {
+            let s = retention::sweep(&db, &store, &retention).await?;
+            tracing::info!(
+                jobs = s.jobs,
+                datasets = s.datasets,
+                series = s.series,
+                uploads = s.uploads,
+                "retention at start: removed"
+            );
+        }
+        let engine = Engine::start(
+            db.clone(),
+            store.clone(),
+            EngineConfig {
+                worker_threads: settings.resolved_worker_threads(),
+                max_concurrent_jobs: settings.max_concurrent_jobs,
+                memory_budget_bytes: settings.memory_budget_bytes,
+                max_attempts: settings.max_attempts,
+                progress_interval: Duration::from_millis(settings.progress_interval_ms.max(10)),
+            },
+        )
+        .await?;
+        Ok(Self {
+            db,
+            store,
+            engine,
+            settings,
+            retention,
+        })
+    }
+
+    /// Start the periodic retention sweep; it ends when `shutdown` turns true.
+    pub fn spawn_retention(&self, shutdown: watch::Receiver<bool>) {
+        retention::spawn(
+            self.db.clone(),
+            self.store.clone(),
+            self.retention,
+            Duration::from_secs(self.settings.retention_sweep_secs),
+            shutdown,
+        );
+    }
+}
