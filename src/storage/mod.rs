@@ -13,6 +13,7 @@
 
 pub mod ids;
 pub mod npy;
+pub mod port;
 pub mod sweep;
 
 use std::fs;
