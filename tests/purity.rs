@@ -1,5 +1,10 @@
-//! The pure modules (`recon`, `volume`, `mesh`) must not depend on the service stack, DICOM, the clock,
-//! the environment or the file system. This test reads their sources and fails on a forbidden path.
+//! The dependency rule, read from the sources:
+//! - the pure modules (`recon`, `volume`, `mesh`, `series`) do not depend on the service stack, DICOM, the
+//!   clock, the environment or the file system;
+//! - the application layer (`app`) imports no front door (`http`, `cli`) and no web framework;
+//! - the job-store adapter (`jobs`) and the blob-store adapter (`storage`) do not import each other's
+//!   backends, and nothing below the front doors imports them;
+//! - the top-level modules import each other without a cycle.
 
 use std::path::{Path, PathBuf};
 
@@ -78,6 +83,125 @@ fn pure_modules_import_no_service_dicom_clock_env_or_filesystem() {
         "forbidden imports in pure modules:\n{}",
         bad.join("\n")
     );
+}
+
+/// Top-level modules of `src/` (a folder or a file) and the other top-level modules each one names as
+/// `crate::<module>`.
+fn module_graph(
+    root: &Path,
+) -> std::collections::BTreeMap<String, std::collections::BTreeSet<String>> {
+    let src = root.join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    let mut graph = std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
+    for file in files {
+        let rel = file.strip_prefix(&src).expect("under src");
+        let first = rel.components().next().expect("a component");
+        let top = first
+            .as_os_str()
+            .to_string_lossy()
+            .trim_end_matches(".rs")
+            .to_string();
+        let text = std::fs::read_to_string(&file).expect("read source");
+        let deps = graph.entry(top.clone()).or_default();
+        for line in text.lines() {
+            let c = code(line);
+            for (i, _) in c.match_indices("crate::") {
+                let name: String = c[i + 7..]
+                    .chars()
+                    .take_while(|ch| ch.is_ascii_lowercase() || *ch == '_')
+                    .collect();
+                if !name.is_empty() && name != top {
+                    deps.insert(name);
+                }
+            }
+        }
+    }
+    graph
+}
+
+/// Whether `to` is reachable from `from` in `graph`.
+fn reaches(
+    graph: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
+    from: &str,
+    to: &str,
+) -> bool {
+    let mut seen = std::collections::BTreeSet::new();
+    let mut stack = vec![from.to_string()];
+    while let Some(m) = stack.pop() {
+        for d in graph.get(&m).into_iter().flatten() {
+            if d == to {
+                return true;
+            }
+            if seen.insert(d.clone()) {
+                stack.push(d.clone());
+            }
+        }
+    }
+    false
+}
+
+#[test]
+fn top_level_modules_import_each_other_without_a_cycle() {
+    let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
+    assert!(
+        graph.contains_key("app") && graph.contains_key("jobs"),
+        "{graph:?}"
+    );
+    let mut cycles = Vec::new();
+    for (m, deps) in &graph {
+        for d in deps {
+            if graph.contains_key(d) && reaches(&graph, d, m) {
+                cycles.push(format!("{m} → {d} → … → {m}"));
+            }
+        }
+    }
+    assert!(cycles.is_empty(), "module cycles:\n{}", cycles.join("\n"));
+}
+
+#[test]
+fn the_application_layer_imports_no_front_door() {
+    let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
+    for front in ["http", "cli"] {
+        assert!(
+            !reaches(&graph, "app", front),
+            "app reaches the front door `{front}`: {graph:?}"
+        );
+    }
+    let mut files = Vec::new();
+    rust_files(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("src/app"),
+        &mut files,
+    );
+    for file in files {
+        let text = std::fs::read_to_string(&file).expect("read source");
+        for (n, line) in text.lines().enumerate() {
+            let c = code(line);
+            assert!(
+                !c.contains("axum") && !c.contains("tower") && !c.contains("hyper"),
+                "{}:{}: the application layer imports a web framework",
+                file.display(),
+                n + 1
+            );
+        }
+    }
+}
+
+#[test]
+fn adapters_and_lower_layers_import_no_front_door_and_the_stores_not_each_other() {
+    let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
+    for lower in [
+        "jobs", "storage", "dicom", "series", "recon", "volume", "mesh", "app",
+    ] {
+        for front in ["http", "cli"] {
+            assert!(
+                !reaches(&graph, lower, front),
+                "`{lower}` reaches the front door `{front}`"
+            );
+        }
+    }
+    // The blob store knows nothing of the job store (the job store may name blob ids).
+    assert!(!reaches(&graph, "storage", "jobs"), "storage reaches jobs");
 }
 
 #[test]
