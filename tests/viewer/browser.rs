@@ -152,8 +152,13 @@ impl Browser {
     /// Poll a script until it returns a truthy value (at most `secs` seconds).
     pub async fn until(&self, script: &str, secs: u64) -> Value {
         let deadline = Instant::now() + Duration::from_secs(secs);
+        let body = if script.contains("return") {
+            script.to_string()
+        } else {
+            format!("return ({script});")
+        };
         loop {
-            let v = self.js(script, vec![]).await;
+            let v = self.js(&body, vec![]).await;
             if !(v.is_null() || v == json!(false) || v == json!("") || v == json!(0)) {
                 return v;
             }

@@ -74,22 +74,24 @@ function summary(job) {
   return h('section.panel#job-summary',
     h('div.row', h('h1', `Job ${job.id.slice(0, 8)}`), h('span#job-status', statusBadge(job.status)),
       h('span#job-progress', progressBar(job.progress)), h('span#job-stage.muted', job.stage || '')),
-    dl([
-      ['Id', h('code', job.id)],
-      ['Kind', job.kind],
-      ['Input', job.input ? h('code', job.input) : undefined],
-      ['Created', fmtTime(job.created_at)],
-      ['Started', fmtTime(job.started_at)],
-      ['Finished', fmtTime(job.finished_at)],
-      ['Queued for', fmtDuration(job.created_at, job.started_at)],
-      ['Ran for', fmtDuration(job.started_at, job.finished_at)],
-      ['Attempts', String(job.attempts ?? '–')],
-      ['Memory estimate', job.estimate_bytes ? fmtBytes(job.estimate_bytes) : undefined],
-      ['Result shape', r.shape ? r.shape.join(' × ') : undefined],
-      ['Units', r.units],
-      ['Range', r.min !== undefined ? `${fmtNum(r.min, 4)} … ${fmtNum(r.max, 4)} (mean ${fmtNum(r.mean, 4)})` : undefined],
-    ]),
-    h('details', h('summary', 'Parameters'), request(job)));
+    h('details.job-facts', { open: job.status !== 'succeeded' },
+      h('summary', `Timings, attempts and parameters · ran for ${fmtDuration(job.started_at, job.finished_at)}`),
+      dl([
+        ['Id', h('code', job.id)],
+        ['Kind', job.kind],
+        ['Input', job.input ? h('code', job.input) : undefined],
+        ['Created', fmtTime(job.created_at)],
+        ['Started', fmtTime(job.started_at)],
+        ['Finished', fmtTime(job.finished_at)],
+        ['Queued for', fmtDuration(job.created_at, job.started_at)],
+        ['Ran for', fmtDuration(job.started_at, job.finished_at)],
+        ['Attempts', String(job.attempts ?? '–')],
+        ['Memory estimate', job.estimate_bytes ? fmtBytes(job.estimate_bytes) : undefined],
+        ['Result shape', r.shape ? r.shape.join(' × ') : undefined],
+        ['Units', r.units],
+        ['Range', r.min !== undefined ? `${fmtNum(r.min, 4)} … ${fmtNum(r.max, 4)} (mean ${fmtNum(r.mean, 4)})` : undefined],
+      ]),
+      request(job)));
 }
 
 export async function showJob(main, id, signal) {

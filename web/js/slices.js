@@ -163,7 +163,7 @@ export class SliceViewer {
     const next = Math.max(0, Math.min(this.n[a] - 1, this.cursor[a] + by));
     if (next === this.cursor[a]) return;
     this.cursor[a] = next;
-    this.redraw();
+    this.redraw(name);
   }
 
   moveCursor(v) {
@@ -171,20 +171,27 @@ export class SliceViewer {
     this.redraw();
   }
 
+  /** Draw on the next frame: `only` that plane (the others redraw their crosshairs), or every plane. */
   redraw(only) {
+    this.dirty = this.dirty || new Set();
+    this.dirty.add(only || 'all');
     if (this.pending) return;
     this.pending = requestAnimationFrame(() => {
+      const dirty = this.dirty;
       this.pending = 0;
-      for (const v of this.views) if (!only || v.name === only) v.draw();
-      for (const v of this.views) if (only && v.name !== only) v.cross();
+      this.dirty = null;
+      for (const v of this.views) {
+        if (dirty.has('all') || dirty.has(v.name)) v.draw();
+        else v.cross();
+      }
     });
   }
 
   layout() {
     const wide = this.grid.clientWidth;
     const cols = wide >= 900 ? 3 : wide >= 560 ? 2 : 1;
-    const boxW = Math.floor((wide - (cols - 1) * 8) / cols) - 4;
-    const boxH = Math.max(200, Math.min(boxW, window.innerHeight - 260));
+    const boxW = Math.floor((wide - (cols - 1) * 8) / cols) - 8;
+    const boxH = Math.max(200, Math.min(boxW, window.innerHeight - 200));
     for (const v of this.views) v.layout(boxW, boxH);
     this.redraw();
   }

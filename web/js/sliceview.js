@@ -102,7 +102,7 @@ export class PlaneView {
     const { w, hgt } = this.dims();
     const data = this.vol.sliceData(this.name);
     const [idx, count] = this.index();
-    this.title.textContent = `${this.name[0].toUpperCase()}${this.name.slice(1)} ${idx + 1} / ${count}`;
+    this.title.textContent = `${this.name[0].toUpperCase()}${this.name.slice(1)} slice ${idx} (0–${count - 1})`;
     this.el.dataset.index = String(idx);
     if (!data) {
       this.el.classList.add('pending');
