@@ -133,6 +133,7 @@ export async function showJob(main, id, signal) {
     shape: r.shape,
     frame: r.frame || null,
     units: r.units || 'mu_per_mm',
+    grid: job.grid || null,
   });
   signal.addEventListener('abort', () => sv.destroy());
   await sv.start(signal);

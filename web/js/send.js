@@ -9,6 +9,15 @@ import {
 import { SliceViewer } from './slices.js';
 import { dropZone } from './upload.js';
 
+/** Words of the API's problems that name each phantom form field. */
+const ALIASES = {
+  table: ['table'], scale_mm: ['scale_mm', 'phantom'], views: ['angles', 'views', 'count'],
+  det_count: ['det_count', 'detector count', 'nu'], det_spacing_mm: ['spacing_mm', 'det_spacing', 'du_mm'],
+  dso_mm: ['dso', 'source-to-isocentre', 'source-to-centre'], dsd_mm: ['dsd', 'source-to-detector'],
+  nv: ['nv'], noise: ['incident_photons', 'noise'], algorithm: ['algorithm'], filter: ['filter'],
+  iterations: ['iterations'], size: ['grid', 'nx', 'ny', 'nz', 'job_too_large', 'memory'], pixel_mm: ['dx_mm', 'pixel'],
+};
+
 /** The volume protocol form for a series (or a succeeded job) id. */
 export function protocolForm(input) {
   const preset = h('select.protocol-preset', { 'aria-label': 'protocol' },
@@ -86,8 +95,20 @@ function phantomForm() {
   const submit = h('button.primary', { type: 'submit' }, 'Simulate and reconstruct');
   const form = h('form#phantom-form', { novalidate: true }, h('div.form-grid', fields), h('div.row', submit), formErr);
   const place = (e) => {
-    const text = `${e.detail || ''} ${(e.problem && e.problem.title) || ''}`;
-    const hit = Object.keys(errs).find((n) => !labels[n].hidden && new RegExp(`\\b${n}\\b`).test(text));
+    const text = `${e.detail || ''}`.toLowerCase();
+    // The visible field named earliest in the problem's detail gets the message.
+    let hit = null;
+    let at = Infinity;
+    for (const [name, words] of Object.entries(ALIASES)) {
+      if (labels[name].hidden) continue;
+      for (const w of words) {
+        const k = text.indexOf(w);
+        if (k >= 0 && k < at) {
+          at = k;
+          hit = name;
+        }
+      }
+    }
     if (hit) errs[hit].append(errorBox(e));
     else formErr.append(errorBox(e));
   };
