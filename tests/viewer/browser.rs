@@ -2,6 +2,7 @@
 //! stopped in a drop guard. Without Chromium or chromedriver a test prints one skip line and passes, unless
 //! `CTRECON_REQUIRE_PEERS=1` (CI), where it fails.
 
+use std::os::unix::process::CommandExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -17,7 +18,10 @@ pub struct Browser {
 }
 
 impl Drop for Browser {
+    /// Stop chromedriver and the Chromium it started: they share a process group of their own.
     fn drop(&mut self) {
+        let group = format!("-{}", self.driver.id());
+        let _ = Command::new("kill").args(["-TERM", "--", &group]).status();
         let _ = self.driver.kill();
         let _ = self.driver.wait();
     }
@@ -60,6 +64,7 @@ pub async fn start(test: &str, width: u32, height: u32) -> Option<Browser> {
     let port = free_port();
     let driver = Command::new(driver_bin)
         .arg(format!("--port={port}"))
+        .process_group(0)
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()
