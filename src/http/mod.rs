@@ -13,6 +13,7 @@ pub mod lists;
 pub mod problem;
 pub mod routes;
 pub mod upload;
+pub mod web;
 
 use std::future::{Future, IntoFuture};
 use std::net::SocketAddr;
@@ -220,6 +221,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .with_state(state)
         .layer(middleware::from_fn(track))
         .layer(middleware::from_fn_with_state(tokens, auth::require_token))
+        .merge(web::router())
         .layer(CatchPanicLayer::custom(|_| {
             tracing::error!("a request handler panicked");
             problem_response(&Problem::internal())

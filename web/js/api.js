@@ -1,0 +1,169 @@
+// The public HTTP API as the page calls it: the bearer token kept in sessionStorage, problem+json errors
+// turned into readable messages, Server-Sent Events read from a fetch stream (EventSource cannot send the
+// Authorization header), uploads with progress, authenticated downloads.
+
+const KEY = 'ctrecon.token';
+
+export function token() {
+  return sessionStorage.getItem(KEY) || '';
+}
+
+export function setToken(t) {
+  if (t) sessionStorage.setItem(KEY, t);
+  else sessionStorage.removeItem(KEY);
+}
+
+/** An API failure with the problem's fields; status 0 when the server could not be reached. */
+export class ApiError extends Error {
+  constructor(status, title, detail, code, problem) {
+    super(`${title}: ${detail}`);
+    this.status = status;
+    this.title = title;
+    this.detail = detail;
+    this.code = code;
+    this.problem = problem || null;
+  }
+}
+
+export function unreachable() {
+  return new ApiError(0, 'Server unreachable',
+    `The ctrecon server at ${location.origin} does not answer. Is it running?`, 'unreachable');
+}
+
+function authHeaders(extra) {
+  const h = new Headers(extra || {});
+  const t = token();
+  if (t) h.set('Authorization', `Bearer ${t}`);
+  return h;
+}
+
+async function problemOf(resp) {
+  let p = null;
+  try {
+    p = await resp.json();
+  } catch {
+    p = null;
+  }
+  if (resp.status === 401) {
+    return new ApiError(401, 'Token refused',
+      'The server refused the API token (401). Enter a valid token.', 'unauthorized', p);
+  }
+  const title = (p && p.title) || resp.statusText || 'Request failed';
+  const detail = (p && p.detail) || `HTTP ${resp.status}`;
+  return new ApiError(resp.status, title, detail, p && p.code, p);
+}
+
+/** fetch with the token; throws ApiError. Returns the Response. */
+export async function request(path, opts = {}) {
+  let resp;
+  try {
+    resp = await fetch(path, { ...opts, headers: authHeaders(opts.headers) });
+  } catch (e) {
+    if (e && e.name === 'AbortError') throw e;
+    throw unreachable();
+  }
+  if (!resp.ok && resp.status !== 206 && resp.status !== 304) throw await problemOf(resp);
+  return resp;
+}
+
+/** A JSON call: GET by default; `body` is sent as JSON. Returns the parsed body (null for 204). */
+export async function api(path, { method = 'GET', body, headers, signal } = {}) {
+  const h = Object.assign({}, headers || {});
+  if (body !== undefined) h['Content-Type'] = 'application/json';
+  const resp = await request(path, {
+    method, signal, headers: h, body: body === undefined ? undefined : JSON.stringify(body),
+  });
+  if (resp.status === 204) return null;
+  return resp.json();
+}
+
+/** An ArrayBuffer, optionally a byte range [start, end] inclusive. */
+export async function bytes(path, range, signal) {
+  const headers = range ? { Range: `bytes=${range[0]}-${range[1]}` } : {};
+  const resp = await request(path, { headers, signal });
+  return resp.arrayBuffer();
+}
+
+/** An object URL of an authenticated image or file (revoke it when done). */
+export async function blobUrl(path, signal) {
+  const resp = await request(path, { signal });
+  return URL.createObjectURL(await resp.blob());
+}
+
+/** Save an authenticated download under `name`. */
+export async function download(path, name) {
+  const url = await blobUrl(path);
+  const a = document.createElement('a');
+  a.href = url;
+  a.download = name;
+  document.body.append(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10000);
+}
+
+/**
+ * Follow a job's Server-Sent Events: calls onEvent(name, data) for each event until the stream ends or
+ * `signal` aborts. Resolves when the stream ends.
+ */
+export async function follow(path, onEvent, signal) {
+  const resp = await request(path, { signal, headers: { Accept: 'text/event-stream' } });
+  const reader = resp.body.getReader();
+  const dec = new TextDecoder();
+  let buf = '';
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) break;
+    buf += dec.decode(value, { stream: true }).replace(/\r\n?/g, '\n');
+    let cut;
+    while ((cut = buf.indexOf('\n\n')) >= 0) {
+      const block = buf.slice(0, cut);
+      buf = buf.slice(cut + 2);
+      let name = 'message';
+      const data = [];
+      for (const line of block.split('\n')) {
+        if (line.startsWith('event:')) name = line.slice(6).trim();
+        else if (line.startsWith('data:')) data.push(line.slice(5).replace(/^ /, ''));
+      }
+      if (data.length) {
+        let parsed = null;
+        try {
+          parsed = JSON.parse(data.join('\n'));
+        } catch {
+          parsed = data.join('\n');
+        }
+        onEvent(name, parsed);
+      }
+    }
+  }
+}
+
+/** POST a body with upload progress (XMLHttpRequest: fetch reports none). Resolves with the JSON answer. */
+export function upload(path, body, contentType, onProgress) {
+  return new Promise((resolve, reject) => {
+    const x = new XMLHttpRequest();
+    x.open('POST', path);
+    const t = token();
+    if (t) x.setRequestHeader('Authorization', `Bearer ${t}`);
+    if (contentType) x.setRequestHeader('Content-Type', contentType);
+    x.upload.onprogress = (e) => onProgress && onProgress(e.loaded, e.lengthComputable ? e.total : 0);
+    x.onerror = () => reject(unreachable());
+    x.onload = () => {
+      let p = null;
+      try {
+        p = JSON.parse(x.responseText);
+      } catch {
+        p = null;
+      }
+      if (x.status >= 200 && x.status < 300) resolve(p);
+      else if (x.status === 401) {
+        reject(new ApiError(401, 'Token refused',
+          'The server refused the API token (401). Enter a valid token.', 'unauthorized', p));
+      } else {
+        reject(new ApiError(x.status, (p && p.title) || 'Upload failed',
+          (p && p.detail) || `HTTP ${x.status}`, p && p.code, p));
+      }
+    };
+    x.send(body);
+  });
+}

@@ -1,0 +1,119 @@
+// The jobs list: filters by status and kind, live status and progress through each running job's event
+// stream, cancel and delete.
+
+import { api, follow } from './api.js';
+import { clear, errorBox, fmtTime, h } from './dom.js';
+
+const STATUSES = ['queued', 'running', 'succeeded', 'failed', 'canceled'];
+const TERMINAL = new Set(['succeeded', 'failed', 'canceled']);
+
+export function statusBadge(status) {
+  return h(`span.status.status-${status}`, { dataset: { status } }, status);
+}
+
+export function progressBar(p) {
+  const bar = h('progress', { max: '100', value: String(p || 0), 'aria-label': 'progress' });
+  return h('span.progress', bar, h('span.pct', `${p || 0} %`));
+}
+
+function row(job, actions) {
+  const tr = h('tr', { dataset: { id: job.id } },
+    h('td', h('a', { href: `#/job/${job.id}` }, job.id.slice(0, 8))),
+    h('td', job.kind),
+    h('td.cell-status', statusBadge(job.status)),
+    h('td.cell-progress', progressBar(job.progress)),
+    h('td.cell-stage', job.stage || ''),
+    h('td', fmtTime(job.created_at)),
+    h('td.actions', actions(job)));
+  return tr;
+}
+
+function update(tr, ev) {
+  const s = tr.querySelector('.cell-status');
+  clear(s).append(statusBadge(ev.status));
+  clear(tr.querySelector('.cell-progress')).append(progressBar(ev.progress));
+  tr.querySelector('.cell-stage').textContent = ev.stage || '';
+}
+
+export async function showJobs(main, signal) {
+  const params = new URLSearchParams(location.hash.split('?')[1] || '');
+  const status = h('select#filter-status', { 'aria-label': 'status' },
+    h('option', { value: '' }, 'any status'),
+    STATUSES.map((s) => h('option', { value: s, selected: params.get('status') === s }, s)));
+  const kind = h('select#filter-kind', { 'aria-label': 'kind' },
+    h('option', { value: '' }, 'any kind'),
+    ['reconstruction', 'volume'].map((k) => h('option', { value: k, selected: params.get('kind') === k }, k)));
+  const body = h('tbody');
+  const more = h('button', { type: 'button', hidden: true }, 'More');
+  const msg = h('div.msg');
+  const table = h('table.jobs#jobs-table',
+    h('thead', h('tr', ['Job', 'Kind', 'Status', 'Progress', 'Stage', 'Created', ''].map((t) => h('th', t)))),
+    body);
+  main.append(h('section.panel',
+    h('div.row', h('h1', 'Jobs'), h('div.filters', status, kind,
+      h('a.button', { href: '#/send' }, 'Send work'))),
+    msg, h('div.scroll', table), more));
+
+  const live = new Map();
+  let cursor = null;
+  const watch = (job, tr) => {
+    if (TERMINAL.has(job.status) || live.has(job.id)) return;
+    const ctl = new AbortController();
+    signal.addEventListener('abort', () => ctl.abort());
+    live.set(job.id, ctl);
+    follow(`/v1/jobs/${job.id}/events`, (name, data) => {
+      if (data && typeof data === 'object') update(tr, data);
+      if (name === 'final') clear(tr.querySelector('.actions')).append(actions(data));
+    }, ctl.signal).catch(() => {}).finally(() => live.delete(job.id));
+  };
+  const actions = (job) => {
+    if (!TERMINAL.has(job.status)) {
+      return h('button.cancel', { type: 'button', onclick: () => act(job, 'cancel') }, 'Cancel');
+    }
+    return h('button.delete', { type: 'button', onclick: () => act(job, 'delete') }, 'Delete');
+  };
+  const act = async (job, what) => {
+    clear(msg);
+    try {
+      if (what === 'cancel') await api(`/v1/jobs/${job.id}/cancel`, { method: 'POST' });
+      else {
+        await api(`/v1/jobs/${job.id}`, { method: 'DELETE' });
+        const tr = body.querySelector(`tr[data-id="${job.id}"]`);
+        if (tr) tr.remove();
+      }
+    } catch (e) {
+      msg.append(errorBox(e));
+    }
+  };
+  const load = async (reset) => {
+    if (reset) {
+      cursor = null;
+      clear(body);
+      for (const c of live.values()) c.abort();
+    }
+    const q = new URLSearchParams({ limit: '50' });
+    if (status.value) q.set('status', status.value);
+    if (kind.value) q.set('kind', kind.value);
+    if (cursor) q.set('cursor', cursor);
+    const page = await api(`/v1/jobs?${q}`, { signal });
+    for (const job of page.jobs) {
+      const tr = row(job, actions);
+      body.append(tr);
+      watch(job, tr);
+    }
+    if (!body.children.length) body.append(h('tr.empty', h('td', { colspan: '7' }, 'No jobs.')));
+    cursor = page.next_cursor;
+    more.hidden = !cursor;
+  };
+  const refilter = () => {
+    const q = new URLSearchParams();
+    if (status.value) q.set('status', status.value);
+    if (kind.value) q.set('kind', kind.value);
+    history.replaceState(null, '', `#/jobs${q.toString() ? `?${q}` : ''}`);
+    load(true).catch((e) => msg.append(errorBox(e)));
+  };
+  status.addEventListener('change', refilter);
+  kind.addEventListener('change', refilter);
+  more.addEventListener('click', () => load(false).catch((e) => msg.append(errorBox(e))));
+  await load(true);
+}

@@ -1,0 +1,91 @@
+// Volume protocols (a volume job's steps and products, as the API takes them) and the choices of the phantom
+// forms. The enums and minimums follow openapi.yaml; the server checks everything again at submission
+// (sizes against its configured limits and memory budget) and its problem is shown next to the field.
+
+/** Presets of `POST /v1/jobs` with `kind: volume` (HU iso-values: a series is in HU). */
+export const PROTOCOLS = {
+  bone: {
+    label: 'Bone: coronal MIP, rotating MIP, bone surface',
+    steps: [],
+    products: [
+      { type: 'projection', axis: 'coronal', kind: 'mip' },
+      { type: 'rotating', frames: 24, kind: 'mip' },
+      { type: 'mesh', iso: 300, smoothing: 10, target_triangles: 200000 },
+    ],
+  },
+  spine: {
+    label: 'Spine: sagittal and coronal thick slabs, sagittal MIP, bone surface',
+    steps: [{ op: 'resample', spacing_mm: 1.0 }],
+    products: [
+      { type: 'mpr', plane: 'sagittal', slab: { thickness_mm: 10, kind: 'mip' } },
+      { type: 'mpr', plane: 'coronal', slab: { thickness_mm: 10, kind: 'average' } },
+      { type: 'projection', axis: 'sagittal', kind: 'mip' },
+      { type: 'mesh', iso: 250, smoothing: 10, target_triangles: 150000 },
+    ],
+  },
+  lung: {
+    label: 'Lung: coronal MinIP, axial thick MIP slabs',
+    steps: [],
+    products: [
+      { type: 'projection', axis: 'coronal', kind: 'minip' },
+      { type: 'mpr', plane: 'axial', slab: { thickness_mm: 10, kind: 'mip' }, spacing_mm: 10 },
+    ],
+  },
+};
+
+export const PHANTOM_TABLES = ['modified_shepp_logan', 'shepp_logan', 'yu_ye_wang'];
+export const FILTERS = ['ram-lak', 'shepp-logan', 'cosine', 'hamming', 'hann'];
+export const ALGORITHMS_2D = ['fbp', 'art', 'sart', 'os_sart', 'sirt', 'cgls', 'mlem', 'tv'];
+export const ALGORITHMS_3D = ['fdk', 'sirt', 'cgls', 'sart'];
+
+/**
+ * Fields of the phantom form: [name, label, kind, default, constraints]. `when` limits a field to some
+ * geometry types.
+ */
+export const PHANTOM_FIELDS = [
+  ['table', 'Phantom', 'select', 'modified_shepp_logan', { options: PHANTOM_TABLES }],
+  ['scale_mm', 'Phantom radius (mm)', 'number', 100, { min: 0.001, step: 'any' }],
+  ['type', 'Geometry', 'select', 'parallel', { options: ['parallel', 'fan', 'cone'] }],
+  ['views', 'Views', 'number', 180, { min: 1, step: 1 }],
+  ['det_count', 'Detector elements (columns)', 'number', 256, { min: 1, step: 1 }],
+  ['det_spacing_mm', 'Detector spacing (mm)', 'number', 1, { min: 0.001, step: 'any' }],
+  ['dso_mm', 'Source–centre (mm)', 'number', 500, { min: 0.001, step: 'any', when: ['fan', 'cone'] }],
+  ['dsd_mm', 'Source–detector (mm)', 'number', 900, { min: 0.001, step: 'any', when: ['fan', 'cone'] }],
+  ['nv', 'Detector rows', 'number', 128, { min: 1, step: 1, when: ['cone'] }],
+  ['noise', 'Incident photons (0: exact)', 'number', 0, { min: 0, max: 1e15, step: 'any' }],
+  ['algorithm', 'Algorithm', 'select', 'fbp', { options: ALGORITHMS_2D }],
+  ['filter', 'Filter', 'select', 'ram-lak', { options: FILTERS, algorithms: ['fbp', 'fdk'] }],
+  ['iterations', 'Iterations', 'number', 20, { min: 1, step: 1, algorithms: ['art', 'sart', 'os_sart', 'sirt', 'cgls', 'mlem', 'tv'] }],
+  ['size', 'Grid size (pixels per side)', 'number', 256, { min: 1, step: 1 }],
+  ['pixel_mm', 'Pixel size (mm)', 'number', 1, { min: 0.001, step: 'any' }],
+];
+
+/** The simulation and job bodies of the phantom form's values. */
+export function phantomRequests(v) {
+  const n = (k) => Number(v[k]);
+  let geometry;
+  if (v.type === 'parallel') {
+    geometry = { type: 'parallel', angles: { count: n('views') }, det_count: n('det_count'), det_spacing_mm: n('det_spacing_mm') };
+  } else if (v.type === 'fan') {
+    geometry = {
+      type: 'fan', angles: { count: n('views') }, dso_mm: n('dso_mm'), dsd_mm: n('dsd_mm'),
+      detector: { shape: 'flat', count: n('det_count'), spacing_mm: n('det_spacing_mm') },
+    };
+  } else {
+    geometry = {
+      type: 'cone', angles: { count: n('views') }, dso_mm: n('dso_mm'), dsd_mm: n('dsd_mm'),
+      detector: { nu: n('det_count'), nv: n('nv'), du_mm: n('det_spacing_mm'), dv_mm: n('det_spacing_mm') },
+    };
+  }
+  const simulation = { phantom: { table: v.table, scale_mm: n('scale_mm') }, geometry };
+  if (n('noise') > 0) simulation.noise = { incident_photons: n('noise'), seed: 1 };
+  const algorithm = { name: v.algorithm };
+  if (['fbp', 'fdk'].includes(v.algorithm)) algorithm.filter = v.filter;
+  else algorithm.iterations = n('iterations');
+  const size = n('size');
+  const px = n('pixel_mm');
+  const grid = v.type === 'cone'
+    ? { nx: size, ny: size, nz: size, spacing_mm: [px, px, px] }
+    : { nx: size, ny: size, dx_mm: px, dy_mm: px };
+  return { simulation, job: { algorithm, grid, outputs: ['volume', 'metrics'] } };
+}
