@@ -13,12 +13,17 @@
 //! ([`padded2`]); see [`operator2`] for how they share the work between threads. Parallel-beam views
 //! whose ray step along a line lies between 0.6 and 1.85 pixels run the line-driven kernels of
 //! [`parallel2`] instead (8 or 16 rays or pixels per vector, windows instead of gathers), which
-//! enumerate the same pairs in forward and back and differ from the walks by f32 rounding. In 3D forward
-//! projection runs views in parallel (each view writes its own rows); back projection partitions the
-//! views between threads, each accumulating into its own volume buffer, and sums the buffers: no write
-//! races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
-//! `[view][v][u]`.
+//! enumerate the same pairs in forward and back and differ from the walks by f32 rounding. In 3D the
+//! whole-view passes run [`cone_columns`]: the walks' pairs organised by detector column (the rays of
+//! a column of a panel whose v axis is z share their dominant axis and in-plane positions), as a blend
+//! of two contiguous z lines and one linear interpolation per row and plane, with the transpose
+//! accumulated into bands of planes that the threads own (no per-thread volumes, no write races).
+//! Single rays (ART) use the walks. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms
+//! `[view][u]`, projections `[view][v][u]`.
 
+pub mod cone_columns;
+pub mod cone_lines;
+pub mod cone_stacks;
 pub mod footprint3;
 pub mod joseph2;
 pub mod joseph3;
@@ -285,9 +290,7 @@ impl Operator for Projector3<'_> {
         out: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        forward_partitioned(self.view_len(), subset, out, cancel, |view, row| {
-            joseph3::forward_view(self.views, view, self.grid, image, row)
-        })
+        cone_columns::forward(self.views, self.grid, image, subset, out, cancel)
     }
     fn back(
         &self,
@@ -296,10 +299,7 @@ impl Operator for Projector3<'_> {
         image: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        let (n, m) = (self.image_len(), self.view_len());
-        back_partitioned(n, m, data, subset, image, cancel, |view, row, acc| {
-            joseph3::back_view(self.views, view, self.grid, row, acc)
-        })
+        cone_columns::back(self.views, self.grid, data, subset, image, cancel)
     }
     fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
         self.walk(view, element).map_or(0.0, |w| w.dot(image))
