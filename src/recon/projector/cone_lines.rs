@@ -135,6 +135,7 @@ impl Form {
     /// row `r`'s position, for `r` in `rows`. `a` and `b` hold at least `line.len()` values, `line`
     /// at least 3; positions are clamped into the padding.
     #[inline]
+    #[allow(unsafe_code)]
     pub fn forward(
         self,
         a: &[f32],
@@ -160,6 +161,7 @@ impl Form {
     /// `lines` is scratch of twice the line length: the weights of each row's first and second value
     /// are summed apart (so neighbouring rows do not wait on each other's sums), then merged.
     #[inline]
+    #[allow(unsafe_code)]
     pub fn back(
         self,
         a: &mut [f32],

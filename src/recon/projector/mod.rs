@@ -8,7 +8,7 @@
 //!
 //! The back projector is the exact transpose: it enumerates the same (pixel, weight) pairs
 //! ([`joseph2::Walk2::visit`], [`joseph3::Walk3::visit`]), so ⟨A x, y⟩ = ⟨x, Aᵀ y⟩ up to f32 rounding.
-//! In 2D the whole-view passes run the kernels of [`kernel2`] (AVX2 where the CPU has it), which
+//! In 2D the whole-view passes run the kernels of [`joseph2_loops`] (AVX2 where the CPU has it), which
 //! compute the pairs and weights of [`joseph2::Walk2`] bit for bit on padded line layouts
 //! ([`padded2`]); see [`operator2`] for how they share the work between threads. Parallel-beam views
 //! whose ray step along a line lies between 0.6 and 1.85 pixels run the line-driven kernels of
@@ -26,13 +26,13 @@ pub mod cone_lines;
 pub mod cone_stacks;
 pub mod footprint3;
 pub mod joseph2;
+#[cfg(target_arch = "x86_64")]
+mod joseph2_avx2;
+pub mod joseph2_loops;
 pub mod joseph3;
-pub mod kernel2;
 pub mod operator2;
 pub mod padded2;
 pub mod parallel2;
-#[cfg(target_arch = "x86_64")]
-mod simd2;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
 use rayon::prelude::*;
