@@ -11,7 +11,7 @@ fn grid() -> VolumeGrid {
     VolumeGrid {
         nx: 21,
         ny: 18,
-        nz: 13,
+        nz: 40,
         spacing_mm: [1.0, 1.1, 1.3],
         centre_mm: [0.5, -0.5, 1.0],
     }
@@ -22,7 +22,7 @@ fn cone(steep: bool) -> Views3 {
     let (dso, dsd, nv, dv) = if steep {
         (14.0, 30.0, 48, 1.5)
     } else {
-        (60.0, 110.0, 30, 1.1)
+        (60.0, 110.0, 64, 1.6)
     };
     ConeBeam {
         angles: Angles::uniform(17, 360.0),

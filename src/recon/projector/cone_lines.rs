@@ -73,11 +73,16 @@ fn back_body(
     lines.fill(0.0);
     let hi = (len - 2) as f32;
     let (first, second) = lines.split_at_mut(len);
-    for (i, d) in data[..rows.len()].iter().enumerate() {
-        let (k, f) = position(step, rows.start + i, hi);
-        let k = k.min(len - 2);
-        first[k] += (1.0 - f) * *d;
-        second[k] += f * *d;
+    // Even rows first, then odd rows: neighbouring rows of one parity are at least a value
+    // apart when rows are at least half a voxel apart, which the vector forms use.
+    let data = &data[..rows.len()];
+    for parity in 0..2 {
+        for i in (parity..data.len()).step_by(2) {
+            let (k, f) = position(step, rows.start + i, hi);
+            let k = k.min(len - 2);
+            first[k] += (1.0 - f) * data[i];
+            second[k] += f * data[i];
+        }
     }
     merge_and_spread(a, b, first, second, step);
 }
@@ -205,7 +210,7 @@ mod x86 {
     macro_rules! row_loops {
         ($forward:ident, $back:ident, $feature:literal, $lanes:literal, $v:ty, $set1:ident, $setr:expr,
          $add:ident, $sub:ident, $mul:ident, $max:ident, $min:ident, $cvtt:ident, $cvt:ident,
-         $loadu:ident, $storeu:ident, $storei:ident, $gather:expr, $inc:expr) => {
+         $loadu:ident, $storeu:ident, $storei:ident, $gather:expr, $inc:expr, $scatter:expr) => {
             #[target_feature(enable = $feature)]
             pub unsafe fn $forward(
                 a: &[f32],
@@ -264,7 +269,8 @@ mod x86 {
                 lines.fill(0.0);
                 let hi = (len - 2) as f32;
                 let (first, second) = lines.split_at_mut(len);
-                let data = &data[..rows.len()];
+                let n = rows.len();
+                let data = &data[..n];
                 let (e0, de, one, zero, top) = (
                     $set1(step.e0),
                     $set1(step.de),
@@ -273,34 +279,44 @@ mod x86 {
                     $set1(hi),
                 );
                 let lane = $setr;
-                let mut j = 0;
+                let lane2 = $add(lane, lane);
+                let every_other = $cvtt(lane2);
                 let (mut idx, mut p0, mut p1) =
                     ([0i32; $lanes], [0.0f32; $lanes], [0.0f32; $lanes]);
-                while j + $lanes <= data.len() {
-                    let rv = $add($set1((rows.start + j) as f32), lane);
-                    let q = $add($add(e0, $mul(rv, de)), one);
-                    let q = $min($max(q, zero), top);
-                    let i = $cvtt(q);
-                    let f = $sub(q, $cvt(i));
-                    // SAFETY: `j + lanes ≤ data.len()`; the stores fill the local arrays of `lanes`.
-                    unsafe {
-                        let d = $loadu(data.as_ptr().add(j));
-                        $storei(idx.as_mut_ptr().cast(), i);
-                        $storeu(p0.as_mut_ptr(), $mul($sub(one, f), d));
-                        $storeu(p1.as_mut_ptr(), $mul(f, d));
+                for parity in 0..2 {
+                    let mut j = parity;
+                    while j + 2 * ($lanes - 1) < n {
+                        let rv = $add($set1((rows.start + j) as f32), lane2);
+                        let q = $add($add(e0, $mul(rv, de)), one);
+                        let q = $min($max(q, zero), top);
+                        let i = $cvtt(q);
+                        let f = $sub(q, $cvt(i));
+                        // SAFETY: rows j, j + 2, …, j + 2·(lanes − 1) < n lie in `data`.
+                        let d = unsafe { $gather(data.as_ptr().add(j), every_other) };
+                        let (v0, v1) = ($mul($sub(one, f), d), $mul(f, d));
+                        // SAFETY: the clamp keeps every index in [0, len − 2], inside both lines.
+                        if !unsafe { $scatter(first, second, i, v0, v1) } {
+                            // SAFETY: the stores fill the local arrays of `lanes` values.
+                            unsafe {
+                                $storei(idx.as_mut_ptr().cast(), i);
+                                $storeu(p0.as_mut_ptr(), v0);
+                                $storeu(p1.as_mut_ptr(), v1);
+                            }
+                            for l in 0..$lanes {
+                                let k = (idx[l] as usize).min(len - 2);
+                                first[k] += p0[l];
+                                second[k] += p1[l];
+                            }
+                        }
+                        j += 2 * $lanes;
                     }
-                    for l in 0..$lanes {
-                        let k = (idx[l] as usize).min(len - 2);
-                        first[k] += p0[l];
-                        second[k] += p1[l];
+                    while j < n {
+                        let (k, f) = position(step, rows.start + j, hi);
+                        let k = k.min(len - 2);
+                        first[k] += (1.0 - f) * data[j];
+                        second[k] += f * data[j];
+                        j += 2;
                     }
-                    j += $lanes;
-                }
-                for (o, d) in data[j..].iter().enumerate() {
-                    let (k, f) = position(step, rows.start + j + o, hi);
-                    let k = k.min(len - 2);
-                    first[k] += (1.0 - f) * *d;
-                    second[k] += f * *d;
                 }
                 merge_and_spread(a, b, first, second, step);
             }
@@ -326,8 +342,18 @@ mod x86 {
         _mm256_storeu_ps,
         _mm256_storeu_si256,
         |p: *const f32, i: __m256i| _mm256_i32gather_ps::<4>(p, i),
-        |i: __m256i| _mm256_add_epi32(i, _mm256_set1_epi32(1))
+        |i: __m256i| _mm256_add_epi32(i, _mm256_set1_epi32(1)),
+        no_scatter
     );
+
+    /// AVX2 has no scatter: the rows are spread one by one.
+    ///
+    /// # Safety
+    /// None beyond the CPU having AVX2 (the signature matches [`scatter_distinct`]).
+    #[target_feature(enable = "avx2,fma")]
+    unsafe fn no_scatter(_: &mut [f32], _: &mut [f32], _: __m256i, _: __m256, _: __m256) -> bool {
+        false
+    }
 
     row_loops!(
         forward_avx512,
@@ -350,6 +376,34 @@ mod x86 {
         _mm512_storeu_ps,
         _mm512_storeu_si512,
         |p: *const f32, i: __m512i| _mm512_i32gather_ps::<4>(i, p),
-        |i: __m512i| _mm512_add_epi32(i, _mm512_set1_epi32(1))
+        |i: __m512i| _mm512_add_epi32(i, _mm512_set1_epi32(1)),
+        scatter_distinct
     );
+
+    /// `first[i] += v0`, `second[i] += v1` in one gather and scatter each when the 16 indices are
+    /// distinct (they increase or decrease, so distinct neighbours suffice); false otherwise.
+    ///
+    /// # Safety
+    /// Every index must lie inside both slices, and the CPU must have AVX-512F.
+    #[target_feature(enable = "avx512f,avx2,fma")]
+    unsafe fn scatter_distinct(
+        first: &mut [f32],
+        second: &mut [f32],
+        i: __m512i,
+        v0: __m512,
+        v1: __m512,
+    ) -> bool {
+        let next = _mm512_alignr_epi32::<1>(i, i);
+        if _mm512_mask_cmpneq_epi32_mask(0x7fff, i, next) != 0x7fff {
+            return false;
+        }
+        // SAFETY: the caller's indices lie inside both slices; distinct lanes write distinct values.
+        unsafe {
+            let g = _mm512_i32gather_ps::<4>(i, first.as_ptr());
+            _mm512_i32scatter_ps::<4>(first.as_mut_ptr(), i, _mm512_add_ps(g, v0));
+            let g = _mm512_i32gather_ps::<4>(i, second.as_ptr());
+            _mm512_i32scatter_ps::<4>(second.as_mut_ptr(), i, _mm512_add_ps(g, v1));
+        }
+        true
+    }
 }
