@@ -4,7 +4,8 @@
 //!
 //! `cargo run --release --example iterative_curves` — the table;
 //! `cargo run --release --example iterative_curves -- cone` — one cone-beam SIRT×10 (128³ from 180
-//! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory;
+//! projections of 192²) with its wall time, for `/usr/bin/time -v` to measure peak memory
+//! (`-- cone V D`: from V projections of D², e.g. `-- cone 360 256`);
 //! `cargo run --release --example iterative_curves -- projector [N [only]]` — best of N (default 5)
 //! wall times of one forward and one back projection of 512² / 720 views / 725 detectors and of 256² /
 //! 360 / 363 (parallel beam) and of a cone beam (64³ from 90 projections of 96²), and (unless `only`)
@@ -132,8 +133,8 @@ fn cone_case(n: usize, views: usize, det: usize) -> (VolumeGrid, ctrecon::recon:
     (VolumeGrid::cube(n, 1.0), v3)
 }
 
-fn cone() {
-    let (grid, v3) = cone_case(128, 180, 192);
+fn cone(count: usize, det: usize) {
+    let (grid, v3) = cone_case(128, count, det);
     let phantom = Phantom3::from_table(Table3::ModifiedSheppLogan, 64.0);
     let proj = phantom.project(&v3);
     let views = Views::D3(v3);
@@ -154,13 +155,19 @@ fn cone() {
     let secs = t.elapsed().as_secs_f64();
     let reference = phantom.rasterize(&grid, 2).into_dyn();
     let e = rmse(vol.view(), reference.view(), None).expect("same shape");
-    println!("cone SIRT×10 128³ from 180×192²: {secs:.2} s, RMSE {e:.4}");
+    println!("cone SIRT×10 128³ from {count}×{det}²: {secs:.2} s, RMSE {e:.4}");
 }
 
 fn main() {
     ctrecon::config::limit_simd_from_env();
     if std::env::args().nth(1).as_deref() == Some("cone") {
-        cone();
+        let arg = |i: usize, default: usize| {
+            std::env::args()
+                .nth(i)
+                .and_then(|s| s.parse().ok())
+                .unwrap_or(default)
+        };
+        cone(arg(2, 180), arg(3, 192));
         return;
     }
     if std::env::args().nth(1).as_deref() == Some("projector") {

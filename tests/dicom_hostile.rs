@@ -42,6 +42,7 @@ struct Counting;
 
 // SAFETY: every call forwards to `System` with the caller's layout unchanged; the bookkeeping only touches
 // const-initialised thread-locals (no allocation, no destructor).
+#[allow(unsafe_code)] // a counting allocator wraps the system one
 unsafe impl GlobalAlloc for Counting {
     unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
         // SAFETY: forwarded as is.

@@ -1,6 +1,7 @@
 //! Loading the 8 pairs `(q[k], q[k + 1])` that linear interpolation at 8 positions needs, and picking
 //! values from a 16-value window, shared by the AVX2 kernels of the projectors and of the analytic
 //! backprojection.
+#![allow(unsafe_code)] // SIMD kernel: every `unsafe` below carries its `// SAFETY:` note.
 
 use std::arch::x86_64::*;
 

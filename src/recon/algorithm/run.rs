@@ -128,7 +128,12 @@ fn analytic_run(
     ctl: Control<'_>,
 ) -> Result<ArrayD<f32>, ReconError> {
     params.validate()?;
-    let shape_err = |e: ndarray::ShapeError| ReconError::param("data", e.to_string());
+    // A data array of the wrong rank is a fault of the data, not of a parameter.
+    let got = data.shape().to_vec();
+    let shape_err = |_: ndarray::ShapeError| ReconError::ShapeMismatch {
+        expected: views.data_shape(),
+        got: got.clone(),
+    };
     match (views, grid) {
         (Views::D2(v), OutputGrid::Image(g)) => {
             let sino = data.into_dimensionality::<Ix2>().map_err(shape_err)?;
@@ -142,5 +147,40 @@ fn analytic_run(
             "grid",
             "grid and geometry dimensionality differ",
         )),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use ndarray::ArrayD;
+
+    use super::*;
+    use crate::recon::control::unattended;
+    use crate::recon::geometry::Geometry;
+    use crate::recon::grid::ImageGrid;
+
+    #[test]
+    fn data_of_the_wrong_rank_is_a_shape_mismatch_not_a_bad_parameter() {
+        let geometry: Geometry = serde_json::from_str(
+            r#"{"type": "parallel", "angles": {"count": 4}, "det_count": 8, "det_spacing_mm": 1.0}"#,
+        )
+        .unwrap();
+        let views = geometry.to_views().unwrap();
+        let data = ArrayD::<f32>::zeros(vec![4, 1, 8]);
+        let grid = OutputGrid::Image(ImageGrid::square(8, 1.0));
+        let r = analytic_run(
+            &FbpParams::default(),
+            &views,
+            data.view(),
+            &grid,
+            unattended(),
+        );
+        assert_eq!(
+            r.unwrap_err(),
+            ReconError::ShapeMismatch {
+                expected: vec![4, 8],
+                got: vec![4, 1, 8],
+            }
+        );
     }
 }

@@ -5,7 +5,7 @@
 //! outside the detector: no bounds checks are needed in the hot loop. Positions are in stored samples
 //! (detector index + [`PAD`]). The per-view constants (angular weight, distance weights) are folded into
 //! the stored values, so the kernels only interpolate and add. On x86-64 CPUs with AVX2 and FMA the
-//! public kernels run the vector forms of `super::simd`; the `*_scalar` forms are the portable reference.
+//! public kernels run the vector forms of `super::backproject_x86`; the `*_scalar` forms are the portable reference.
 
 /// Zero samples stored on each side of a filtered detector row.
 pub const PAD: usize = 2;
@@ -21,6 +21,7 @@ fn split(pos: f32, hi: f32) -> (usize, f32) {
 
 /// Linear interpolation of `q` at `pos`; `q.len() ≥ 2`.
 #[inline(always)]
+#[allow(unsafe_code)]
 fn lerp(q: &[f32], pos: f32) -> f32 {
     debug_assert!(q.len() >= 2);
     let (i, f) = split(pos, (q.len() - 2) as f32);
@@ -30,16 +31,17 @@ fn lerp(q: &[f32], pos: f32) -> f32 {
 }
 
 /// Parallel beam: `acc[i] += q(pos0 + i·dpos)`.
+#[allow(unsafe_code)]
 pub fn parallel_row(acc: &mut [f32], q: &[f32], pos0: f32, dpos: f32) {
     if q.len() < 2 {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if super::simd::available(q.len()) {
-        let wide = super::simd::wide_available();
+    if super::backproject_x86::available(q.len()) {
+        let wide = super::backproject_x86::wide_available();
         // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time, and
         // q.len() fits an i32 index.
-        unsafe { super::simd::parallel_row(acc, q, pos0, dpos, wide) };
+        unsafe { super::backproject_x86::parallel_row(acc, q, pos0, dpos, wide) };
         return;
     }
     parallel_row_scalar(acc, q, pos0, dpos);
@@ -71,16 +73,17 @@ pub struct RowLine {
 pub const MIN_DEPTH: f32 = 1e-3;
 
 /// Divergent beam on one detector row: `acc[i] += q(a·lat/lc + b) / lc²`.
+#[allow(unsafe_code)]
 pub fn fan_row(acc: &mut [f32], q: &[f32], line: &RowLine, a: f32, b: f32) {
     if q.len() < 2 {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if super::simd::available(q.len()) {
-        let wide = super::simd::wide_available();
+    if super::backproject_x86::available(q.len()) {
+        let wide = super::backproject_x86::wide_available();
         // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time, and
         // q.len() fits an i32 index.
-        unsafe { super::simd::fan_row(acc, q, line, a, b, wide) };
+        unsafe { super::backproject_x86::fan_row(acc, q, line, a, b, wide) };
         return;
     }
     fan_row_scalar(acc, q, line, a, b);
@@ -109,22 +112,24 @@ pub struct Panel<'a> {
 }
 
 /// Cone beam: `acc[i] += q(au·lat/lc + bu, av·latv/lc + bv) / lc²` (bilinear).
+#[allow(unsafe_code)]
 pub fn cone_row(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
     let Panel { q, width, rows } = panel;
     if width < 2 || rows < 2 || q.len() < width * rows {
         return;
     }
     #[cfg(target_arch = "x86_64")]
-    if super::simd::available(width * rows) {
+    if super::backproject_x86::available(width * rows) {
         // SAFETY: AVX2 and FMA are present (checked at run time), q holds width·rows ≥ 4 values and
         // width·rows fits an i32 index.
-        unsafe { super::simd::cone_row(acc, panel, line, map) };
+        unsafe { super::backproject_x86::cone_row(acc, panel, line, map) };
         return;
     }
     cone_row_scalar(acc, panel, line, map);
 }
 
 /// The portable (reference) form of [`cone_row`]; `map` is `[au, bu, av, bv]`.
+#[allow(unsafe_code)]
 pub fn cone_row_scalar(acc: &mut [f32], panel: Panel<'_>, line: &RowLine, map: [f32; 4]) {
     let Panel { q, width, rows } = panel;
     if width < 2 || rows < 2 || q.len() < width * rows {
@@ -177,10 +182,15 @@ mod tests {
         let mut forms = Vec::new();
         #[cfg(target_arch = "x86_64")]
         for wide in [false, true] {
-            if super::super::simd::available(1 << 20)
-                && (!wide || super::super::simd::wide_available())
+            if super::super::backproject_x86::available(1 << 20)
+                && (!wide || super::super::backproject_x86::wide_available())
             {
                 forms.push((if wide { "avx-512" } else { "avx2" }, form(wide)));
+            } else {
+                println!(
+                    "skipped: the {} backprojection rows (this CPU lacks them)",
+                    if wide { "AVX-512F" } else { "AVX2 + FMA" }
+                );
             }
         }
         #[cfg(not(target_arch = "x86_64"))]
@@ -190,6 +200,7 @@ mod tests {
 
     /// The public kernel, the scalar reference and every vector form, so that every path runs
     /// whichever the public kernel picks.
+    #[allow(unsafe_code)]
     fn parallel_kernels() -> Vec<(&'static str, ParallelKernel)> {
         let mut kernels: Vec<(&'static str, ParallelKernel)> = vec![
             ("public", Box::new(parallel_row)),
@@ -198,13 +209,14 @@ mod tests {
         kernels.extend(simd_forms(|wide| -> ParallelKernel {
             Box::new(move |acc, q, pos0, dpos| {
                 // SAFETY: `simd_forms` checked the features; the tests' rows are short.
-                unsafe { super::super::simd::parallel_row(acc, q, pos0, dpos, wide) }
+                unsafe { super::super::backproject_x86::parallel_row(acc, q, pos0, dpos, wide) }
             })
         }));
         kernels
     }
 
     /// As [`parallel_kernels`], for [`fan_row`].
+    #[allow(unsafe_code)]
     fn fan_kernels() -> Vec<(&'static str, FanKernel)> {
         let mut kernels: Vec<(&'static str, FanKernel)> = vec![
             ("public", Box::new(fan_row)),
@@ -213,7 +225,7 @@ mod tests {
         kernels.extend(simd_forms(|wide| -> FanKernel {
             Box::new(move |acc, q, line, a, b| {
                 // SAFETY: `simd_forms` checked the features; the tests' rows are short.
-                unsafe { super::super::simd::fan_row(acc, q, line, a, b, wide) }
+                unsafe { super::super::backproject_x86::fan_row(acc, q, line, a, b, wide) }
             })
         }));
         kernels

@@ -15,13 +15,13 @@
 
 mod admit;
 mod backproject;
+#[cfg(target_arch = "x86_64")]
+mod backproject_x86;
 mod fbp2d;
 mod fdk;
 pub mod filter;
 mod orbit;
 mod progress;
-#[cfg(target_arch = "x86_64")]
-mod simd;
 pub mod weights;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};

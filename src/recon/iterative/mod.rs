@@ -31,7 +31,7 @@ use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::geometry::Views;
 use crate::recon::grid::Limits;
-use crate::recon::projector::{Operator, Projector2, Projector3, back_buffers};
+use crate::recon::projector::{Operator, Projector2, Projector3, back_buffers, cone_columns};
 
 /// Check the parameters of an iterative `spec` for a geometry of `views` views.
 pub fn validate(spec: &AlgorithmSpec, views: usize) -> Result<(), ReconError> {
@@ -89,10 +89,12 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
     };
     let buffers = back_buffers() as u64 + 2;
     // 2D operators keep the walk of every ray, and their line kernels (parallel views) copy the data
-    // of a back projection in ray order (one more data-sized array, plus a few values per view).
-    let (table, data) = match views {
-        Views::D2(v) => (Projector2::table_bytes(v), data + 1),
-        Views::D3(_) => (0, data),
+    // of a back projection in ray order (one more data-sized array, plus a few values per view); the
+    // cone-beam pair keeps two padded copies of the volume and a weighted copy of the data.
+    let (table, data) = match (views, grid) {
+        (Views::D2(v), _) => (Projector2::table_bytes(v), data + 1),
+        (Views::D3(v), OutputGrid::Volume(g)) => (cone_columns::work_bytes(v, g), data),
+        (Views::D3(_), _) => (0, data),
     };
     Limits::f32_bytes(
         (images + buffers)

@@ -7,8 +7,8 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 
 use super::ops::{
-    axpy_scaled, column_sums, constrain, converged, gather, norm, report, residual_in_place,
-    row_sums, safe_reciprocal, subsets,
+    axpy_scaled, column_sums, constrain, converged, norm, report, residual_in_place, row_sums,
+    safe_reciprocal, subsets,
 };
 use super::params::{Bounds, SartParams};
 use crate::recon::control::Control;
@@ -77,10 +77,17 @@ impl Sweep {
         let m = op.view_len();
         let mut bp = vec![0.0f32; x.len()];
         let mut sum2 = 0.0f64;
+        // The subset's data and residual, reused by every subset (no allocation per view).
+        let most = self.subsets.iter().map(Vec::len).max().unwrap_or(0) * m;
+        let (mut bs, mut r) = (Vec::with_capacity(most), Vec::with_capacity(most));
         for (si, s) in self.subsets.iter().enumerate() {
             ctl.check()?;
-            let bs = gather(b, s, m);
-            let mut r = vec![0.0f32; bs.len()];
+            bs.clear();
+            for &v in s {
+                bs.extend_from_slice(&b[v * m..(v + 1) * m]);
+            }
+            r.clear();
+            r.resize(bs.len(), 0.0f32);
             op.forward(x, s, &mut r, ctl.cancel)?;
             residual_in_place(&mut r, &bs);
             let rn = norm(&r);

@@ -61,6 +61,6 @@ fn check_scale(scale_mm: f64) -> Result<(), ReconError> {
 }
 
 #[cfg(test)]
-mod tests;
+mod ellipsoid_tests;
 #[cfg(test)]
-mod tests3;
+mod tests;

@@ -8,26 +8,31 @@
 //!
 //! The back projector is the exact transpose: it enumerates the same (pixel, weight) pairs
 //! ([`joseph2::Walk2::visit`], [`joseph3::Walk3::visit`]), so ⟨A x, y⟩ = ⟨x, Aᵀ y⟩ up to f32 rounding.
-//! In 2D the whole-view passes run the kernels of [`kernel2`] (AVX2 where the CPU has it), which
+//! In 2D the whole-view passes run the kernels of [`joseph2_loops`] (AVX2 where the CPU has it), which
 //! compute the pairs and weights of [`joseph2::Walk2`] bit for bit on padded line layouts
 //! ([`padded2`]); see [`operator2`] for how they share the work between threads. Parallel-beam views
 //! whose ray step along a line lies between 0.6 and 1.85 pixels run the line-driven kernels of
 //! [`parallel2`] instead (8 or 16 rays or pixels per vector, windows instead of gathers), which
-//! enumerate the same pairs in forward and back and differ from the walks by f32 rounding. In 3D forward
-//! projection runs views in parallel (each view writes its own rows); back projection partitions the
-//! views between threads, each accumulating into its own volume buffer, and sums the buffers: no write
-//! races. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms `[view][u]`, projections
-//! `[view][v][u]`.
+//! enumerate the same pairs in forward and back and differ from the walks by f32 rounding. In 3D the
+//! whole-view passes run [`cone_columns`]: the walks' pairs organised by detector column (the rays of
+//! a column of a panel whose v axis is z share their dominant axis and in-plane positions), as a blend
+//! of two contiguous z lines and one linear interpolation per row and plane, with the transpose
+//! accumulated into bands of planes that the threads own (no per-thread volumes, no write races).
+//! Single rays (ART) use the walks. Arrays: images `[y][x]`, volumes `[z][y][x]`, sinograms
+//! `[view][u]`, projections `[view][v][u]`.
 
+pub mod cone_columns;
+pub mod cone_lines;
+pub mod cone_stacks;
 pub mod footprint3;
 pub mod joseph2;
+#[cfg(target_arch = "x86_64")]
+mod joseph2_avx2;
+pub mod joseph2_loops;
 pub mod joseph3;
-pub mod kernel2;
 pub mod operator2;
 pub mod padded2;
 pub mod parallel2;
-#[cfg(target_arch = "x86_64")]
-mod simd2;
 
 use ndarray::{Array2, Array3, ArrayView2, ArrayView3};
 use rayon::prelude::*;
@@ -285,9 +290,7 @@ impl Operator for Projector3<'_> {
         out: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        forward_partitioned(self.view_len(), subset, out, cancel, |view, row| {
-            joseph3::forward_view(self.views, view, self.grid, image, row)
-        })
+        cone_columns::forward(self.views, self.grid, image, subset, out, cancel)
     }
     fn back(
         &self,
@@ -296,10 +299,7 @@ impl Operator for Projector3<'_> {
         image: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        let (n, m) = (self.image_len(), self.view_len());
-        back_partitioned(n, m, data, subset, image, cancel, |view, row, acc| {
-            joseph3::back_view(self.views, view, self.grid, row, acc)
-        })
+        cone_columns::back(self.views, self.grid, data, subset, image, cancel)
     }
     fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
         self.walk(view, element).map_or(0.0, |w| w.dot(image))

@@ -1,5 +1,5 @@
 //! Forward and back projection of a subset of the views of a 2D geometry with the fast kernels of
-//! [`super::kernel2`] on padded line layouts ([`super::padded2`]).
+//! [`super::joseph2_loops`] on padded line layouts ([`super::padded2`]).
 //!
 //! Forward: the image is copied once into the layouts its rays use (one for a parallel view); views run in parallel (each writes its own
 //! data row), and the rays of a view too when the subset has fewer views than threads (single-view
@@ -19,7 +19,7 @@
 use rayon::prelude::*;
 
 use super::joseph2::{self, Walk2};
-use super::kernel2::{Kernel, Segment};
+use super::joseph2_loops::{Kernel, Segment};
 use super::padded2::{Layouts2, Lines, Needs};
 use super::parallel2::{self, LineView, WideLines};
 use super::{back_partitioned, forward_partitioned};

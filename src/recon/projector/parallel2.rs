@@ -20,7 +20,7 @@
 //! A step `s ∈ [S_MIN, S_MAX]` keeps every window within its 16 (or 32) values and at most two rays
 //! per pixel;
 //! views outside it (detectors much finer or coarser than the pixels), fan views and CPUs without AVX2
-//! use the ray-driven kernels of [`super::kernel2`]. The positions come from the view's geometry once
+//! use the ray-driven kernels of [`super::joseph2_loops`]. The positions come from the view's geometry once
 //! per line instead of once per ray, so they differ from those of [`super::joseph2::Walk2`] by f32
 //! rounding (a few 1e-5 pixel).
 
@@ -242,6 +242,7 @@ impl WideLines {
 /// # Panics
 /// If `lines` and `lv` disagree on the line count or length, or `out.len() != lv.count`, or the CPU
 /// lacks AVX2 and FMA.
+#[allow(unsafe_code)]
 pub fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
     assert!(
         lines.count == lv.lines() && lines.len == lv.len && out.len() == lv.count,
@@ -273,6 +274,7 @@ pub fn back_lines(
 
 /// [`back_lines`] with the 16-pixel AVX-512F kernel when `wide` (which must then be available), else
 /// the 8-pixel AVX2 one.
+#[allow(unsafe_code)]
 fn back_lines_with(
     group: &[(&LineView, &[f32])],
     count: usize,
@@ -357,6 +359,7 @@ pub fn pairs(lv: &LineView, i: usize, k: usize) -> [(i64, f32); 2] {
 }
 
 #[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
 mod simd {
     use std::arch::x86_64::*;
 
@@ -770,6 +773,7 @@ mod tests {
     #[test]
     fn forward_matches_the_pair_sums() {
         if !available() {
+            println!("skipped: the AVX2 + FMA line kernels (this CPU lacks AVX2 or FMA)");
             return;
         }
         let g = grid();
@@ -789,6 +793,7 @@ mod tests {
     #[test]
     fn back_kernels_match_the_pair_sums() {
         if !available() {
+            println!("skipped: the AVX2 + FMA line kernels (this CPU lacks AVX2 or FMA)");
             return;
         }
         let g = grid();
@@ -817,6 +822,9 @@ mod tests {
                     .collect();
                 for wide in [false, true] {
                     if wide && !wide_available() {
+                        println!(
+                            "skipped: the 16-pixel AVX-512F back kernel (this CPU lacks AVX-512F)"
+                        );
                         continue;
                     }
                     let mut got = vec![0.5f32; count * len];
@@ -835,6 +843,7 @@ mod tests {
     #[test]
     fn the_line_pair_is_an_exact_adjoint() {
         if !available() {
+            println!("skipped: the AVX2 + FMA line kernels (this CPU lacks AVX2 or FMA)");
             return;
         }
         let g = grid();
@@ -852,6 +861,9 @@ mod tests {
                 let (count, len) = (lv.lines(), lv.len);
                 for wide in [false, true] {
                     if wide && !wide_available() {
+                        println!(
+                            "skipped: the 16-pixel AVX-512F back kernel (this CPU lacks AVX-512F)"
+                        );
                         continue;
                     }
                     let mut aty = vec![0.0f32; count * len];
@@ -873,6 +885,7 @@ mod tests {
     #[test]
     fn cancelling_stops_the_back_projection() {
         if !available() {
+            println!("skipped: the AVX2 + FMA line kernels (this CPU lacks AVX2 or FMA)");
             return;
         }
         let sets = planned();

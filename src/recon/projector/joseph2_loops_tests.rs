@@ -59,8 +59,11 @@ fn angles(rng: &mut StdRng) -> Vec<f64> {
 fn kernels() -> Vec<Kernel> {
     let mut k = vec![Kernel::Scalar];
     #[cfg(target_arch = "x86_64")]
-    if super::super::simd2::available() {
+    if super::super::joseph2_avx2::available() {
         k.push(Kernel::Avx2);
+    }
+    if !k.contains(&Kernel::Avx2) {
+        println!("skipped: the AVX2 + FMA Joseph loops (this CPU lacks AVX2 or FMA)");
     }
     k
 }

@@ -6,7 +6,7 @@
 //! [`Walk2::visit`], so each kernel enumerates the (pixel, weight) pairs of the reference walk, bit for
 //! bit; only the order of the sums differs. A sample whose pair is half outside the grid uses the zero
 //! (forward) or discarded (back) border value instead of a branch. [`Kernel::Avx2`] runs 8 samples per
-//! step (`simd2`); [`Kernel::Scalar`] is the portable form.
+//! step (`joseph2_avx2`); [`Kernel::Scalar`] is the portable form.
 
 use super::joseph2::Walk2;
 
@@ -56,7 +56,7 @@ impl Kernel {
     /// The fastest form this CPU runs.
     pub fn detect() -> Self {
         #[cfg(target_arch = "x86_64")]
-        if super::simd2::available() {
+        if super::joseph2_avx2::available() {
             return Self::Avx2;
         }
         Self::Scalar
@@ -68,6 +68,7 @@ impl Kernel {
     /// # Panics
     /// Unless `first ≤ lo`, `hi ≤ first + lines.len() / width`, `2 ≤ width` and [`Kernel::fits`] holds.
     #[inline]
+    #[allow(unsafe_code)]
     pub fn dot(
         self,
         lines: &[f32],
@@ -85,7 +86,7 @@ impl Kernel {
             // SAFETY: `check` proved the bounds `dot_avx2` requires; `Avx2` is only chosen by
             // `detect` on a CPU with AVX2 and FMA (or by tests that check the same).
             #[cfg(target_arch = "x86_64")]
-            Self::Avx2 => unsafe { super::simd2::dot(lines, width, first, seg, lo, hi) },
+            Self::Avx2 => unsafe { super::joseph2_avx2::dot(lines, width, first, seg, lo, hi) },
             _ => dot_scalar(lines, width, first, seg, lo, hi),
         }
     }
@@ -94,6 +95,7 @@ impl Kernel {
     /// transpose of [`Kernel::dot`]. Same layout arguments and panics.
     #[inline]
     #[allow(clippy::too_many_arguments)]
+    #[allow(unsafe_code)]
     pub fn axpy(
         self,
         lines: &mut [f32],
@@ -111,7 +113,9 @@ impl Kernel {
         match self {
             // SAFETY: as in `dot`.
             #[cfg(target_arch = "x86_64")]
-            Self::Avx2 => unsafe { super::simd2::axpy(lines, width, first, seg, lo, hi, alpha) },
+            Self::Avx2 => unsafe {
+                super::joseph2_avx2::axpy(lines, width, first, seg, lo, hi, alpha)
+            },
             _ => axpy_scalar(lines, width, first, seg, lo, hi, alpha),
         }
     }
@@ -141,6 +145,7 @@ fn sample(seg: &Segment, i: usize, top: f32) -> Option<(usize, f32, f32)> {
     Some((j, seg.weight - w1, w1))
 }
 
+#[allow(unsafe_code)]
 fn dot_scalar(
     lines: &[f32],
     width: usize,
@@ -164,6 +169,7 @@ fn dot_scalar(
     acc
 }
 
+#[allow(unsafe_code)]
 fn axpy_scalar(
     lines: &mut [f32],
     width: usize,
@@ -187,5 +193,5 @@ fn axpy_scalar(
 }
 
 #[cfg(test)]
-#[path = "kernel2_tests.rs"]
+#[path = "joseph2_loops_tests.rs"]
 mod tests;

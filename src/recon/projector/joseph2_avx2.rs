@@ -1,15 +1,16 @@
-//! AVX2 + FMA forms of the 2D Joseph loops of [`super::kernel2`], 8 consecutive samples of one ray per
+//! AVX2 + FMA forms of the 2D Joseph loops of [`super::joseph2_loops`], 8 consecutive samples of one ray per
 //! step: positions and weights with the f32 operations of the scalar form (no FMA there, so the pairs
 //! and weights are bit for bit those of [`super::joseph2::Walk2::visit`]); the forward loop reads each
 //! sample's two neighbouring values with one 64-bit load, the back loop adds to them with one 64-bit
-//! load and store (AVX2 has no scatter). Selected at run time by [`super::kernel2::Kernel::detect`] and tested
-//! against the scalar form in `kernel2`'s tests.
+//! load and store (AVX2 has no scatter). Selected at run time by [`super::joseph2_loops::Kernel::detect`] and tested
+//! against the scalar form in `joseph2_loops`'s tests.
+#![allow(unsafe_code)] // SIMD kernel: every `unsafe` below carries its `// SAFETY:` note.
 
 use std::arch::x86_64::*;
 
 use crate::recon::pairs::load_pairs;
 
-use super::kernel2::Segment;
+use super::joseph2_loops::Segment;
 
 /// True when the CPU has AVX2 and FMA.
 pub fn available() -> bool {
@@ -103,11 +104,11 @@ fn sum8(v: __m256) -> f32 {
     _mm_cvtss_f32(s)
 }
 
-/// [`super::kernel2::Kernel::dot`] with AVX2.
+/// [`super::joseph2_loops::Kernel::dot`] with AVX2.
 ///
 /// # Safety
 /// AVX2 and FMA must be available; `2 ≤ width`, `first ≤ lo < hi`, `(hi − first)·width ≤ lines.len()`
-/// and `hi·width < i32::MAX`, `hi, width < 2²²` (what `kernel2::check` asserts).
+/// and `hi·width < i32::MAX`, `hi, width < 2²²` (what `joseph2_loops::check` asserts).
 #[target_feature(enable = "avx2,fma")]
 pub unsafe fn dot(
     lines: &[f32],
@@ -150,7 +151,7 @@ pub unsafe fn dot(
     sum8(_mm256_add_ps(acc0, acc1))
 }
 
-/// [`super::kernel2::Kernel::axpy`] with AVX2 positions and weights; each sample adds its two values
+/// [`super::joseph2_loops::Kernel::axpy`] with AVX2 positions and weights; each sample adds its two values
 /// with one 64-bit load, add and store (AVX2 has no scatter).
 ///
 /// # Safety

@@ -9,6 +9,7 @@
 //! front of the source skip the depth mask. These were the faster choices on the development machine's
 //! AMD EPYC. Tested against the safe reference in `backproject`'s tests, whose rows reach every path
 //! (they run these kernels on any AVX2 machine, and the 32-sample windows on AVX-512F ones).
+#![allow(unsafe_code)] // SIMD kernel: every `unsafe` below carries its `// SAFETY:` note.
 
 use std::arch::x86_64::*;
 

@@ -1,0 +1,243 @@
+#!/usr/bin/env python3
+"""ctrecon against its CPU peers on the same analytic data, one case after the other in one sitting.
+
+For every case, `ctrecon phantom` writes the exact projections of the modified Shepp-Logan phantom
+(line integrals of the analytic ellipses or ellipsoids, no voxelised phantom) and the phantom itself
+(point-sampled 4x4 per pixel in 2D, 2x2x2 per voxel in 3D); every peer and the `ctrecon recon` CLI
+then reconstruct the same `.npy` file. Printed per run: seconds and RMSE over the inscribed disk
+(2D) or cylinder (3D) against the phantom (values 0-1), and the ratio of the peer's seconds to
+ctrecon's.
+
+Timing: ctrecon is timed as a whole process (read the `.npy`, reconstruct, write the `.npy`); the
+peers only around their reconstruction call (data already in memory, imports done), which favours
+the peers. Threads: ctrecon uses every core (rayon), RTK is given as many (`--threads`), ASTRA's CPU
+algorithms and scikit-image run on one.
+
+Conventions, checked once against ctrecon's FBP/FDK of the same data: ASTRA and scikit-image take
+ctrecon's parallel angles negated; RTK takes the cone angles as they are, and its volume maps to
+ctrecon's `[z][y][x]` by swapping its first two axes and reversing the second.
+
+Run through `run.sh`, which installs the pinned peers in `benches/peers/.venv` and builds ctrecon.
+"""
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def ctrecon_bin():
+    target = os.environ.get("CARGO_TARGET_DIR", os.path.join(HERE, "..", "..", "target"))
+    return os.path.join(target, "release", "ctrecon")
+
+
+def run_ctrecon(args):
+    t = time.perf_counter()
+    subprocess.run([ctrecon_bin(), *args], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    return time.perf_counter() - t
+
+
+def loadavg():
+    with open("/proc/loadavg") as f:
+        return f.read().split()[0]
+
+
+# ----------------------------------------------------------------------------------------------
+# Cases: sizes per mode.
+
+
+def parallel_case(n, views, det):
+    return {"dims": 2, "n": n, "geometry": {"type": "parallel", "angles": {"count": views},
+                                            "det_count": det, "det_spacing_mm": 1.0}}
+
+
+def cone_case(n, views, det):
+    """The scaled cone beam of the iterative examples: 1 mm voxels, n mm field of view, detector
+    pitch 1.5*128/n mm at DSD 750*n/128 (magnification 1.5)."""
+    pitch = 1.5 * 128.0 / n
+    return {"dims": 3, "n": n, "geometry": {
+        "type": "cone", "angles": {"count": views}, "dso_mm": 500.0 * n / 128, "dsd_mm": 750.0 * n / 128,
+        "detector": {"nu": det, "nv": det, "du_mm": pitch, "dv_mm": pitch, "offset_u_mm": 0,
+                     "offset_v_mm": 0}}}
+
+
+def cases(quick):
+    if quick:
+        par, it2, fdk, cone = (256, 360, 363), (128, 180, 183), [(64, 90, 96)], (48, 90, 72)
+    else:
+        par, it2, fdk, cone = (512, 720, 725), (256, 360, 363), [(128, 360, 256), (256, 360, 512)], (128, 360, 256)
+    out = [
+        ("parallel FBP %d² / %d" % par[:2], parallel_case(*par), "fbp", {}, ["skimage", "astra"]),
+        ("SART x10, %d² / %d" % it2[:2], parallel_case(*it2), "sart", {"iterations": 10}, ["astra"]),
+        ("CGLS x50, %d² / %d" % it2[:2], parallel_case(*it2), "cgls", {"iterations": 50}, ["astra"]),
+    ]
+    for c in fdk:
+        out.append(("FDK %d³ from %d x %d²" % c, cone_case(*c), "fdk", {}, ["rtk"]))
+    out.append(("cone SIRT x10, %d³ from %d x %d²" % cone, cone_case(*cone), "sirt", {"iterations": 10}, ["rtk"]))
+    out.append(("cone CGLS x10, %d³ from %d x %d²" % cone, cone_case(*cone), "cgls", {"iterations": 10}, ["rtk"]))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Peers: each returns (seconds of the reconstruction call, image in ctrecon's array order).
+
+
+def angles(case):
+    g = case["geometry"]
+    full = np.pi if g["type"] == "parallel" else 2 * np.pi
+    k = g["angles"]["count"]
+    return np.arange(k) * full / k
+
+
+def skimage_fbp(case, data, algorithm, params):
+    from skimage.transform import iradon
+
+    t = time.perf_counter()
+    img = iradon(data.T, theta=-np.degrees(angles(case)), filter_name="ramp", circle=True,
+                 output_size=case["n"])
+    return time.perf_counter() - t, img
+
+
+def astra_2d(case, data, algorithm, params):
+    import astra
+
+    n = case["n"]
+    vg = astra.create_vol_geom(n, n)
+    pg = astra.create_proj_geom("parallel", 1.0, data.shape[1], -angles(case))
+    pid = astra.create_projector("linear", pg, vg)
+    sid = astra.data2d.create("-sino", pg, data)
+    rid = astra.data2d.create("-vol", vg, 0)
+    name = {"fbp": "FBP", "sart": "SART", "cgls": "CGLS"}[algorithm]
+    cfg = astra.astra_dict(name)
+    cfg.update(ProjectorId=pid, ProjectionDataId=sid, ReconstructionDataId=rid)
+    iterations = params.get("iterations", 1)
+    if algorithm == "sart":
+        cfg["option"] = {"ProjectionOrder": "random"}
+        iterations *= data.shape[0]  # ASTRA's SART iteration is one view
+    alg = astra.algorithm.create(cfg)
+    t = time.perf_counter()
+    astra.algorithm.run(alg, iterations)
+    secs = time.perf_counter() - t
+    img = astra.data2d.get(rid)
+    for f, i in ((astra.algorithm.delete, alg), (astra.data2d.delete, rid), (astra.data2d.delete, sid),
+                 (astra.projector.delete, pid)):
+        f(i)
+    return secs, img
+
+
+def rtk_3d(case, data, algorithm, params, threads):
+    import itk
+    from itk import RTK as rtk
+
+    itk.MultiThreaderBase.SetGlobalDefaultNumberOfThreads(threads)
+    g = case["geometry"]
+    n, det = case["n"], g["detector"]
+    geometry = rtk.ThreeDCircularProjectionGeometry.New()
+    for a in np.degrees(angles(case)):
+        geometry.AddProjection(g["dso_mm"], g["dsd_mm"], float(a), 0.0, 0.0)
+    image = itk.Image[itk.F, 3]
+    proj = itk.image_from_array(np.ascontiguousarray(data, dtype=np.float32))
+    proj.SetOrigin([-(det["nu"] - 1) / 2 * det["du_mm"], -(det["nv"] - 1) / 2 * det["dv_mm"], 0.0])
+    proj.SetSpacing([det["du_mm"], det["dv_mm"], 1.0])
+    source = rtk.ConstantImageSource[image].New()
+    source.SetOrigin([-(n - 1) / 2.0] * 3)
+    source.SetSpacing([1.0] * 3)
+    source.SetSize([n] * 3)
+    source.SetConstant(0.0)
+    if algorithm == "fdk":
+        f = rtk.FDKConeBeamReconstructionFilter[image].New()
+    elif algorithm == "sirt":
+        f = rtk.SARTConeBeamReconstructionFilter[image, image].New()
+        f.SetNumberOfIterations(params["iterations"])
+        f.SetNumberOfProjectionsPerSubset(data.shape[0])
+        f.SetLambda(1.0)
+    else:
+        f = rtk.ConjugateGradientConeBeamReconstructionFilter[image].New()
+        f.SetNumberOfIterations(params["iterations"])
+    f.SetInput(0, source.GetOutput())
+    f.SetInput(1, proj)
+    if algorithm == "cgls":
+        ones = itk.image_from_array(np.ones_like(data, dtype=np.float32))
+        ones.CopyInformation(proj)
+        f.SetInput(2, ones)
+    f.SetGeometry(geometry)
+    t = time.perf_counter()
+    f.Update()
+    secs = time.perf_counter() - t
+    vol = itk.array_from_image(f.GetOutput())
+    return secs, np.ascontiguousarray(vol.transpose(1, 0, 2)[:, ::-1, :])
+
+
+# ----------------------------------------------------------------------------------------------
+
+
+def rmse(img, ref):
+    """RMSE over the inscribed disk (2D) or cylinder (3D) of the last two axes."""
+    n = ref.shape[-1]
+    c = (np.arange(n) - (n - 1) / 2) / (n / 2)
+    mask = (c[:, None] ** 2 + c[None, :] ** 2) <= 1.0
+    d = (np.asarray(img, dtype=np.float64) - ref)[..., mask]
+    return float(np.sqrt(np.mean(d ** 2)))
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="small sizes (under two minutes)")
+    ap.add_argument("--threads", type=int, default=os.cpu_count(), help="threads for RTK")
+    ap.add_argument("--only", help="run only the cases whose name contains this text")
+    ap.add_argument("--work", default=os.path.join(HERE, "work"), help="folder for the .npy files")
+    args = ap.parse_args()
+    os.makedirs(args.work, exist_ok=True)
+    peers = {"skimage": skimage_fbp, "astra": astra_2d,
+             "rtk": lambda *a: rtk_3d(*a, threads=args.threads)}
+    print("# %s, %d CPUs, load average %s at start" % (time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+                                                      os.cpu_count(), loadavg()))
+    print("| case | program | seconds | RMSE | peer s / ctrecon s | load |")
+    print("|---|---|---|---|---|---|")
+    for name, case, algorithm, params, names in cases(args.quick):
+        if args.only and args.only not in name:
+            continue
+        tag = "%s_%s_%d" % (algorithm, case["geometry"]["type"], case["n"])
+        geo, data_path = os.path.join(args.work, tag + ".json"), os.path.join(args.work, tag + ".npy")
+        ref_path = os.path.join(args.work, "phantom%d_%d.npy" % (case["dims"], case["n"]))
+        with open(geo, "w") as f:
+            json.dump(case["geometry"], f)
+        n = case["n"]
+        if not os.path.exists(data_path):
+            run_ctrecon(["phantom", "--geometry", geo, "--fov-mm", str(n), "--out", data_path])
+        if not os.path.exists(ref_path):
+            run_ctrecon(["phantom", "--dims", str(case["dims"]), "--size", str(n), "--fov-mm", str(n),
+                         "--supersample", "4" if case["dims"] == 2 else "2", "--out", ref_path])
+        data, ref = np.load(data_path), np.load(ref_path)
+        out = os.path.join(args.work, tag + "_ctrecon.npy")
+        grid = os.path.join(args.work, tag + "_grid.json")
+        with open(grid, "w") as f:
+            if case["dims"] == 2:
+                json.dump({"nx": n, "ny": n, "dx_mm": 1.0, "dy_mm": 1.0}, f)
+            else:
+                json.dump({"nx": n, "ny": n, "nz": n, "spacing_mm": [1.0, 1.0, 1.0]}, f)
+        load = loadavg()
+        secs = run_ctrecon(["recon", "--input", data_path, "--geometry", geo, "--algorithm", algorithm,
+                            "--params", json.dumps(params), "--grid", grid, "--output", out])
+        ours = rmse(np.load(out), ref)
+        print("| %s | ctrecon | %.3f | %.4f | | %s |" % (name, secs, ours, load), flush=True)
+        for peer in names:
+            load = loadavg()
+            try:
+                s, img = peers[peer](case, data, algorithm, params)
+            except Exception as e:  # a peer that cannot run this case says so and the rest go on
+                print("| %s | %s | failed: %s | | | %s |" % (name, peer, str(e).splitlines()[0], load))
+                continue
+            print("| %s | %s | %.3f | %.4f | %.1fx | %s |" % (name, peer, s, rmse(img, ref), s / secs, load),
+                  flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
