@@ -14,6 +14,7 @@
 pub mod cli;
 pub mod config;
 pub mod dicom;
+pub mod dimse;
 pub mod error_code;
 pub mod http;
 pub mod jobs;
