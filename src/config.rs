@@ -26,6 +26,10 @@
 //! | `retain_datasets_secs` | `CTRECON_RETAIN_DATASETS_SECS` | 0 = forever; else datasets this long after creation, unless in use |
 //! | `retain_series_secs` | `CTRECON_RETAIN_SERIES_SECS` | 0 = forever; else series this long after creation, unless in use |
 //! | `retention_sweep_secs` | `CTRECON_RETENTION_SWEEP_SECS` | 3600: retention runs at start and this often |
+//! | `dicom.port` | `CTRECON_DICOM_PORT` | none: no DICOM node; see [`crate::dimse::NodeSettings`] |
+//! | `dicom.ae_title` | `CTRECON_DICOM_AE_TITLE` | `CTRECON` |
+//! | `dicom.host` | `CTRECON_DICOM_HOST` | `127.0.0.1` |
+//! | `dicom.stable_age_secs` | `CTRECON_DICOM_STABLE_AGE_SECS` | 15: a series is complete after this long without an instance |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -43,12 +47,13 @@ pub fn limit_simd_from_env() -> bool {
 }
 
 /// `CTRECON_*` variables that are not settings but are read elsewhere: the log format (telemetry), the SIMD
-/// cap (every command, [`limit_simd_from_env`]), the test-data rule of the test suite and the cone case of
-/// the iterative benchmark. Setting them never makes a command refuse to start.
+/// cap (every command, [`limit_simd_from_env`]), the test-data and peer rules of the test suite and the cone
+/// case of the iterative benchmark. Setting them never makes a command refuse to start.
 pub const READ_ELSEWHERE: &[&str] = &[
     "CTRECON_LOG_FORMAT",
     "CTRECON_SIMD",
     "CTRECON_REQUIRE_TEST_DATA",
+    "CTRECON_REQUIRE_PEERS",
     "CTRECON_BENCH_CONE",
 ];
 
@@ -80,6 +85,8 @@ pub struct Settings {
     pub retain_datasets_secs: u64,
     pub retain_series_secs: u64,
     pub retention_sweep_secs: u64,
+    /// The DICOM node (off unless `dicom.port` is set).
+    pub dicom: crate::dimse::NodeSettings,
 }
 
 impl Default for Settings {
@@ -109,6 +116,7 @@ impl Default for Settings {
             retain_datasets_secs: 0,
             retain_series_secs: 0,
             retention_sweep_secs: 3600,
+            dicom: crate::dimse::NodeSettings::default(),
         }
     }
 }
@@ -204,6 +212,10 @@ impl Settings {
             "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
             "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
             "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,
+            "CTRECON_DICOM_PORT" => self.dicom.port = Some(parsed(name, v)?),
+            "CTRECON_DICOM_AE_TITLE" => self.dicom.ae_title = v.trim().to_string(),
+            "CTRECON_DICOM_HOST" => self.dicom.host = parsed(name, v)?,
+            "CTRECON_DICOM_STABLE_AGE_SECS" => self.dicom.stable_age_secs = parsed(name, v)?,
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -264,6 +276,12 @@ impl Settings {
                 "refusing to listen on a non-loopback address without API tokens \
                  (configure api_tokens, or pass --allow-insecure)",
             );
+        }
+        if let Some(reason) = self.dicom.problem() {
+            return Err(ConfigError::Invalid {
+                name: "dicom",
+                reason,
+            });
         }
         Ok(())
     }

@@ -18,6 +18,7 @@ pub mod app;
 pub mod cli;
 pub mod config;
 pub mod dicom;
+pub mod dimse;
 pub mod error_code;
 pub mod http;
 pub mod jobs;

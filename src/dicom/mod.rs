@@ -16,6 +16,7 @@
 
 mod error;
 mod framing;
+mod header;
 mod read;
 mod scan;
 mod unzip;
@@ -23,6 +24,10 @@ mod upload;
 mod write;
 
 pub use error::DicomError;
+pub use header::{
+    IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
+    decodable_transfer_syntaxes, header_of, is_valid_uid, part10_prefix, read_header, read_part10,
+};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{

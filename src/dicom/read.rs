@@ -35,7 +35,7 @@ impl Default for ReadLimits {
 }
 
 /// Room for the attributes beside the pixel data when a deflated data set is inflated (bytes).
-const MAX_HEADER_BYTES: usize = 64 << 20;
+pub(super) const MAX_HEADER_BYTES: usize = 64 << 20;
 
 /// A decoded DICOM image file.
 #[derive(Debug, Clone, PartialEq)]
@@ -63,7 +63,7 @@ pub struct Instance {
     pub warnings: Vec<Warning>,
 }
 
-fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
+pub(super) fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
     let e = obj.element_opt(tag).ok()??;
     let s = e.to_str().ok()?;
     let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
@@ -74,11 +74,11 @@ fn floats(obj: &InMemDicomObject, tag: Tag) -> Option<Vec<f64>> {
     obj.element_opt(tag).ok()??.to_multi_float64().ok()
 }
 
-fn float(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
+pub(super) fn float(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
     floats(obj, tag)?.first().copied().filter(|v| v.is_finite())
 }
 
-fn int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
+pub(super) fn int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
     obj.element_opt(tag).ok()??.to_int::<i64>().ok()
 }
 
@@ -131,16 +131,22 @@ pub fn fuzz_entry(data: &[u8]) {
     let _ = read_bytes("fuzz input", data, &limits);
 }
 
-/// Read one DICOM file held in memory (Part 10, or a raw data set as pydicom reads with `force=True`). `label` names it
-/// in messages.
-pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Instance, DicomError> {
+/// A data set that passed framing and the pre-parse walk, parsed (up to `until`, when given).
+pub(super) struct Opened<'a> {
+    pub obj: dicom_object::FileDicomObject<InMemDicomObject>,
+    pub framed: framing::Framed<'a>,
+}
+
+/// Frame, walk and parse `bytes` (a deflated data set may inflate to `max_inflated`); stop before `until`.
+pub(super) fn open<'a>(
+    label: &str,
+    bytes: &'a [u8],
+    max_inflated: usize,
+    until: Option<Tag>,
+) -> Result<Opened<'a>, DicomError> {
     let label_s = label.to_string();
     // Framing and the pre-parse walk: no declared length past the end, no runaway nesting.
-    let framed = framing::frame(
-        bytes,
-        limits.max_pixel_bytes.saturating_add(MAX_HEADER_BYTES),
-    )
-    .map_err(|e| match e {
+    let framed = framing::frame(bytes, max_inflated).map_err(|e| match e {
         FramingError::NotDicom => DicomError::NotDicom {
             label: label_s.clone(),
         },
@@ -168,9 +174,12 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         return Err(unsupported_ts(ts_entry.name()));
     }
     let parse = || {
-        OpenFileOptions::new()
-            .read_preamble(ReadPreamble::Never)
-            .from_reader(&framed.bytes[..])
+        let options = OpenFileOptions::new().read_preamble(ReadPreamble::Never);
+        let options = match until {
+            Some(tag) => options.read_until(tag),
+            None => options,
+        };
+        options.from_reader(&framed.bytes[..])
     };
     let obj = match catch_unwind(AssertUnwindSafe(parse)) {
         Ok(Ok(o)) => o,
@@ -187,6 +196,27 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             });
         }
     };
+    Ok(Opened { obj, framed })
+}
+
+/// Read one DICOM file held in memory (Part 10, or a raw data set as pydicom reads with `force=True`). `label` names it
+/// in messages.
+pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Instance, DicomError> {
+    let label_s = label.to_string();
+    let Opened { obj, framed } = open(
+        label,
+        bytes,
+        limits.max_pixel_bytes.saturating_add(MAX_HEADER_BYTES),
+        None,
+    )?;
+    let unsupported_ts = |name: &str| DicomError::UnsupportedTransferSyntax {
+        label: label_s.clone(),
+        uid: framed.transfer_syntax.clone(),
+        name: name.to_string(),
+    };
+    let ts_entry = TransferSyntaxRegistry
+        .get(&framed.transfer_syntax)
+        .ok_or_else(|| unsupported_ts("not a known transfer syntax"))?;
     // As framed: a deflated data set reaches the parser inflated, and keeps its own name.
     let transfer_syntax = framed.transfer_syntax.clone();
     let missing = |what| DicomError::MissingAttribute {

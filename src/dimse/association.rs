@@ -1,0 +1,361 @@
+//! One association accepted by the node: C-ECHO and C-STORE, each instance streamed to a temporary file as
+//! its fragments arrive, checked, then filed in its series (or refused with a DIMSE status, leaving nothing).
+
+use std::sync::Arc;
+
+use dicom_ul::association::AsyncServerAssociation;
+use dicom_ul::pdu::{AbortRQServiceProviderReason, AbortRQSource, PDataValue, PDataValueType, Pdu};
+use tokio::net::TcpStream;
+
+use super::command::{self, Command, status};
+use super::inbox::{InstanceSink, SinkError};
+use super::tracker::{Arrival, Tracker};
+use crate::dicom::{part10_prefix, read_header};
+
+/// What this association may do, and the limits it runs under.
+#[derive(Debug, Clone)]
+pub struct Grant {
+    pub calling_ae: String,
+    pub may_store: bool,
+    pub max_instance_bytes: u64,
+    pub dimse_timeout: std::time::Duration,
+}
+
+/// The instance being received.
+struct Pending {
+    command: Command,
+    context_id: u8,
+    /// `None` once the instance was refused: its remaining fragments are read and dropped.
+    sink: Option<InstanceSink>,
+    refusal: Option<(u16, String)>,
+}
+
+/// Why an association ended other than by release.
+#[derive(Debug, thiserror::Error)]
+pub enum AssociationEnd {
+    #[error("aborted by the peer")]
+    PeerAborted,
+    #[error("no PDU for {0:?}")]
+    Timeout(std::time::Duration),
+    #[error("protocol error: {0}")]
+    Protocol(String),
+    #[error("network: {0}")]
+    Network(String),
+}
+
+/// Serve an established association until it is released, aborted or fails.
+pub async fn serve(
+    mut assoc: AsyncServerAssociation<TcpStream>,
+    grant: Grant,
+    tracker: Arc<Tracker>,
+) -> Result<usize, AssociationEnd> {
+    let mut command_bytes: Vec<u8> = Vec::new();
+    let mut pending: Option<Pending> = None;
+    let mut stored = 0usize;
+    loop {
+        let pdu = match tokio::time::timeout(grant.dimse_timeout, assoc.receive()).await {
+            Ok(Ok(pdu)) => pdu,
+            Ok(Err(e)) => return Err(AssociationEnd::Network(e.to_string())),
+            Err(_) => {
+                let _ = assoc.abort().await;
+                return Err(AssociationEnd::Timeout(grant.dimse_timeout));
+            }
+        };
+        match pdu {
+            Pdu::PData { data } => {
+                for value in data {
+                    let step = match value.value_type {
+                        PDataValueType::Command => {
+                            on_command(
+                                &mut assoc,
+                                &grant,
+                                &tracker,
+                                value,
+                                &mut command_bytes,
+                                &mut pending,
+                            )
+                            .await
+                        }
+                        PDataValueType::Data => {
+                            on_data(&mut assoc, &grant, &tracker, value, &mut pending).await
+                        }
+                    };
+                    match step {
+                        Ok(true) => stored += 1,
+                        Ok(false) => {}
+                        Err(e) => {
+                            let _ = assoc
+                                .send(&Pdu::AbortRQ {
+                                    source: AbortRQSource::ServiceProvider(
+                                        AbortRQServiceProviderReason::UnexpectedPdu,
+                                    ),
+                                })
+                                .await;
+                            return Err(e);
+                        }
+                    }
+                }
+            }
+            Pdu::ReleaseRQ => {
+                let _ = assoc.send(&Pdu::ReleaseRP).await;
+                return Ok(stored);
+            }
+            Pdu::AbortRQ { .. } => return Err(AssociationEnd::PeerAborted),
+            other => {
+                let _ = assoc
+                    .send(&Pdu::AbortRQ {
+                        source: AbortRQSource::ServiceProvider(
+                            AbortRQServiceProviderReason::UnexpectedPdu,
+                        ),
+                    })
+                    .await;
+                return Err(AssociationEnd::Protocol(format!(
+                    "unexpected {}",
+                    other.short_description()
+                )));
+            }
+        }
+    }
+}
+
+async fn reply(
+    assoc: &mut AsyncServerAssociation<TcpStream>,
+    context_id: u8,
+    bytes: Vec<u8>,
+) -> Result<(), AssociationEnd> {
+    assoc
+        .send(&Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: context_id,
+                value_type: PDataValueType::Command,
+                is_last: true,
+                data: bytes,
+            }],
+        })
+        .await
+        .map_err(|e| AssociationEnd::Network(e.to_string()))
+}
+
+/// A command fragment; returns whether an instance was stored (never, for a command).
+async fn on_command(
+    assoc: &mut AsyncServerAssociation<TcpStream>,
+    grant: &Grant,
+    tracker: &Tracker,
+    value: PDataValue,
+    buf: &mut Vec<u8>,
+    pending: &mut Option<Pending>,
+) -> Result<bool, AssociationEnd> {
+    if pending.is_some() {
+        return Err(AssociationEnd::Protocol(
+            "a command arrived before the previous data set ended".into(),
+        ));
+    }
+    if buf.len() + value.data.len() > command::MAX_COMMAND_BYTES {
+        return Err(AssociationEnd::Protocol("command set too long".into()));
+    }
+    buf.extend_from_slice(&value.data);
+    if !value.is_last {
+        return Ok(false);
+    }
+    let cmd = command::parse(buf).map_err(|e| AssociationEnd::Protocol(e.to_string()))?;
+    buf.clear();
+    let context = assoc
+        .presentation_contexts()
+        .iter()
+        .find(|pc| pc.id == value.presentation_context_id)
+        .cloned()
+        .ok_or_else(|| AssociationEnd::Protocol("unknown presentation context".into()))?;
+    match cmd.field {
+        command::C_ECHO_RQ => {
+            reply(
+                assoc,
+                value.presentation_context_id,
+                command::echo_response(cmd.message_id, status::SUCCESS),
+            )
+            .await?;
+        }
+        command::C_STORE_RQ if cmd.has_data_set => {
+            let mut refusal = if !grant.may_store {
+                Some((
+                    status::NOT_AUTHORIZED,
+                    format!("{} may not store here", grant.calling_ae),
+                ))
+            } else if context.abstract_syntax != cmd.sop_class_uid {
+                Some((
+                    status::SOP_CLASS_NOT_SUPPORTED,
+                    "SOP class differs from the presentation context".into(),
+                ))
+            } else if !crate::dicom::is_valid_uid(&cmd.sop_instance_uid) {
+                Some((
+                    status::CANNOT_UNDERSTAND,
+                    "invalid Affected SOP Instance UID".into(),
+                ))
+            } else {
+                None
+            };
+            let sink = match refusal {
+                Some(_) => None,
+                None => {
+                    let prefix = part10_prefix(
+                        &cmd.sop_class_uid,
+                        &cmd.sop_instance_uid,
+                        &context.transfer_syntax,
+                    )
+                    .map_err(|e| AssociationEnd::Protocol(e.to_string()))?;
+                    match tracker
+                        .inbox()
+                        .begin(
+                            &prefix,
+                            grant.max_instance_bytes.saturating_add(prefix.len() as u64),
+                        )
+                        .await
+                    {
+                        Ok(sink) => Some(sink),
+                        Err(e) => {
+                            tracing::error!(error = %e, "cannot open a file for an instance");
+                            refusal =
+                                Some((status::OUT_OF_RESOURCES, "storage unavailable".into()));
+                            None
+                        }
+                    }
+                }
+            };
+            *pending = Some(Pending {
+                command: cmd,
+                context_id: value.presentation_context_id,
+                sink,
+                refusal,
+            });
+        }
+        _ => {
+            reply(
+                assoc,
+                value.presentation_context_id,
+                command::unrecognized_response(&cmd),
+            )
+            .await?;
+        }
+    }
+    Ok(false)
+}
+
+/// A data set fragment; returns whether it completed a stored instance.
+async fn on_data(
+    assoc: &mut AsyncServerAssociation<TcpStream>,
+    grant: &Grant,
+    tracker: &Arc<Tracker>,
+    value: PDataValue,
+    pending: &mut Option<Pending>,
+) -> Result<bool, AssociationEnd> {
+    let Some(p) = pending.as_mut() else {
+        return Err(AssociationEnd::Protocol(
+            "a data set fragment arrived without a C-STORE request".into(),
+        ));
+    };
+    if p.context_id != value.presentation_context_id {
+        return Err(AssociationEnd::Protocol(
+            "a data set fragment on another presentation context".into(),
+        ));
+    }
+    if let Some(sink) = p.sink.as_mut()
+        && let Err(e) = sink.write(&value.data).await
+    {
+        p.sink = None;
+        p.refusal = Some(match e {
+            SinkError::TooLarge(limit) => (
+                status::OUT_OF_RESOURCES,
+                format!("instance larger than {limit} bytes"),
+            ),
+            SinkError::Io(e) => {
+                tracing::error!(error = %e, "cannot write an instance");
+                (status::OUT_OF_RESOURCES, "storage unavailable".into())
+            }
+        });
+    }
+    if !value.is_last {
+        return Ok(false);
+    }
+    let Some(Pending {
+        command: cmd,
+        context_id,
+        sink,
+        refusal,
+    }) = pending.take()
+    else {
+        return Ok(false);
+    };
+    let (code, comment) = match (sink, refusal) {
+        (Some(sink), None) => file(sink, &cmd, grant, tracker).await,
+        (_, Some(refusal)) => refusal,
+        (None, None) => (status::OUT_OF_RESOURCES, "storage unavailable".into()),
+    };
+    if code != status::SUCCESS {
+        tracing::warn!(sop_instance_uid = %cmd.sop_instance_uid, status = format!("{code:04X}"), reason = %comment, "instance refused");
+    }
+    let comment = (code != status::SUCCESS).then_some(comment.as_str());
+    reply(
+        assoc,
+        context_id,
+        command::store_response(
+            cmd.message_id,
+            &cmd.sop_class_uid,
+            &cmd.sop_instance_uid,
+            code,
+            comment,
+        ),
+    )
+    .await?;
+    Ok(code == status::SUCCESS)
+}
+
+/// Check a received instance and file it in its series: (status, reason).
+async fn file(
+    sink: InstanceSink,
+    cmd: &Command,
+    grant: &Grant,
+    tracker: &Arc<Tracker>,
+) -> (u16, String) {
+    let bytes = sink.written();
+    let received = match sink.finish().await {
+        Ok(r) => r,
+        Err(e) => {
+            tracing::error!(error = %e, "cannot sync an instance");
+            return (status::OUT_OF_RESOURCES, "storage unavailable".into());
+        }
+    };
+    let (cmd, tracker, calling_ae) = (cmd.clone(), tracker.clone(), grant.calling_ae.clone());
+    let max = grant.max_instance_bytes.saturating_add(64 << 10);
+    let checked = tokio::task::spawn_blocking(move || {
+        let header = match read_header(received.path(), max) {
+            Ok(h) => h,
+            Err(e) => return (status::CANNOT_UNDERSTAND, e.to_string()),
+        };
+        if header.sop_instance_uid != cmd.sop_instance_uid
+            || header.sop_class_uid != cmd.sop_class_uid
+        {
+            return (
+                status::DATA_SET_MISMATCH,
+                "SOP class or instance of the data set differs from the request".into(),
+            );
+        }
+        let arrival = Arrival {
+            study_uid: &header.study_uid,
+            series_uid: &header.series_uid,
+            sop_instance_uid: &header.sop_instance_uid,
+            calling_ae: &calling_ae,
+            bytes,
+        };
+        match tracker.file(received.path(), arrival) {
+            Ok(_) => {
+                received.keep();
+                (status::SUCCESS, String::new())
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot file an instance");
+                (status::OUT_OF_RESOURCES, "storage unavailable".into())
+            }
+        }
+    })
+    .await;
+    checked.unwrap_or_else(|_| (status::CANNOT_UNDERSTAND, "malformed data set".into()))
+}

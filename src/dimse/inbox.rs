@@ -1,0 +1,242 @@
+//! Where the node keeps what it receives, under `<data_dir>/dimse/`:
+//!
+//! - `tmp/<uuid>.part`: an instance being received, written as it arrives (Part 10 prefix, then the data
+//!   set fragments); removed when the association aborts or the instance is refused;
+//! - `incoming/<series uid>/<sop instance uid>.dcm`: complete, checked instances of a series that is still
+//!   arriving (a rename from `tmp/`, so a file here is always whole);
+//! - `complete/<uuid>/`: a series whose stable age passed, handed over for assembly (a rename of its
+//!   `incoming/` folder, so instances arriving later start a new folder).
+//!
+//! After a crash, `tmp/` is emptied and every `incoming/` and `complete/` folder is picked up again.
+
+use std::io;
+use std::path::{Path, PathBuf};
+
+use tokio::io::AsyncWriteExt;
+
+/// The node's folders.
+#[derive(Debug, Clone)]
+pub struct Inbox {
+    root: PathBuf,
+}
+
+impl Inbox {
+    /// Create the folders under `data_dir` and empty `tmp/` (instances cut off by a crash).
+    pub fn open(data_dir: &Path) -> io::Result<Self> {
+        let root = data_dir.join("dimse");
+        for sub in ["tmp", "incoming", "complete"] {
+            std::fs::create_dir_all(root.join(sub))?;
+        }
+        for entry in std::fs::read_dir(root.join("tmp"))? {
+            let entry = entry?;
+            if entry.file_type()?.is_file() {
+                std::fs::remove_file(entry.path())?;
+            }
+        }
+        Ok(Self { root })
+    }
+
+    pub fn root(&self) -> &Path {
+        &self.root
+    }
+
+    /// Series folders of `incoming/` left from before a restart: (series UID, folder).
+    pub fn leftover_incoming(&self) -> io::Result<Vec<(String, PathBuf)>> {
+        let mut out = Vec::new();
+        for entry in std::fs::read_dir(self.root.join("incoming"))? {
+            let entry = entry?;
+            if entry.file_type()?.is_dir() {
+                out.push((
+                    entry.file_name().to_string_lossy().into_owned(),
+                    entry.path(),
+                ));
+            }
+        }
+        out.sort();
+        Ok(out)
+    }
+
+    /// Folders of `complete/` not yet assembled (a restart came between hand-over and assembly).
+    pub fn leftover_complete(&self) -> io::Result<Vec<PathBuf>> {
+        let mut out = Vec::new();
+        for entry in std::fs::read_dir(self.root.join("complete"))? {
+            let entry = entry?;
+            if entry.file_type()?.is_dir() {
+                out.push(entry.path());
+            }
+        }
+        out.sort();
+        Ok(out)
+    }
+
+    /// Start receiving one instance: a new temporary file holding `prefix`.
+    pub async fn begin(&self, prefix: &[u8], max_bytes: u64) -> io::Result<InstanceSink> {
+        let path = self
+            .root
+            .join("tmp")
+            .join(format!("{}.part", uuid::Uuid::new_v4()));
+        let file = tokio::fs::File::create(&path).await?;
+        let mut sink = InstanceSink {
+            path: Some(path),
+            file: Some(tokio::io::BufWriter::with_capacity(256 << 10, file)),
+            written: 0,
+            max_bytes,
+        };
+        sink.write(prefix).await.map_err(|e| match e {
+            SinkError::Io(e) => e,
+            other => io::Error::other(other.to_string()),
+        })?;
+        Ok(sink)
+    }
+
+    /// Put a received, checked instance in its series folder (replacing an earlier copy of the same
+    /// instance). Both UIDs must be valid UIDs (digits and dots), which makes them safe as names.
+    pub fn file(
+        &self,
+        temp: &Path,
+        series_uid: &str,
+        sop_instance_uid: &str,
+    ) -> io::Result<PathBuf> {
+        let dir = self.root.join("incoming").join(series_uid);
+        std::fs::create_dir_all(&dir)?;
+        let dest = dir.join(format!("{sop_instance_uid}.dcm"));
+        std::fs::rename(temp, &dest)?;
+        Ok(dest)
+    }
+
+    /// Hand a series over: its `incoming/` folder becomes a new `complete/` folder.
+    pub fn seal(&self, series_uid: &str) -> io::Result<PathBuf> {
+        let dest = self
+            .root
+            .join("complete")
+            .join(uuid::Uuid::new_v4().to_string());
+        std::fs::rename(self.root.join("incoming").join(series_uid), &dest)?;
+        Ok(dest)
+    }
+}
+
+/// Why an instance could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum SinkError {
+    #[error("the instance exceeds the limit of {0} bytes")]
+    TooLarge(u64),
+    #[error("storage: {0}")]
+    Io(#[from] io::Error),
+}
+
+/// One instance being received. Dropped before [`InstanceSink::finish`], it removes its file.
+#[derive(Debug)]
+pub struct InstanceSink {
+    path: Option<PathBuf>,
+    file: Option<tokio::io::BufWriter<tokio::fs::File>>,
+    written: u64,
+    max_bytes: u64,
+}
+
+impl InstanceSink {
+    /// Append bytes; refuses to grow past the limit.
+    pub async fn write(&mut self, bytes: &[u8]) -> Result<(), SinkError> {
+        self.written = self.written.saturating_add(bytes.len() as u64);
+        if self.written > self.max_bytes {
+            return Err(SinkError::TooLarge(self.max_bytes));
+        }
+        match self.file.as_mut() {
+            Some(f) => Ok(f.write_all(bytes).await?),
+            None => Err(SinkError::Io(io::Error::other("instance already finished"))),
+        }
+    }
+
+    /// Bytes written so far (prefix included).
+    pub fn written(&self) -> u64 {
+        self.written
+    }
+
+    /// Flush and sync; the file is the caller's from now on (see [`Received`]).
+    pub async fn finish(mut self) -> io::Result<Received> {
+        if let Some(mut f) = self.file.take() {
+            f.flush().await?;
+            f.get_mut().sync_all().await?;
+        }
+        let path = self
+            .path
+            .take()
+            .ok_or_else(|| io::Error::other("instance already finished"))?;
+        Ok(Received { path: Some(path) })
+    }
+}
+
+impl Drop for InstanceSink {
+    fn drop(&mut self) {
+        self.file.take();
+        if let Some(p) = self.path.take() {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+}
+
+/// A whole instance in `tmp/`, not yet checked. Dropped without [`Received::keep`], it is removed.
+#[derive(Debug)]
+pub struct Received {
+    path: Option<PathBuf>,
+}
+
+impl Received {
+    pub fn path(&self) -> &Path {
+        self.path.as_deref().unwrap_or(Path::new(""))
+    }
+
+    /// The file was moved elsewhere: do not remove it.
+    pub fn keep(mut self) {
+        self.path.take();
+    }
+}
+
+impl Drop for Received {
+    fn drop(&mut self) {
+        if let Some(p) = self.path.take() {
+            let _ = std::fs::remove_file(p);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn an_instance_dropped_midway_leaves_nothing_and_a_filed_one_is_whole() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let count = |sub: &str| std::fs::read_dir(inbox.root().join(sub)).unwrap().count();
+
+        let mut cut = inbox.begin(b"prefix", 1 << 20).await.unwrap();
+        cut.write(b"half of it").await.unwrap();
+        assert_eq!(count("tmp"), 1);
+        drop(cut);
+        assert_eq!(count("tmp"), 0);
+
+        let mut whole = inbox.begin(b"AB", 1 << 20).await.unwrap();
+        whole.write(b"CD").await.unwrap();
+        let received = whole.finish().await.unwrap();
+        let dest = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
+        received.keep();
+        assert_eq!(std::fs::read(&dest).unwrap(), b"ABCD");
+        assert_eq!(count("tmp"), 0);
+
+        let sealed = inbox.seal("1.2.3").unwrap();
+        assert_eq!(std::fs::read(sealed.join("1.2.3.4.dcm")).unwrap(), b"ABCD");
+        assert_eq!(count("incoming"), 0);
+        assert_eq!(inbox.leftover_complete().unwrap(), vec![sealed]);
+    }
+
+    #[tokio::test]
+    async fn an_instance_over_the_limit_is_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let mut sink = inbox.begin(b"0123", 8).await.unwrap();
+        assert!(matches!(
+            sink.write(b"45678").await,
+            Err(SinkError::TooLarge(8))
+        ));
+    }
+}

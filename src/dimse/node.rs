@@ -1,0 +1,319 @@
+//! The listener: accepts TCP connections, negotiates associations (allow-list, SOP classes and transfer
+//! syntaxes the reader decodes, PDU size, timeouts, a cap on concurrent associations), serves each on its
+//! own task, and seals series whose stable age passed.
+
+use std::net::{IpAddr, SocketAddr};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use dicom_ul::association::Association as _;
+use dicom_ul::association::server::{AccessControl, ServerAssociationOptions};
+use dicom_ul::pdu::{
+    AssociationRJ, AssociationRJResult, AssociationRJServiceProviderPresentationReason,
+    AssociationRJServiceUserReason, AssociationRJSource, Pdu, UserIdentity,
+};
+use tokio::io::AsyncWriteExt;
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::{Semaphore, mpsc, watch};
+
+use super::association::{self, Grant};
+use super::command::VERIFICATION;
+use super::inbox::Inbox;
+use super::settings::NodeSettings;
+use super::tracker::{CompletedSeries, Tracker, count};
+use crate::dicom::{STORABLE_SOP_CLASSES, decodable_transfer_syntaxes};
+
+/// Why the node could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum NodeError {
+    #[error("DICOM node settings: {0}")]
+    Settings(String),
+    #[error("DICOM node: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// A running DICOM node. Dropping it stops the listener.
+pub struct DicomNode {
+    addr: SocketAddr,
+    completed: mpsc::UnboundedReceiver<CompletedSeries>,
+    tracker: Arc<Tracker>,
+    _stop: watch::Sender<bool>,
+}
+
+impl std::fmt::Debug for DicomNode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("DicomNode")
+            .field("addr", &self.addr)
+            .finish()
+    }
+}
+
+/// Calling AE titles allowed from one remote address (`None`: any).
+struct Gate {
+    allowed: Option<Vec<String>>,
+}
+
+impl AccessControl for Gate {
+    fn check_access(
+        &self,
+        this_ae_title: &str,
+        calling_ae_title: &str,
+        called_ae_title: &str,
+        _user_identity: Option<&UserIdentity>,
+    ) -> Result<(), AssociationRJServiceUserReason> {
+        if called_ae_title.trim() != this_ae_title.trim() {
+            return Err(AssociationRJServiceUserReason::CalledAETitleNotRecognized);
+        }
+        match &self.allowed {
+            Some(list) if !list.iter().any(|a| a == calling_ae_title.trim()) => {
+                Err(AssociationRJServiceUserReason::CallingAETitleNotRecognized)
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+/// The peers' addresses, resolved once at start.
+struct Peers {
+    settings: NodeSettings,
+    addresses: Vec<(String, Vec<IpAddr>)>,
+}
+
+impl Peers {
+    async fn resolve(settings: NodeSettings) -> Self {
+        let mut addresses = Vec::new();
+        for p in &settings.peers {
+            let ips = match tokio::net::lookup_host((p.host.as_str(), p.port)).await {
+                Ok(it) => it.map(|a| a.ip()).collect(),
+                Err(e) => {
+                    tracing::warn!(peer = %p.ae_title, host = %p.host, error = %e, "cannot resolve a DICOM peer");
+                    Vec::new()
+                }
+            };
+            addresses.push((p.ae_title.clone(), ips));
+        }
+        Self {
+            settings,
+            addresses,
+        }
+    }
+
+    /// The AE titles that may call from `ip`, or `None` when the node has no allow-list.
+    fn allowed_from(&self, ip: IpAddr) -> Option<Vec<String>> {
+        if self.settings.peers.is_empty() {
+            return None;
+        }
+        Some(
+            self.addresses
+                .iter()
+                .filter(|(_, ips)| ips.iter().any(|a| same_host(*a, ip)))
+                .map(|(ae, _)| ae.clone())
+                .collect(),
+        )
+    }
+}
+
+fn same_host(a: IpAddr, b: IpAddr) -> bool {
+    let canon = |ip: IpAddr| match ip {
+        IpAddr::V6(v6) => v6
+            .to_ipv4_mapped()
+            .map(IpAddr::V4)
+            .unwrap_or(IpAddr::V6(v6)),
+        v4 => v4,
+    };
+    canon(a) == canon(b)
+}
+
+impl DicomNode {
+    /// Start the node described by `settings` (its `port` must be set), keeping instances under
+    /// `data_dir/dimse/`.
+    pub async fn start(
+        settings: &NodeSettings,
+        data_dir: &std::path::Path,
+    ) -> Result<Self, NodeError> {
+        if let Some(p) = settings.problem() {
+            return Err(NodeError::Settings(p));
+        }
+        let port = settings
+            .port
+            .ok_or_else(|| NodeError::Settings("no port".into()))?;
+        let inbox = Inbox::open(data_dir)?;
+        let leftovers = inbox.leftover_complete()?;
+        let tracker = Arc::new(Tracker::new(inbox, settings.stable_age())?);
+        let listener = TcpListener::bind((settings.host, port)).await?;
+        let addr = listener.local_addr()?;
+        let (tx, completed) = mpsc::unbounded_channel();
+        for folder in leftovers {
+            let (instances, bytes) = count(&folder)?;
+            let _ = tx.send(CompletedSeries {
+                series_uid: String::new(),
+                study_uid: String::new(),
+                folder,
+                instances,
+                bytes,
+                calling_ae: String::new(),
+            });
+        }
+        let (stop, stopped) = watch::channel(false);
+        let peers = Arc::new(Peers::resolve(settings.clone()).await);
+        tokio::spawn(accept_loop(
+            listener,
+            peers,
+            tracker.clone(),
+            stopped.clone(),
+        ));
+        tokio::spawn(seal_loop(
+            tracker.clone(),
+            settings.stable_age(),
+            tx,
+            stopped,
+        ));
+        tracing::info!(%addr, ae_title = %settings.ae_title, "DICOM node listening");
+        Ok(Self {
+            addr,
+            completed,
+            tracker,
+            _stop: stop,
+        })
+    }
+
+    pub fn local_addr(&self) -> SocketAddr {
+        self.addr
+    }
+
+    /// The next series that stopped arriving (waits for it).
+    pub async fn next_completed(&mut self) -> Option<CompletedSeries> {
+        self.completed.recv().await
+    }
+
+    /// Series arriving now: (series UID, instances so far).
+    pub fn arriving(&self) -> Vec<(String, usize)> {
+        self.tracker.arriving()
+    }
+}
+
+async fn seal_loop(
+    tracker: Arc<Tracker>,
+    stable_age: Duration,
+    tx: mpsc::UnboundedSender<CompletedSeries>,
+    mut stopped: watch::Receiver<bool>,
+) {
+    let tick = (stable_age / 4).clamp(Duration::from_millis(100), Duration::from_secs(1));
+    loop {
+        tokio::select! {
+            _ = tokio::time::sleep(tick) => {}
+            _ = stopped.changed() => return,
+        }
+        let t = tracker.clone();
+        match tokio::task::spawn_blocking(move || t.seal_due(Instant::now())).await {
+            Ok(Ok(done)) => {
+                for s in done {
+                    if tx.send(s).is_err() {
+                        return;
+                    }
+                }
+            }
+            Ok(Err(e)) => tracing::error!(error = %e, "cannot seal a complete series"),
+            Err(e) => tracing::error!(error = %e, "series sealing failed"),
+        }
+    }
+}
+
+async fn accept_loop(
+    listener: TcpListener,
+    peers: Arc<Peers>,
+    tracker: Arc<Tracker>,
+    mut stopped: watch::Receiver<bool>,
+) {
+    let slots = Arc::new(Semaphore::new(peers.settings.max_associations));
+    loop {
+        let (socket, remote) = tokio::select! {
+            r = listener.accept() => match r {
+                Ok(x) => x,
+                Err(e) => {
+                    tracing::warn!(error = %e, "DICOM accept failed");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            },
+            _ = stopped.changed() => return,
+        };
+        let _ = socket.set_nodelay(true);
+        let Ok(slot) = slots.clone().try_acquire_owned() else {
+            tokio::spawn(reject_busy(socket));
+            continue;
+        };
+        let (peers, tracker) = (peers.clone(), tracker.clone());
+        tokio::spawn(async move {
+            let span = tracing::info_span!("association", %remote);
+            let _enter = span.enter();
+            drop(_enter);
+            handle(socket, remote, &peers, tracker).await;
+            drop(slot);
+        });
+    }
+}
+
+/// Answer a caller over the association cap with A-ASSOCIATE-RJ (transient, local limit exceeded).
+async fn reject_busy(mut socket: TcpStream) {
+    let mut buf = Vec::new();
+    let rj = Pdu::AssociationRJ(AssociationRJ {
+        result: AssociationRJResult::Transient,
+        source: AssociationRJSource::ServiceProviderPresentation(
+            AssociationRJServiceProviderPresentationReason::LocalLimitExceeded,
+        ),
+    });
+    if dicom_ul::pdu::write_pdu(&mut buf, &rj).is_ok() {
+        let _ = tokio::time::timeout(Duration::from_secs(5), socket.write_all(&buf)).await;
+    }
+    tracing::warn!("association refused: too many at once");
+}
+
+async fn handle(socket: TcpStream, remote: SocketAddr, peers: &Peers, tracker: Arc<Tracker>) {
+    let s = &peers.settings;
+    let mut options = ServerAssociationOptions::new()
+        .ae_access_control(Gate {
+            allowed: peers.allowed_from(remote.ip()),
+        })
+        .ae_title(s.ae_title.clone())
+        .max_pdu_length(s.max_pdu_length)
+        .read_timeout(s.dimse_timeout())
+        .write_timeout(s.dimse_timeout())
+        .with_abstract_syntax(VERIFICATION);
+    for uid in STORABLE_SOP_CLASSES {
+        options = options.with_abstract_syntax(*uid);
+    }
+    for ts in decodable_transfer_syntaxes() {
+        options = options.with_transfer_syntax(ts);
+    }
+    let assoc = match tokio::time::timeout(s.association_timeout(), options.establish_async(socket))
+        .await
+    {
+        Ok(Ok(a)) => a,
+        Ok(Err(e)) => {
+            tracing::warn!(%remote, error = %e, "association refused");
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%remote, "association negotiation timed out");
+            return;
+        }
+    };
+    let calling_ae = assoc.peer_ae_title().trim().to_string();
+    let may_store = s.peers.is_empty() || s.peer(&calling_ae).is_some_and(|p| p.store);
+    let grant = Grant {
+        calling_ae: calling_ae.clone(),
+        may_store,
+        max_instance_bytes: s.max_instance_bytes,
+        dimse_timeout: s.dimse_timeout(),
+    };
+    tracing::info!(%remote, calling_ae = %calling_ae, "association accepted");
+    match association::serve(assoc, grant, tracker).await {
+        Ok(stored) => {
+            tracing::info!(%remote, calling_ae = %calling_ae, stored, "association released")
+        }
+        Err(e) => {
+            tracing::warn!(%remote, calling_ae = %calling_ae, error = %e, "association ended")
+        }
+    }
+}

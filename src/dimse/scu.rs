@@ -1,0 +1,337 @@
+//! ctrecon as a service class user: C-ECHO to test a peer, C-STORE of Part 10 files to a peer, each file's
+//! data set sent as it is stored (streamed from disk in PDU-sized fragments, never whole in memory).
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use dicom_ul::association::client::ClientAssociationOptions;
+use dicom_ul::pdu::{PDataValue, PDataValueType, Pdu, PresentationContextResultReason};
+use tokio::io::{AsyncReadExt, AsyncSeekExt};
+
+use super::command::{self, VERIFICATION};
+use super::settings::Peer;
+use crate::dicom::{Part10, read_part10};
+
+/// How ctrecon calls a peer.
+#[derive(Debug, Clone)]
+pub struct Caller {
+    /// ctrecon's AE title as the calling AE.
+    pub ae_title: String,
+    /// Limit of each network step (connect, negotiate, one response).
+    pub timeout: Duration,
+    pub max_pdu_length: u32,
+}
+
+/// Why a call to a peer failed as a whole.
+#[derive(Debug, thiserror::Error)]
+pub enum ScuError {
+    #[error("cannot associate with {peer}: {reason}")]
+    Associate { peer: String, reason: String },
+    #[error("{peer} did not answer within {0:?}", .timeout)]
+    Timeout { peer: String, timeout: Duration },
+    #[error("network error with {peer}: {reason}")]
+    Network { peer: String, reason: String },
+    #[error("{peer} answered with something other than a DIMSE response: {reason}")]
+    Protocol { peer: String, reason: String },
+}
+
+/// What became of one file sent by C-STORE.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct StoreOutcome {
+    pub file: PathBuf,
+    pub sop_instance_uid: String,
+    /// The peer's DIMSE status; `None` when the file was not sent.
+    pub status: Option<u16>,
+    /// The peer's Error Comment, or why the file was not sent.
+    pub detail: Option<String>,
+}
+
+impl StoreOutcome {
+    pub fn stored(&self) -> bool {
+        self.status.is_some_and(command::is_stored)
+    }
+}
+
+type Assoc = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
+
+fn address(peer: &Peer) -> String {
+    format!("{}:{}", peer.host, peer.port)
+}
+
+async fn timed<T, E: std::fmt::Display>(
+    peer: &Peer,
+    limit: Duration,
+    f: impl std::future::Future<Output = Result<T, E>>,
+    wrap: impl FnOnce(String) -> ScuError,
+) -> Result<T, ScuError> {
+    match tokio::time::timeout(limit, f).await {
+        Ok(Ok(v)) => Ok(v),
+        Ok(Err(e)) => Err(wrap(e.to_string())),
+        Err(_) => Err(ScuError::Timeout {
+            peer: peer.ae_title.clone(),
+            timeout: limit,
+        }),
+    }
+}
+
+async fn associate(
+    caller: &Caller,
+    peer: &Peer,
+    contexts: &[(String, Vec<String>)],
+) -> Result<Assoc, ScuError> {
+    let mut options = ClientAssociationOptions::new()
+        .calling_ae_title(caller.ae_title.clone())
+        .called_ae_title(peer.ae_title.clone())
+        .max_pdu_length(caller.max_pdu_length)
+        .read_timeout(caller.timeout)
+        .write_timeout(caller.timeout)
+        .connection_timeout(caller.timeout);
+    for (sop, ts) in contexts {
+        options = options.with_presentation_context(sop.clone(), ts.clone());
+    }
+    let name = peer.ae_title.clone();
+    let assoc = timed(
+        peer,
+        caller.timeout,
+        options.establish_async(address(peer)),
+        |reason| ScuError::Associate { peer: name, reason },
+    )
+    .await?;
+    let mut assoc = assoc;
+    let _ = assoc.inner_stream().set_nodelay(true);
+    Ok(assoc)
+}
+
+/// The next command set the peer sends (data sets, if any, are skipped).
+async fn response(
+    assoc: &mut Assoc,
+    caller: &Caller,
+    peer: &Peer,
+) -> Result<command::Command, ScuError> {
+    let mut buf = Vec::new();
+    loop {
+        let name = peer.ae_title.clone();
+        let pdu = timed(peer, caller.timeout, assoc.receive(), |reason| {
+            ScuError::Network { peer: name, reason }
+        })
+        .await?;
+        let protocol = |reason: String| ScuError::Protocol {
+            peer: peer.ae_title.clone(),
+            reason,
+        };
+        match pdu {
+            Pdu::PData { data } => {
+                for v in data {
+                    if v.value_type != PDataValueType::Command {
+                        continue;
+                    }
+                    if buf.len() + v.data.len() > command::MAX_COMMAND_BYTES {
+                        return Err(protocol("command set too long".into()));
+                    }
+                    buf.extend_from_slice(&v.data);
+                    if v.is_last {
+                        return command::parse(&buf).map_err(|e| protocol(e.to_string()));
+                    }
+                }
+            }
+            Pdu::AbortRQ { source } => return Err(protocol(format!("aborted ({source:?})"))),
+            other => {
+                return Err(protocol(format!(
+                    "unexpected {}",
+                    other.short_description()
+                )));
+            }
+        }
+    }
+}
+
+async fn send_command(
+    assoc: &mut Assoc,
+    peer: &Peer,
+    context: u8,
+    bytes: Vec<u8>,
+) -> Result<(), ScuError> {
+    assoc
+        .send(&Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: context,
+                value_type: PDataValueType::Command,
+                is_last: true,
+                data: bytes,
+            }],
+        })
+        .await
+        .map_err(|e| ScuError::Network {
+            peer: peer.ae_title.clone(),
+            reason: e.to_string(),
+        })
+}
+
+/// C-ECHO: the peer's status (0 = success).
+pub async fn echo(caller: &Caller, peer: &Peer) -> Result<u16, ScuError> {
+    let contexts = vec![(
+        VERIFICATION.to_string(),
+        vec!["1.2.840.10008.1.2".to_string()],
+    )];
+    let mut assoc = associate(caller, peer, &contexts).await?;
+    let context =
+        accepted(&assoc, VERIFICATION, "1.2.840.10008.1.2").ok_or_else(|| ScuError::Associate {
+            peer: peer.ae_title.clone(),
+            reason: "verification not accepted".into(),
+        })?;
+    send_command(&mut assoc, peer, context, command::echo_request(1)).await?;
+    let rsp = response(&mut assoc, caller, peer).await?;
+    let _ = assoc.release().await;
+    Ok(rsp.status.unwrap_or(command::status::CANNOT_UNDERSTAND))
+}
+
+fn accepted(assoc: &Assoc, sop_class: &str, ts: &str) -> Option<u8> {
+    assoc
+        .presentation_contexts()
+        .iter()
+        .find(|pc| {
+            pc.reason == PresentationContextResultReason::Acceptance
+                && pc.abstract_syntax == sop_class
+                && pc.transfer_syntax == ts
+        })
+        .map(|pc| pc.id)
+}
+
+/// C-STORE each file in one association. A file that cannot be read or whose SOP class and transfer
+/// syntax the peer did not accept is reported and skipped; the others are sent.
+pub async fn store(
+    caller: &Caller,
+    peer: &Peer,
+    files: &[PathBuf],
+) -> Result<Vec<StoreOutcome>, ScuError> {
+    let list = files.to_vec();
+    let metas: Vec<Result<Part10, String>> = tokio::task::spawn_blocking(move || {
+        list.iter()
+            .map(|f| read_part10(f).map_err(|e| e.to_string()))
+            .collect()
+    })
+    .await
+    .map_err(|e| ScuError::Protocol {
+        peer: peer.ae_title.clone(),
+        reason: e.to_string(),
+    })?;
+    let mut contexts: Vec<(String, Vec<String>)> = Vec::new();
+    for m in metas.iter().flatten() {
+        let c = (m.sop_class_uid.clone(), vec![m.transfer_syntax.clone()]);
+        if !contexts.contains(&c) && contexts.len() < 128 {
+            contexts.push(c);
+        }
+    }
+    let mut outcomes = Vec::with_capacity(files.len());
+    if contexts.is_empty() {
+        for (file, m) in files.iter().zip(metas) {
+            outcomes.push(not_sent(file, String::new(), m.err().unwrap_or_default()));
+        }
+        return Ok(outcomes);
+    }
+    let mut assoc = associate(caller, peer, &contexts).await?;
+    for (i, (file, meta)) in files.iter().zip(metas).enumerate() {
+        let meta = match meta {
+            Ok(m) => m,
+            Err(reason) => {
+                outcomes.push(not_sent(file, String::new(), reason));
+                continue;
+            }
+        };
+        let Some(context) = accepted(&assoc, &meta.sop_class_uid, &meta.transfer_syntax) else {
+            outcomes.push(not_sent(
+                file,
+                meta.sop_instance_uid.clone(),
+                format!(
+                    "{} did not accept SOP class {} in transfer syntax {}",
+                    peer.ae_title, meta.sop_class_uid, meta.transfer_syntax
+                ),
+            ));
+            continue;
+        };
+        let message_id = (i % 0xFFFF) as u16 + 1;
+        let rq = command::store_request(
+            message_id,
+            &meta.sop_class_uid,
+            &meta.sop_instance_uid,
+            None,
+        );
+        send_command(&mut assoc, peer, context, rq).await?;
+        send_data_set(&mut assoc, caller, peer, context, file, meta.dataset_offset).await?;
+        let rsp = response(&mut assoc, caller, peer).await?;
+        outcomes.push(StoreOutcome {
+            file: file.clone(),
+            sop_instance_uid: meta.sop_instance_uid,
+            status: rsp.status,
+            detail: rsp.error_comment,
+        });
+    }
+    let _ = assoc.release().await;
+    Ok(outcomes)
+}
+
+fn not_sent(file: &Path, sop_instance_uid: String, reason: String) -> StoreOutcome {
+    StoreOutcome {
+        file: file.to_path_buf(),
+        sop_instance_uid,
+        status: None,
+        detail: Some(reason),
+    }
+}
+
+/// Send the data set at `offset` of `file` as P-DATA fragments no larger than the peer admits.
+async fn send_data_set(
+    assoc: &mut Assoc,
+    caller: &Caller,
+    peer: &Peer,
+    context: u8,
+    file: &Path,
+    offset: u64,
+) -> Result<(), ScuError> {
+    let net = |reason: String| ScuError::Network {
+        peer: peer.ae_title.clone(),
+        reason,
+    };
+    let mut f = tokio::fs::File::open(file)
+        .await
+        .map_err(|e| net(e.to_string()))?;
+    let size = f.metadata().await.map_err(|e| net(e.to_string()))?.len();
+    f.seek(std::io::SeekFrom::Start(offset))
+        .await
+        .map_err(|e| net(e.to_string()))?;
+    // A PDV item takes 6 bytes of the PDU's length (4 length, context id, control header).
+    let peer_max = match assoc.acceptor_max_pdu_length() {
+        0 => 64 << 10,
+        n => n.min(1 << 20),
+    };
+    let chunk = (peer_max as usize).saturating_sub(6).max(1024);
+    let mut remaining = size.saturating_sub(offset);
+    let mut buf = vec![0u8; chunk];
+    loop {
+        let n = (remaining.min(chunk as u64)) as usize;
+        f.read_exact(&mut buf[..n])
+            .await
+            .map_err(|e| net(e.to_string()))?;
+        remaining -= n as u64;
+        let pdu = Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: context,
+                value_type: PDataValueType::Data,
+                is_last: remaining == 0,
+                data: buf[..n].to_vec(),
+            }],
+        };
+        match tokio::time::timeout(caller.timeout, assoc.send(&pdu)).await {
+            Ok(r) => r.map_err(|e| net(e.to_string()))?,
+            Err(_) => {
+                return Err(ScuError::Timeout {
+                    peer: peer.ae_title.clone(),
+                    timeout: caller.timeout,
+                });
+            }
+        }
+        if remaining == 0 {
+            return Ok(());
+        }
+    }
+}

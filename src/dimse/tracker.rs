@@ -1,0 +1,231 @@
+//! Series completion by stable age (as Orthanc's `StableAge`): a series is complete when no instance of it
+//! arrived for the configured time; it is then sealed (its folder handed over) and announced.
+
+use std::collections::HashMap;
+use std::io;
+use std::path::{Path, PathBuf};
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+use super::inbox::Inbox;
+
+/// A series that stopped arriving: its instances are the `.dcm` files of `folder`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CompletedSeries {
+    pub series_uid: String,
+    pub study_uid: String,
+    pub folder: PathBuf,
+    pub instances: usize,
+    pub bytes: u64,
+    /// The AE title that sent it (the last caller, if several); empty after a restart.
+    pub calling_ae: String,
+}
+
+#[derive(Debug)]
+struct Arriving {
+    study_uid: String,
+    last: Instant,
+    instances: usize,
+    bytes: u64,
+    calling_ae: String,
+}
+
+/// The series still arriving, and the inbox they are filed in.
+#[derive(Debug)]
+pub struct Tracker {
+    inbox: Inbox,
+    stable_age: Duration,
+    arriving: Mutex<HashMap<String, Arriving>>,
+}
+
+/// Which instance arrived, for filing.
+#[derive(Debug, Clone, Copy)]
+pub struct Arrival<'a> {
+    pub study_uid: &'a str,
+    pub series_uid: &'a str,
+    pub sop_instance_uid: &'a str,
+    pub calling_ae: &'a str,
+    pub bytes: u64,
+}
+
+impl Tracker {
+    /// A tracker over `inbox`; series left in `incoming/` by a restart count as arriving now.
+    pub fn new(inbox: Inbox, stable_age: Duration) -> io::Result<Self> {
+        let mut arriving = HashMap::new();
+        for (uid, folder) in inbox.leftover_incoming()? {
+            let (instances, bytes) = count(&folder)?;
+            arriving.insert(
+                uid,
+                Arriving {
+                    study_uid: String::new(),
+                    last: Instant::now(),
+                    instances,
+                    bytes,
+                    calling_ae: String::new(),
+                },
+            );
+        }
+        Ok(Self {
+            inbox,
+            stable_age,
+            arriving: Mutex::new(arriving),
+        })
+    }
+
+    pub fn inbox(&self) -> &Inbox {
+        &self.inbox
+    }
+
+    /// File a checked instance (blocking: call off the async threads). An instance filed again replaces
+    /// its earlier copy and does not count twice.
+    pub fn file(&self, temp: &Path, a: Arrival<'_>) -> io::Result<PathBuf> {
+        let mut arriving = self
+            .arriving
+            .lock()
+            .map_err(|_| io::Error::other("series tracker poisoned"))?;
+        let existed = self
+            .inbox
+            .root()
+            .join("incoming")
+            .join(a.series_uid)
+            .join(format!("{}.dcm", a.sop_instance_uid))
+            .exists();
+        let dest = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
+        let entry = arriving
+            .entry(a.series_uid.to_string())
+            .or_insert_with(|| Arriving {
+                study_uid: a.study_uid.to_string(),
+                last: Instant::now(),
+                instances: 0,
+                bytes: 0,
+                calling_ae: a.calling_ae.to_string(),
+            });
+        entry.last = Instant::now();
+        if !existed {
+            entry.instances += 1;
+            entry.bytes += a.bytes;
+        }
+        entry.study_uid = a.study_uid.to_string();
+        entry.calling_ae = a.calling_ae.to_string();
+        Ok(dest)
+    }
+
+    /// Series arriving now: (series UID, instances so far).
+    pub fn arriving(&self) -> Vec<(String, usize)> {
+        let Ok(arriving) = self.arriving.lock() else {
+            return Vec::new();
+        };
+        let mut v: Vec<_> = arriving
+            .iter()
+            .map(|(k, a)| (k.clone(), a.instances))
+            .collect();
+        v.sort();
+        v
+    }
+
+    /// Seal every series whose last instance is older than the stable age at `now` (blocking).
+    pub fn seal_due(&self, now: Instant) -> io::Result<Vec<CompletedSeries>> {
+        let mut arriving = self
+            .arriving
+            .lock()
+            .map_err(|_| io::Error::other("series tracker poisoned"))?;
+        let due: Vec<String> = arriving
+            .iter()
+            .filter(|(_, a)| now.saturating_duration_since(a.last) >= self.stable_age)
+            .map(|(k, _)| k.clone())
+            .collect();
+        let mut out = Vec::new();
+        for uid in due {
+            let Some(a) = arriving.remove(&uid) else {
+                continue;
+            };
+            let folder = self.inbox.seal(&uid)?;
+            tracing::info!(series_uid = %uid, instances = a.instances, calling_ae = %a.calling_ae, "series complete");
+            out.push(CompletedSeries {
+                series_uid: uid,
+                study_uid: a.study_uid,
+                folder,
+                instances: a.instances,
+                bytes: a.bytes,
+                calling_ae: a.calling_ae,
+            });
+        }
+        Ok(out)
+    }
+}
+
+/// `.dcm` files of a folder and their total size.
+pub fn count(folder: &Path) -> io::Result<(usize, u64)> {
+    let (mut n, mut bytes) = (0, 0);
+    for entry in std::fs::read_dir(folder)? {
+        let entry = entry?;
+        if entry.path().extension().is_some_and(|e| e == "dcm") {
+            n += 1;
+            bytes += entry.metadata()?.len();
+        }
+    }
+    Ok((n, bytes))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn arrival<'a>(series: &'a str, sop: &'a str) -> Arrival<'a> {
+        Arrival {
+            study_uid: "1.2",
+            series_uid: series,
+            sop_instance_uid: sop,
+            calling_ae: "SCU",
+            bytes: 4,
+        }
+    }
+
+    #[test]
+    fn a_series_is_sealed_once_it_has_been_quiet_for_the_stable_age() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let tracker = Tracker::new(inbox, Duration::from_secs(5)).unwrap();
+        let temp = |name: &str| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, b"DATA").unwrap();
+            p
+        };
+        tracker
+            .file(&temp("a"), arrival("1.2.3", "1.2.3.1"))
+            .unwrap();
+        tracker
+            .file(&temp("b"), arrival("1.2.3", "1.2.3.2"))
+            .unwrap();
+        // The same instance again replaces the first copy.
+        tracker
+            .file(&temp("c"), arrival("1.2.3", "1.2.3.2"))
+            .unwrap();
+        tracker
+            .file(&temp("d"), arrival("1.2.4", "1.2.4.1"))
+            .unwrap();
+        let t0 = Instant::now();
+        assert!(tracker.seal_due(t0).unwrap().is_empty());
+        let done = tracker.seal_due(t0 + Duration::from_secs(6)).unwrap();
+        assert_eq!(done.len(), 2);
+        let s = done.iter().find(|s| s.series_uid == "1.2.3").unwrap();
+        assert_eq!((s.instances, s.bytes, s.calling_ae.as_str()), (2, 8, "SCU"));
+        assert_eq!(count(&s.folder).unwrap(), (2, 8));
+        assert!(tracker.arriving().is_empty());
+    }
+
+    #[test]
+    fn series_left_arriving_by_a_restart_are_picked_up_again() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let tracker = Tracker::new(inbox.clone(), Duration::ZERO).unwrap();
+        let p = dir.path().join("x");
+        std::fs::write(&p, b"DATA").unwrap();
+        tracker.file(&p, arrival("1.9", "1.9.1")).unwrap();
+        drop(tracker);
+        let again = Tracker::new(Inbox::open(dir.path()).unwrap(), Duration::ZERO).unwrap();
+        assert_eq!(again.arriving(), vec![("1.9".to_string(), 1)]);
+        let done = again.seal_due(Instant::now()).unwrap();
+        assert_eq!(done[0].instances, 1);
+    }
+}
