@@ -5,6 +5,8 @@
 //! DCMTK comes from Debian's `dcmtk` package. Without it each test prints one skip line, unless
 //! `CTRECON_REQUIRE_PEERS=1` (as in CI), when it fails.
 
+mod common;
+
 use std::path::{Path, PathBuf};
 use std::process::Output;
 use std::time::Duration;
@@ -503,4 +505,83 @@ async fn ctrecon_stores_a_series_into_storescp_and_reports_each_instance() {
     drop(storescp);
     let down = scu::echo(&c, &dest).await;
     assert!(down.is_err(), "a stopped peer cannot answer");
+}
+
+#[tokio::test]
+async fn a_series_stored_into_the_service_becomes_a_series_of_the_api() {
+    if !dcmtk_present() {
+        return;
+    }
+    let app = common::spawn_app_with(|s| {
+        s.dicom.port = Some(0);
+        s.dicom.stable_age_secs = 1;
+        s.dicom.peers = vec![test_peer()];
+    })
+    .await;
+    let port = app.dicom.expect("a DICOM node").port().to_string();
+    let src = tempfile::tempdir().unwrap();
+    let (series_uid, _) = synthetic_series(src.path(), 12);
+    let dirname = src.path().to_string_lossy().to_string();
+    let out = run(
+        "storescu",
+        &args(&[
+            "-aet",
+            "TESTSCU",
+            "-aec",
+            "CTRECON",
+            "+sd",
+            "127.0.0.1",
+            &port,
+            &dirname,
+        ]),
+    )
+    .await;
+    assert!(out.status.success(), "{}", text(&out));
+    // The assembled volume appears as series/<id>.npy; the API then serves the series.
+    let series_dir = app.dir.path().join("series");
+    let mut id = None;
+    for _ in 0..1500 {
+        if let Some(f) = files_in(&series_dir).first() {
+            id = f.file_stem().map(|s| s.to_string_lossy().into_owned());
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    let id = id.expect("the received series is assembled within 30 s");
+    let r = app.get(&format!("/v1/series/{id}")).await;
+    assert_eq!(r.status(), 200);
+    let v: serde_json::Value = r.json().await.unwrap();
+    let body = v.get("series").unwrap_or(&v);
+    assert_eq!(body["series_uid"], series_uid.as_str(), "{v}");
+    assert_eq!(body["shape"], serde_json::json!([12, 20, 24]), "{v}");
+    assert_eq!(body["instances"], 12, "{v}");
+    // Voxel (k, j, i) holds k·100 + j·10 + i − 1000 HU (within the int16 quantisation step).
+    let npy = app
+        .get(&format!("/v1/series/{id}/volume.npy"))
+        .await
+        .bytes()
+        .await
+        .unwrap();
+    let header_len = u16::from_le_bytes([npy[8], npy[9]]) as usize;
+    let data = &npy[10 + header_len..];
+    let voxel = |k: usize, j: usize, i: usize| {
+        let o = 4 * ((k * 20 + j) * 24 + i);
+        f32::from_le_bytes([data[o], data[o + 1], data[o + 2], data[o + 3]])
+    };
+    for (k, j, i) in [(0, 0, 0), (5, 7, 11), (11, 19, 23)] {
+        let want = (k * 100 + j * 10 + i) as f32 - 1000.0;
+        assert!(
+            (voxel(k, j, i) - want).abs() < 0.5,
+            "voxel {k},{j},{i}: {} vs {want}",
+            voxel(k, j, i)
+        );
+    }
+    // Nothing is left in the node's folders once the series is recorded.
+    for _ in 0..500 {
+        if files_in(&app.dir.path().join("dimse/complete")).is_empty() {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert!(files_in(&app.dir.path().join("dimse/complete")).is_empty());
 }

@@ -8,6 +8,7 @@
 pub mod error;
 pub mod idempotency;
 pub mod jobs;
+pub mod series;
 
 use std::time::Duration;
 

@@ -61,6 +61,12 @@ pub fn run(args: ServeArgs) -> Result<(), Box<dyn std::error::Error>> {
         // The one line scripts and tests wait for.
         println!("ctrecon listening on http://{}", app.local_addr());
         tracing::info!(addr = %app.local_addr(), "listening");
+        if let Some(dicom) = crate::dimse::serve_node(app.app().clone()).await? {
+            println!(
+                "ctrecon DICOM node {} on {dicom}",
+                app.app().settings.dicom.ae_title
+            );
+        }
         app.run_until(shutdown_signal()).await?;
         Ok::<(), Box<dyn std::error::Error>>(())
     })

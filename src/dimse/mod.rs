@@ -3,21 +3,24 @@
 //! A front door like the HTTP routes: it receives instances over DICOM upper-layer associations
 //! (`dicom-ul`), streams each to disk as its fragments arrive, checks it with the same hardened reader as
 //! uploads, files it by series, and announces a series as complete once no instance of it arrived for the
-//! stable age. What becomes of a complete series (assembly, rules) is the application's, not this module's.
+//! stable age. [`feed`] hands every complete series to the application, which assembles and records it
+//! like an upload.
 //!
 //! - [`settings`]: the `dicom` configuration (AE title, port, allow-list, limits);
 //! - [`command`]: DIMSE command sets;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
-//! - [`node`]: the listener; [`association`]: one association.
+//! - [`node`]: the listener; [`association`]: one association; [`scu`]: ctrecon calling a peer.
 
 pub mod association;
 pub mod command;
+pub mod feed;
 pub mod inbox;
 pub mod node;
 pub mod scu;
 pub mod settings;
 pub mod tracker;
 
+pub use feed::serve_node;
 pub use node::{DicomNode, NodeError};
 pub use settings::{NodeSettings, Peer};
 pub use tracker::CompletedSeries;

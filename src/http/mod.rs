@@ -93,6 +93,7 @@ pub const HAND_BACK_MIN: Duration = Duration::from_secs(3);
 
 /// A built service, bound and ready to serve.
 pub struct Application {
+    app: App,
     listener: tokio::net::TcpListener,
     router: Router,
     shutdown: watch::Sender<bool>,
@@ -272,6 +273,7 @@ impl Application {
             lists: Default::default(),
         }));
         Ok(Self {
+            app: state.app.clone(),
             listener,
             router: router(state, tokens),
             shutdown,
@@ -284,6 +286,11 @@ impl Application {
     /// The bound address (with the real port when the settings asked for port 0).
     pub fn local_addr(&self) -> SocketAddr {
         self.addr
+    }
+
+    /// The application behind the routes (for the other front doors started beside them).
+    pub fn app(&self) -> &App {
+        &self.app
     }
 
     /// Serve until `signal` completes, then stop accepting, end event streams and let open requests

@@ -12,6 +12,8 @@ pub struct TestApp {
     pub base: String,
     pub client: reqwest::Client,
     pub dir: tempfile::TempDir,
+    /// The DICOM node's address, when the settings gave it a port.
+    pub dicom: Option<std::net::SocketAddr>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
 }
 
@@ -50,6 +52,9 @@ pub async fn spawn_app_with(configure: impl FnOnce(&mut Settings)) -> TestApp {
         .await
         .expect("the service builds");
     let base = format!("http://{}", app.local_addr());
+    let dicom = ctrecon::dimse::serve_node(app.app().clone())
+        .await
+        .expect("the DICOM node starts");
     let (stop, stopped) = tokio::sync::oneshot::channel::<()>();
     tokio::spawn(app.run_until(async move {
         let _ = stopped.await;
@@ -58,6 +63,7 @@ pub async fn spawn_app_with(configure: impl FnOnce(&mut Settings)) -> TestApp {
         base,
         client: reqwest::Client::new(),
         dir,
+        dicom,
         stop: Some(stop),
     }
 }

@@ -24,13 +24,14 @@ use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{Spooled, paced, spool, too_large};
 use crate::app::Replay;
 use crate::app::idempotency::settle;
-use crate::dicom::{ReadLimits, UploadFile, ZipLimits, read_upload_file};
+use crate::app::series::outcome_view;
+pub use crate::app::series::series_view;
+use crate::dicom::{ReadLimits, UploadFile, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::ingest::{IngestOptions, Ingested, Staged, dicom_problem, ingest};
+use crate::jobs::ingest::{Ingested, Staged, dicom_problem};
 use crate::jobs::model::rfc3339;
 use crate::jobs::repo::Deleted;
 use crate::jobs::{Appended, Completed, IdempotencyKey, SeriesRecord, UploadRecord};
-use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
 use crate::storage::sweep::BlobKind;
@@ -144,90 +145,12 @@ async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>>
     Ok(files)
 }
 
-fn ingest_options(st: &AppState, uneven: Option<UnevenPolicy>) -> IngestOptions {
-    let s = &st.settings;
-    let budget = s.memory_budget_bytes;
-    // Each worker holds one file's bytes while decoding it: a member is capped by its share of the budget.
-    let share = budget / s.resolved_worker_threads().max(1) as u64;
-    IngestOptions {
-        uneven: uneven.unwrap_or_default(),
-        read: ReadLimits::default(),
-        zip: ZipLimits {
-            max_total_bytes: s.zip_max_total_bytes,
-            max_ratio: s.zip_max_ratio,
-            max_member_bytes: s.zip_max_member_bytes.min(share),
-            ..ZipLimits::default()
-        },
-        // Stored slices and the f32 volume both live in memory while assembling.
-        max_voxels: usize::try_from(budget / 8).unwrap_or(usize::MAX),
-    }
-}
-
-/// The JSON view of a stored series.
-pub fn series_view(r: &SeriesRecord) -> Value {
-    let mut v = serde_json::to_value(r).unwrap_or_default();
-    if let Some(m) = v.as_object_mut() {
-        m.insert("created_at".into(), rfc3339(r.created_us).into());
-        m.insert(
-            "links".into(),
-            json!({
-                "self": format!("/v1/series/{}", r.id),
-                "volume": format!("/v1/series/{}/volume.npy", r.id),
-                "upload": format!("/v1/uploads/{}", r.upload_id),
-            }),
-        );
-    }
-    v
-}
-
-/// The JSON of a completed upload: the upload, each series (with links when stored) and the refused files.
-fn outcome_view(id: UploadId, instances: u32, bytes: u64, ingested: &Ingested) -> Value {
-    let series: Vec<Value> = ingested
-        .series
-        .iter()
-        .map(|s| {
-            let mut v = json!({ "status": s.status, "report": s.report });
-            if let Some(r) = &s.series {
-                v["series"] = series_view(r);
-            }
-            if let Some(e) = &s.error {
-                v["error"] = json!(e);
-            }
-            v
-        })
-        .collect();
-    json!({
-        "upload": {"id": id, "status": "completed", "instances": instances, "bytes": bytes,
-                   "links": {"self": format!("/v1/uploads/{id}")}},
-        "series": series,
-        "rejected": ingested.rejected,
-    })
-}
-
 fn created(location: &str, body: Value) -> Response {
     let mut r = (StatusCode::CREATED, axum::Json(body)).into_response();
     if let Ok(loc) = HeaderValue::from_str(location) {
         r.headers_mut().insert(header::LOCATION, loc);
     }
     r
-}
-
-/// Decode and assemble `files` (on disk) on the pool.
-async fn run_ingest(
-    st: &AppState,
-    id: UploadId,
-    files: Vec<UploadFile>,
-    uneven: Option<UnevenPolicy>,
-) -> ApiResult<(Ingested, Staged)> {
-    let store = st.store.clone();
-    let opts = ingest_options(st, uneven);
-    Ok(st
-        .engine
-        .compute(move || {
-            let cancel = Cancel::new();
-            ingest(&store, id, files, &opts, Control::new(&cancel, &NoProgress))
-        })
-        .await?)
 }
 
 const ROUTE_SERIES: &str = "POST /v1/series";
@@ -351,7 +274,10 @@ pub async fn post_series(
                     path: f.file.temp.path().to_path_buf(),
                 })
                 .collect();
-            run_ingest(&st, id, on_disk, q.uneven).await.map(Ok)
+            st.ingest_files(id, on_disk, q.uneven)
+                .await
+                .map_err(Into::into)
+                .map(Ok)
         }
         Ok(Some(r)) => Ok(Err(r)),
         Err(e) => Err(e),
@@ -597,7 +523,7 @@ pub async fn complete_upload(
         bytes += tokio::fs::metadata(&path).await?.len();
         files.push(UploadFile { label: name, path });
     }
-    let (ingested, staged) = run_ingest(&st, id, files, q.uneven).await?;
+    let (ingested, staged) = st.ingest_files(id, files, q.uneven).await?;
     let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
     if records.is_empty() {
         // The upload stays open: a missing instance can still be appended.

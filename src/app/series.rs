@@ -1,0 +1,129 @@
+//! DICOM series commands: decode and assemble files on disk into series (on the worker pool), and record a
+//! whole set of received instances as one completed upload — what an HTTP upload and the DICOM node share.
+
+use serde_json::{Value, json};
+
+use super::{App, AppResult};
+use crate::dicom::{ReadLimits, UploadFile, ZipLimits};
+use crate::jobs::SeriesRecord;
+use crate::jobs::ingest::{IngestOptions, Ingested, Staged, ingest};
+use crate::jobs::model::rfc3339;
+use crate::recon::control::{Cancel, Control, NoProgress};
+use crate::series::UnevenPolicy;
+use crate::storage::UploadId;
+
+/// The JSON document of a stored series (also part of an upload's outcome).
+pub fn series_view(r: &SeriesRecord) -> Value {
+    let mut v = serde_json::to_value(r).unwrap_or_default();
+    if let Some(m) = v.as_object_mut() {
+        m.insert("created_at".into(), rfc3339(r.created_us).into());
+        m.insert(
+            "links".into(),
+            json!({
+                "self": format!("/v1/series/{}", r.id),
+                "volume": format!("/v1/series/{}/volume.npy", r.id),
+                "upload": format!("/v1/uploads/{}", r.upload_id),
+            }),
+        );
+    }
+    v
+}
+
+/// The outcome document of a completed upload: the upload, each series (with links when stored) and the
+/// refused files.
+pub fn outcome_view(id: UploadId, instances: u32, bytes: u64, ingested: &Ingested) -> Value {
+    let series: Vec<Value> = ingested
+        .series
+        .iter()
+        .map(|s| {
+            let mut v = json!({ "status": s.status, "report": s.report });
+            if let Some(r) = &s.series {
+                v["series"] = series_view(r);
+            }
+            if let Some(e) = &s.error {
+                v["error"] = json!(e);
+            }
+            v
+        })
+        .collect();
+    json!({
+        "upload": {"id": id, "status": "completed", "instances": instances, "bytes": bytes,
+                   "links": {"self": format!("/v1/uploads/{id}")}},
+        "series": series,
+        "rejected": ingested.rejected,
+    })
+}
+
+/// A set of instances received whole (by the DICOM node) and what became of it.
+#[derive(Debug)]
+pub struct Received {
+    pub upload_id: UploadId,
+    pub ingested: Ingested,
+}
+
+impl App {
+    /// How files become series under this application's limits.
+    pub fn ingest_options(&self, uneven: Option<UnevenPolicy>) -> IngestOptions {
+        let s = &self.settings;
+        let budget = s.memory_budget_bytes;
+        // Each worker holds one file's bytes while decoding it: a member is capped by its share of the budget.
+        let share = budget / s.resolved_worker_threads().max(1) as u64;
+        IngestOptions {
+            uneven: uneven.unwrap_or_default(),
+            read: ReadLimits::default(),
+            zip: ZipLimits {
+                max_total_bytes: s.zip_max_total_bytes,
+                max_ratio: s.zip_max_ratio,
+                max_member_bytes: s.zip_max_member_bytes.min(share),
+                ..ZipLimits::default()
+            },
+            // Stored slices and the f32 volume both live in memory while assembling.
+            max_voxels: usize::try_from(budget / 8).unwrap_or(usize::MAX),
+        }
+    }
+
+    /// Decode and assemble `files` (on disk; read, never moved) on the pool; the volumes are staged, not
+    /// yet in place.
+    pub async fn ingest_files(
+        &self,
+        id: UploadId,
+        files: Vec<UploadFile>,
+        uneven: Option<UnevenPolicy>,
+    ) -> AppResult<(Ingested, Staged)> {
+        let store = self.store.clone();
+        let opts = self.ingest_options(uneven);
+        Ok(self
+            .engine
+            .compute(move || {
+                let cancel = Cancel::new();
+                ingest(&store, id, files, &opts, Control::new(&cancel, &NoProgress))
+            })
+            .await?)
+    }
+
+    /// Assemble a complete set of received instances and record it as one completed upload, its series
+    /// stored like uploaded ones (rows first, then the volumes in place). An upload none of whose series
+    /// could be assembled is recorded too, so `GET /v1/uploads/{id}` says why.
+    pub async fn ingest_received(&self, files: Vec<UploadFile>, bytes: u64) -> AppResult<Received> {
+        let id = UploadId::generate();
+        let (ingested, staged) = self.ingest_files(id, files, None).await?;
+        let instances = ingested.files() as u32;
+        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        let view = outcome_view(id, instances, bytes, &ingested);
+        match self
+            .db
+            .insert_completed_upload(id, instances, bytes, &view, &records, None)
+            .await
+        {
+            Ok(_) => staged.commit(&self.store).await?,
+            Err(e) => {
+                staged.discard().await;
+                return Err(e.into());
+            }
+        }
+        Ok(Received {
+            upload_id: id,
+            ingested,
+        })
+    }
+}

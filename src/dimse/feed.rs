@@ -1,0 +1,86 @@
+//! The node as a front door of the application: every series it completes is assembled and recorded
+//! through [`App::ingest_received`], exactly like an uploaded one.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use super::node::{DicomNode, NodeError};
+use super::tracker::CompletedSeries;
+use crate::app::{App, AppError};
+use crate::dicom::UploadFile;
+
+/// Start the DICOM node of `app` when its settings give it a port, feeding complete series to the
+/// application; returns the node's address. The node runs as long as the runtime.
+pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
+    if app.settings.dicom.port.is_none() {
+        return Ok(None);
+    }
+    let mut node = DicomNode::start(&app.settings.dicom, &app.settings.data_dir).await?;
+    let addr = node.local_addr();
+    tokio::spawn(async move {
+        while let Some(done) = node.next_completed().await {
+            assemble(&app, done).await;
+        }
+    });
+    Ok(Some(addr))
+}
+
+fn instance_files(folder: &Path) -> std::io::Result<Vec<UploadFile>> {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(folder)?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "dcm"))
+        .collect();
+    files.sort();
+    Ok(files
+        .into_iter()
+        .map(|path| UploadFile {
+            label: path
+                .file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_default(),
+            path,
+        })
+        .collect())
+}
+
+/// Assemble one complete series; its folder is removed once the outcome is recorded (kept for the next
+/// start when the database or storage failed).
+async fn assemble(app: &App, done: CompletedSeries) {
+    let span = tracing::info_span!("received_series", series_uid = %done.series_uid, calling_ae = %done.calling_ae);
+    let _enter = span.enter();
+    drop(_enter);
+    let folder = done.folder.clone();
+    let listed = {
+        let f = folder.clone();
+        tokio::task::spawn_blocking(move || instance_files(&f)).await
+    };
+    let files = match listed {
+        Ok(Ok(files)) => files,
+        Ok(Err(e)) => {
+            tracing::error!(error = %e, folder = %folder.display(), "cannot list a received series");
+            return;
+        }
+        Err(e) => {
+            tracing::error!(error = %e, "listing a received series failed");
+            return;
+        }
+    };
+    let keep = match app.ingest_received(files, done.bytes).await {
+        Ok(r) => {
+            let ready = r.ingested.ready().count();
+            tracing::info!(upload_id = %r.upload_id, series_uid = %done.series_uid, instances = done.instances, ready, refused = r.ingested.series.len() - ready, "received series recorded");
+            false
+        }
+        Err(AppError::Refused(p)) => {
+            tracing::warn!(series_uid = %done.series_uid, code = p.code.code(), detail = %p.detail, "received series refused");
+            false
+        }
+        Err(e) => {
+            tracing::error!(series_uid = %done.series_uid, error = %e, "received series not recorded; kept for the next start");
+            true
+        }
+    };
+    if !keep {
+        let _ = tokio::fs::remove_dir_all(&folder).await;
+    }
+}
