@@ -1,14 +1,15 @@
 //! ctrecon: CT reconstruction as a library, a command-line tool and an HTTP service.
 //!
-//! Module map and the dependency rule, `http → jobs → {dicom, storage} → {recon, volume, mesh}`:
+//! Module map and the dependency rule, `http → jobs → {dicom, storage} → {recon, volume, mesh, render}`:
 //! - [`recon`]: the pure reconstruction core (geometry, phantoms, projectors, filters, algorithms, metrics);
 //! - [`volume`]: pure image-domain operations (slices, MPR, MIP, window/level, PNG encoding);
-//! - [`mesh`]: pure surface extraction and STL;
+//! - [`mesh`]: pure surface extraction, clipping and STL;
+//! - [`render`]: pure volume rendering, shaded surfaces and cut-away views;
 //! - [`series`]: pure assembly of image slices into a volume; [`dicom`]: DICOM reading and writing;
 //! - [`storage`]: blob store; [`jobs`]: job model, repository, queue and worker pool;
 //! - [`http`]: the axum service; [`cli`]: the `ctrecon` command line.
 //!
-//! The pure modules (`recon`, `volume`, `mesh`, `series`) import no async runtime, HTTP, database or DICOM crate and
+//! The pure modules (`recon`, `volume`, `mesh`, `series`, `render`) import no async runtime, HTTP, database or DICOM crate and
 //! read no clock, environment or path; `tests/purity.rs` enforces it.
 
 pub mod cli;
@@ -19,6 +20,7 @@ pub mod http;
 pub mod jobs;
 pub mod mesh;
 pub mod recon;
+pub mod render;
 pub mod series;
 pub mod storage;
 pub mod telemetry;

@@ -1,9 +1,15 @@
-//! The pure modules (`recon`, `volume`, `mesh`) must not depend on the service stack, DICOM, the clock,
+//! The pure modules (`recon`, `volume`, `mesh`, `series`, `render`) must not depend on the service stack, DICOM, the clock,
 //! the environment or the file system. This test reads their sources and fails on a forbidden path.
 
 use std::path::{Path, PathBuf};
 
-const PURE: &[&str] = &["src/recon", "src/volume", "src/mesh", "src/series"];
+const PURE: &[&str] = &[
+    "src/recon",
+    "src/volume",
+    "src/mesh",
+    "src/series",
+    "src/render",
+];
 const FORBIDDEN: &[&str] = &[
     "tokio",
     "axum",
