@@ -58,14 +58,13 @@ pub(crate) struct Span {
 
 impl ClipBox {
     fn frame(&self) -> [V3; 3] {
-        match self.axes.and_then(|[u, v]| {
-            let u = unit(u)?;
-            let v = unit(axpy(v, -dot(u, v), u))?;
-            Some([u, v, cross(u, v)])
-        }) {
-            Some(f) => f,
-            None => [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        }
+        self.axes
+            .and_then(|[u, v]| {
+                let u = unit(u)?;
+                let v = unit(axpy(v, -dot(u, v), u))?;
+                Some([u, v, cross(u, v)])
+            })
+            .unwrap_or([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
     }
     /// Signed distance (mm, approximate outside) to the box surface, positive inside.
     fn inside_distance(&self, p: V3) -> f64 {
@@ -89,8 +88,8 @@ impl ClipBox {
         ];
         let (mut lo, mut hi) = (f64::NEG_INFINITY, f64::INFINITY);
         let (mut n_lo, mut n_hi) = (f[0], f[0]);
-        for a in 0..3 {
-            let (p, v, h) = (dot(d, f[a]), dot(dir, f[a]), self.half_size_mm[a]);
+        for (&axis, &h) in f.iter().zip(&self.half_size_mm) {
+            let (p, v) = (dot(d, axis), dot(dir, axis));
             if v.abs() < 1e-15 {
                 if p.abs() > h {
                     return None;
@@ -101,11 +100,11 @@ impl ClipBox {
             let (a_in, a_out) = if t1 < t2 { (t1, t2) } else { (t2, t1) };
             if a_in > lo {
                 lo = a_in;
-                n_lo = f[a];
+                n_lo = axis;
             }
             if a_out < hi {
                 hi = a_out;
-                n_hi = f[a];
+                n_hi = axis;
             }
         }
         (lo <= hi).then_some((lo, n_lo, hi, n_hi))

@@ -36,7 +36,8 @@ pub(crate) fn render_tiles(
     shade: impl Fn(usize, usize) -> ([f32; 3], f32) + Sync,
 ) -> RgbImage {
     let (tw, th) = (width.div_ceil(TILE), height.div_ceil(TILE));
-    let tiles: Vec<(usize, Vec<([f32; 3], f32)>)> = (0..tw * th)
+    type Tile = (usize, Vec<([f32; 3], f32)>);
+    let tiles: Vec<Tile> = (0..tw * th)
         .into_par_iter()
         .map(|t| {
             let (r0, c0) = ((t / tw) * TILE, (t % tw) * TILE);

@@ -37,9 +37,8 @@ impl Shading {
 
     pub fn validate(&self) -> Result<(), RenderError> {
         let ok = |v: f64| v.is_finite() && (0.0..=10.0).contains(&v);
-        if !(ok(self.ambient) && ok(self.diffuse) && ok(self.specular))
-            || !(self.shininess.is_finite() && (1.0..=1000.0).contains(&self.shininess))
-        {
+        let shiny = self.shininess.is_finite() && (1.0..=1000.0).contains(&self.shininess);
+        if !(ok(self.ambient) && ok(self.diffuse) && ok(self.specular) && shiny) {
             return Err(RenderError::InvalidParameter {
                 name: "shading",
                 reason: "coefficients within [0, 10] and shininess within [1, 1000]".into(),

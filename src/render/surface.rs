@@ -118,8 +118,8 @@ pub fn surface_render(
             let (lit, spec) = opts.shading.light(h.normal, view);
             let cue = 1.0 - opts.depth_cue * ((h.t - near) / (far - near)).clamp(0.0, 1.0);
             let w = (1.0 - *alpha) * sf.opacity as f32;
-            for ch in 0..3 {
-                acc[ch] += w * ((sf.color[ch] as f32 * lit + spec) * cue as f32);
+            for (a, c) in acc.iter_mut().zip(sf.color) {
+                *a += w * ((c as f32 * lit + spec) * cue as f32);
             }
             *alpha += w;
             if depth.is_nan() {
