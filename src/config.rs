@@ -26,6 +26,7 @@
 //! | `retain_datasets_secs` | `CTRECON_RETAIN_DATASETS_SECS` | 0 = forever; else datasets this long after creation, unless in use |
 //! | `retain_series_secs` | `CTRECON_RETAIN_SERIES_SECS` | 0 = forever; else series this long after creation, unless in use |
 //! | `retention_sweep_secs` | `CTRECON_RETENTION_SWEEP_SECS` | 3600: retention runs at start and this often |
+//! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -44,12 +45,13 @@ pub fn limit_simd_from_env() -> bool {
 
 /// `CTRECON_*` variables that are not settings but are read elsewhere: the log format (telemetry), the SIMD
 /// cap (every command, [`limit_simd_from_env`]), the test-data rule of the test suite and the cone case of
-/// the iterative benchmark. Setting them never makes a command refuse to start.
+/// the iterative benchmark, the peer rule of the test suite. Setting them never makes a command refuse to start.
 pub const READ_ELSEWHERE: &[&str] = &[
     "CTRECON_LOG_FORMAT",
     "CTRECON_SIMD",
     "CTRECON_REQUIRE_TEST_DATA",
     "CTRECON_BENCH_CONE",
+    "CTRECON_REQUIRE_PEERS",
 ];
 
 /// Everything `ctrecon serve` can be told.
@@ -80,6 +82,7 @@ pub struct Settings {
     pub retain_datasets_secs: u64,
     pub retain_series_secs: u64,
     pub retention_sweep_secs: u64,
+    pub render_max_side: usize,
 }
 
 impl Default for Settings {
@@ -109,6 +112,7 @@ impl Default for Settings {
             retain_datasets_secs: 0,
             retain_series_secs: 0,
             retention_sweep_secs: 3600,
+            render_max_side: 2048,
         }
     }
 }
@@ -204,6 +208,7 @@ impl Settings {
             "CTRECON_RETAIN_DATASETS_SECS" => self.retain_datasets_secs = parsed(name, v)?,
             "CTRECON_RETAIN_SERIES_SECS" => self.retain_series_secs = parsed(name, v)?,
             "CTRECON_RETENTION_SWEEP_SECS" => self.retention_sweep_secs = parsed(name, v)?,
+            "CTRECON_RENDER_MAX_SIDE" => self.render_max_side = parsed(name, v)?,
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -242,6 +247,9 @@ impl Settings {
         }
         if !(self.mu_water_per_mm.is_finite() && self.mu_water_per_mm > 0.0) {
             return invalid("mu_water_per_mm", "must be positive and finite");
+        }
+        if self.render_max_side == 0 || self.render_max_side > crate::render::DEFAULT_MAX_SIDE {
+            return invalid("render_max_side", "must be within 1..=4096");
         }
         if self.retention_sweep_secs == 0 {
             return invalid("retention_sweep_secs", "must be at least 1");

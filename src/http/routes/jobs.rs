@@ -15,6 +15,7 @@ use crate::error_code::ErrorCode;
 use crate::jobs::imaging::{VolumeJobRequest, plan, resolve_input};
 use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us, parse_rfc3339, rfc3339};
 use crate::jobs::plan::admit_job;
+use crate::jobs::render_products::check_render_sizes;
 use crate::jobs::{
     CancelError, IdempotencyKey, Inserted, Job, JobFilter, JobRequest, JobSpec, JobStatus,
     JobSummary,
@@ -237,6 +238,7 @@ async fn admit(st: &AppState, body: serde_json::Value) -> ApiResult<(JobSpec, u6
     match kind.as_deref() {
         Some(KIND_VOLUME) => {
             let req: VolumeJobRequest = from_value(body)?;
+            check_render_sizes(&req, st.settings.render_max_side)?;
             let input = resolve_input(&st.db, &st.store, req.input).await?;
             let planned = plan(&req, input.shape, st.settings.memory_budget_bytes)?;
             Ok((JobSpec::Volume(req), planned.estimate_bytes))
