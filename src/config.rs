@@ -30,6 +30,7 @@
 //! | `dicom.ae_title` | `CTRECON_DICOM_AE_TITLE` | `CTRECON` |
 //! | `dicom.host` | `CTRECON_DICOM_HOST` | `127.0.0.1` |
 //! | `dicom.stable_age_secs` | `CTRECON_DICOM_STABLE_AGE_SECS` | 15: a series is complete after this long without an instance |
+//! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -87,6 +88,7 @@ pub struct Settings {
     pub retention_sweep_secs: u64,
     /// The DICOM node (off unless `dicom.port` is set).
     pub dicom: crate::dimse::NodeSettings,
+    pub render_max_side: usize,
 }
 
 impl Default for Settings {
@@ -117,6 +119,7 @@ impl Default for Settings {
             retain_series_secs: 0,
             retention_sweep_secs: 3600,
             dicom: crate::dimse::NodeSettings::default(),
+            render_max_side: 2048,
         }
     }
 }
@@ -216,6 +219,7 @@ impl Settings {
             "CTRECON_DICOM_AE_TITLE" => self.dicom.ae_title = v.trim().to_string(),
             "CTRECON_DICOM_HOST" => self.dicom.host = parsed(name, v)?,
             "CTRECON_DICOM_STABLE_AGE_SECS" => self.dicom.stable_age_secs = parsed(name, v)?,
+            "CTRECON_RENDER_MAX_SIDE" => self.render_max_side = parsed(name, v)?,
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -254,6 +258,9 @@ impl Settings {
         }
         if !(self.mu_water_per_mm.is_finite() && self.mu_water_per_mm > 0.0) {
             return invalid("mu_water_per_mm", "must be positive and finite");
+        }
+        if self.render_max_side == 0 || self.render_max_side > crate::render::DEFAULT_MAX_SIDE {
+            return invalid("render_max_side", "must be within 1..=4096");
         }
         if self.retention_sweep_secs == 0 {
             return invalid("retention_sweep_secs", "must be at least 1");

@@ -80,6 +80,10 @@ catalogue! {
     EncodingFailed = ("encoding_failed", 500, "The image could not be encoded"),
     InvalidMeshOptions = ("invalid_mesh_options", 422, "The mesh options are out of range"),
     IsoOutOfRange = ("iso_out_of_range", 422, "The iso-value is above every value of the volume"),
+    EmptyTransferFunction = ("empty_transfer_function", 422, "The transfer function has no control point"),
+    InvalidClip = ("invalid_clip", 422, "A clip plane has a zero normal or a clip box is degenerate"),
+    CameraInsideVolume = ("camera_inside_volume", 422, "An orthographic camera cannot sit inside the volume"),
+    InvalidRenderSize = ("invalid_render_size", 422, "The image size is zero or above the configured limit"),
     // DICOM uploads and series (the codes of `DicomError` and `SeriesError`).
     UploadNotFound = ("upload_not_found", 404, "No such upload"),
     UploadClosed = ("upload_closed", 409, "The upload is completed: no more instances"),

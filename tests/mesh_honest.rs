@@ -205,6 +205,7 @@ fn two_spheres_count_twice_and_the_pipeline_reports_the_final_mesh() {
         largest_component: false,
         smoothing: 0,
         target_triangles: None,
+        clip: Default::default(),
     };
     let (mesh, stats) = extract(&vol, &both).unwrap();
     assert_eq!(stats.euler_characteristic, 4);
@@ -255,6 +256,7 @@ fn an_unreachable_triangle_target_and_an_empty_surface_are_reported_as_warnings(
         largest_component: true,
         smoothing: 0,
         target_triangles: Some(4),
+        clip: Default::default(),
     };
     let (mesh, stats) = extract(&vol, &opts).unwrap();
     assert!(mesh.triangle_count() >= 14, "{}", mesh.triangle_count());

@@ -1,5 +1,5 @@
 //! The dependency rule, read from the sources:
-//! - the pure modules (`recon`, `volume`, `mesh`, `series`) do not depend on the service stack, DICOM, the
+//! - the pure modules (`recon`, `volume`, `mesh`, `series`, `render`) do not depend on the service stack, DICOM, the
 //!   clock, the environment or the file system;
 //! - the application layer (`app`) imports no front door (`http`, `cli`) and no web framework;
 //! - the job-store adapter (`jobs`) and the blob-store adapter (`storage`) do not import each other's
@@ -8,7 +8,13 @@
 
 use std::path::{Path, PathBuf};
 
-const PURE: &[&str] = &["src/recon", "src/volume", "src/mesh", "src/series"];
+const PURE: &[&str] = &[
+    "src/recon",
+    "src/volume",
+    "src/mesh",
+    "src/series",
+    "src/render",
+];
 const FORBIDDEN: &[&str] = &[
     "tokio",
     "axum",

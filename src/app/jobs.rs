@@ -55,6 +55,10 @@ impl App {
         match kind.as_deref() {
             Some(KIND_VOLUME) => {
                 let req: VolumeJobRequest = parse(body)?;
+                crate::jobs::render_products::check_render_sizes(
+                    &req,
+                    self.settings.render_max_side,
+                )?;
                 let input = resolve_input(&self.db, &self.store, req.input).await?;
                 let planned = plan(&req, input.shape, budget)?;
                 Ok((JobSpec::Volume(req), planned.estimate_bytes))

@@ -10,7 +10,7 @@
 //! - [`unpack_file`] / [`read_upload_files`]: the same from files on disk, ZIP members inflated one by one
 //!   into a scratch directory and refused one by one (what the service uses: nothing is held whole).
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
-//!   file), [`write_secondary_capture`] (a 2D image), [`write_encapsulated_stl`] and [`write_zip`].
+//!   file), [`write_secondary_capture`] (a 2D image), [`write_secondary_capture_rgb`] (rendered RGB frames), [`write_encapsulated_stl`] and [`write_zip`].
 //!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
@@ -34,6 +34,7 @@ pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };
 pub use write::{
-    DerivedSeries, ScOrientation, SeriesMeta, new_uid, write_ct_series, write_encapsulated_stl,
-    write_enhanced_ct, write_secondary_capture, write_secondary_capture_placed, write_zip,
+    DerivedSeries, RgbFrames, ScOrientation, SeriesMeta, new_uid, write_ct_series,
+    write_encapsulated_stl, write_enhanced_ct, write_secondary_capture,
+    write_secondary_capture_placed, write_secondary_capture_rgb, write_zip,
 };

@@ -13,6 +13,9 @@ use rayon::prelude::*;
 use super::error::DicomError;
 use crate::volume::{ImagePlane, ScreenSides, Volume, Window};
 
+mod rgb;
+pub use rgb::{RgbFrames, write_secondary_capture_rgb};
+
 /// Identity and labels of a derived series.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct SeriesMeta {

@@ -12,6 +12,9 @@
 use ndarray::{Array3, Axis as NdAxis, Ix3};
 use sha2::{Digest, Sha256};
 
+use super::render_products::{
+    RenderSpec, make_render_product, plan_render,
+};
 use super::model::{
     FileInfo, Job, JobResult, JobStatus, Notice, ProductResult, VolumeUnits, fill_value,
 };
@@ -98,6 +101,7 @@ enum Planned {
         kind: ProjectionKind,
     },
     Mesh(MeshOptions),
+    Render(RenderSpec),
 }
 
 /// A checked volume job: the shape after the steps, the products with defaults resolved, the memory needed.
@@ -296,7 +300,10 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
         }
         ProductSpec::Mesh(m) => {
             m.validate().map_err(|e| {
-                Problem::new(ErrorCode::InvalidMeshOptions, format!("products[{i}]: {e}"))
+                Problem::new(
+                    ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidMeshOptions),
+                    format!("products[{i}]: {e}"),
+                )
             })?;
             if let Some(max) = shape.max_value.filter(|&max| m.iso > max) {
                 return Err(Problem::new(
@@ -308,9 +315,16 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
                 ));
             }
             // Marching cubes keeps a vertex index over two slices plus the mesh; bound it by the volume.
-            Ok((Planned::Mesh(*m), shape.voxels() * 4))
+            Ok((Planned::Mesh(m.clone()), shape.voxels() * 4))
         }
+        ProductSpec::VolumeRender(s) => render_plan(RenderSpec::Volume(s.clone()), shape, i),
+        ProductSpec::SurfaceRender(s) => render_plan(RenderSpec::Surface(s.clone()), shape, i),
     }
+}
+
+fn render_plan(spec: RenderSpec, shape: &VolumeShape, i: usize) -> Result<(Planned, u64), Problem> {
+    let bytes = plan_render(&spec, shape.dim, &shape.frame, i)?;
+    Ok((Planned::Render(spec), bytes))
 }
 
 /// Check a volume job against its input's shape and the memory budget.
@@ -538,6 +552,7 @@ pub fn execute_volume(
             Looks {
                 fill,
                 patient: input.source_series.is_some(),
+                units: input.units,
             },
         )?);
     }
@@ -597,6 +612,8 @@ fn product_kind(p: &ProductSpec) -> &'static str {
         ProductSpec::Curved(_) => "curved",
         ProductSpec::Rotating(_) => "rotating",
         ProductSpec::Mesh(_) => "mesh",
+        ProductSpec::VolumeRender(_) => "volume_render",
+        ProductSpec::SurfaceRender(_) => "surface_render",
     }
 }
 
@@ -606,6 +623,7 @@ fn product_kind(p: &ProductSpec) -> &'static str {
 struct Looks {
     fill: f32,
     patient: bool,
+    units: VolumeUnits,
 }
 
 fn make_product(
@@ -617,13 +635,20 @@ fn make_product(
     spec: &ProductSpec,
     looks: Looks,
 ) -> Result<ProductResult, RunError> {
-    let Looks { fill, patient } = looks;
+    let Looks {
+        fill,
+        patient,
+        units,
+    } = looks;
     let fail = |e: crate::volume::VolumeError| RunError::Failed(volume_problem(&e));
     // The plane of the first frame and the step between frames, for planar products.
     let mut placed: Option<(ImagePlane, Option<f64>)> = None;
     // Screen sides of the first frame of non-planar products.
     let mut sides: Option<ScreenSides> = None;
     let (images, pixel_mm) = match planned {
+        Planned::Render(spec) => {
+            return make_render_product(store, job.id, vol, index, spec, units, patient);
+        }
         Planned::Mesh(opts) => {
             let (mesh, stats) = extract(vol, opts).map_err(|e| {
                 RunError::Failed(Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))
@@ -645,6 +670,7 @@ fn make_product(
                 orientation: None,
                 plane: None,
                 frame_spacing_mm: None,
+                description: None,
                 file,
             });
         }
@@ -763,6 +789,7 @@ fn make_product(
         orientation: placed.map(|(p, _)| p.sides_for(patient)).or(sides),
         plane: placed.map(|(p, _)| p),
         frame_spacing_mm: placed.and_then(|(_, step)| step),
+        description: None,
         file,
     })
 }
@@ -801,7 +828,7 @@ mod tests {
         assert_eq!(r.steps.len(), 3);
         assert_eq!(r.products.len(), 5);
         assert!(
-            matches!(r.products[4], ProductSpec::Mesh(m) if m.iso == 300.0 && m.largest_component)
+            matches!(&r.products[4], ProductSpec::Mesh(m) if m.iso == 300.0 && m.largest_component)
         );
         for bad in [
             r#"{"kind": "volume", "input": "0192d1f2-7a3b-7c4d-8e5f-60718293a4b5", "colour": 1}"#,

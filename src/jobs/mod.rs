@@ -12,6 +12,8 @@ pub mod lifecycle;
 pub mod model;
 pub mod plan;
 pub mod quality;
+pub mod render_outputs;
+pub mod render_products;
 pub mod repo;
 pub mod retention;
 pub mod run;

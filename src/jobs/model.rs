@@ -288,7 +288,8 @@ impl JobResult {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProductResult {
     pub index: usize,
-    /// The product's `type` in the request (`projection`, `mpr`, `curved`, `rotating`, `mesh`).
+    /// The product's `type` in the request (`projection`, `mpr`, `curved`, `rotating`, `mesh`,
+    /// `volume_render`, `surface_render`).
     #[serde(rename = "type")]
     pub kind: String,
     /// Image stacks: `[frames, rows, columns]`.
@@ -310,6 +311,10 @@ pub struct ProductResult {
     /// `row_direction × column_direction`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame_spacing_mm: Option<f64>,
+    /// Renderings: what the picture shows (preset or surfaces, camera), as written to DICOM
+    /// DerivationDescription.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub description: Option<String>,
     pub file: FileInfo,
 }
 

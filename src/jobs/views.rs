@@ -283,6 +283,7 @@ fn mesh_options(q: &MeshQuery, mu_water: f64, units: VolumeUnits) -> MeshOptions
         largest_component: q.largest,
         smoothing: q.smoothing,
         target_triangles: q.target_triangles,
+        clip: Default::default(),
     }
 }
 
@@ -594,6 +595,9 @@ pub fn render_product(
 ) -> Result<Vec<u8>, Problem> {
     if p.is_mesh() {
         return encapsulate(bytes, ctx);
+    }
+    if super::render_outputs::is_rendering(p) {
+        return super::render_outputs::render_rgb_product(bytes, p, q, format, ctx);
     }
     let stack = decode_volume(bytes)?;
     let n = stack.dim().0;

@@ -69,6 +69,10 @@ pub enum ProductSpec {
     Rotating(RotatingSpec),
     /// An iso-surface (mm, LPS) with its measurements.
     Mesh(MeshOptions),
+    /// Volume rendering (ray casting through a transfer function), RGB.
+    VolumeRender(super::render_products::VolumeRenderSpec),
+    /// Shaded iso-surfaces, opaque or transparent, RGB.
+    SurfaceRender(super::render_products::SurfaceRenderSpec),
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

@@ -1,7 +1,8 @@
-//! Surface meshes: marching cubes, Taubin smoothing, decimation, measurements (area, enclosed volume), topology
+//! Surface meshes: marching cubes, cut-away clipping with capped cuts, Taubin smoothing, decimation, measurements (area, enclosed volume), topology
 //! (closed, manifold, Euler characteristic), connected components and binary STL in patient millimetres (LPS).
 
 mod cases;
+mod clip;
 mod decimate;
 mod marching;
 mod pipeline;
@@ -13,6 +14,7 @@ use std::collections::HashMap;
 
 use crate::recon::geometry::vectors::{cross3 as cross, sub3 as sub};
 
+pub use clip::clipped_field;
 pub use decimate::decimate;
 pub use marching::{SNAP, marching_cubes};
 pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};

@@ -3,7 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::{Mesh, decimate, marching_cubes, taubin};
+use super::{Mesh, clip::clipped_field, decimate, marching_cubes, taubin};
+use crate::render::Clip;
 use crate::volume::Volume;
 
 /// Most Taubin iterations accepted.
@@ -14,8 +15,8 @@ fn yes() -> bool {
 }
 
 /// Options of a surface extraction. JSON: `{"iso": 300, "largest_component": true, "smoothing": 10,
-/// "target_triangles": 200000}`.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+/// "target_triangles": 200000, "clip": {"planes": [{"point_mm": [0, 0, 0], "normal": [0, 1, 0]}]}}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct MeshOptions {
     /// Iso-value in the volume's units (HU for CT series, 1/mm for reconstructions).
@@ -29,6 +30,9 @@ pub struct MeshOptions {
     /// Decimate to at most this many triangles (default: no decimation).
     #[serde(default)]
     pub target_triangles: Option<usize>,
+    /// Cut-away: planes and boxes (mm, LPS); the cut face is capped so the surface stays closed.
+    #[serde(default, skip_serializing_if = "Clip::is_empty")]
+    pub clip: Clip,
 }
 
 /// What was built, measured on the final mesh (after smoothing and decimation).
@@ -57,11 +61,16 @@ pub struct MeshStats {
 pub enum MeshError {
     #[error("invalid mesh option `{name}`: {reason}")]
     InvalidOption { name: &'static str, reason: String },
+    #[error("invalid clip: {0}")]
+    Clip(String),
 }
 
 impl MeshError {
     pub fn code(&self) -> &'static str {
-        "invalid_mesh_options"
+        match self {
+            MeshError::InvalidOption { .. } => "invalid_mesh_options",
+            MeshError::Clip(_) => "invalid_clip",
+        }
     }
 }
 
@@ -85,7 +94,9 @@ impl MeshOptions {
                 reason: "a closed surface needs at least 4 triangles".into(),
             });
         }
-        Ok(())
+        self.clip
+            .validate()
+            .map_err(|e| MeshError::Clip(e.to_string()))
     }
 }
 
@@ -108,7 +119,12 @@ impl Mesh {
 /// Run the surface pipeline on `vol`.
 pub fn extract(vol: &Volume, opts: &MeshOptions) -> Result<(Mesh, MeshStats), MeshError> {
     opts.validate()?;
-    let mut mesh = marching_cubes(vol.data.view(), &vol.frame, opts.iso);
+    let mut mesh = if opts.clip.is_empty() {
+        marching_cubes(vol.data.view(), &vol.frame, opts.iso)
+    } else {
+        let field = clipped_field(vol, opts.iso, &opts.clip);
+        marching_cubes(field.data.view(), &field.frame, opts.iso)
+    };
     if opts.largest_component {
         mesh = mesh.largest_component();
     }
@@ -166,7 +182,7 @@ mod tests {
         );
         let bad = MeshOptions {
             iso: f32::NAN,
-            ..opts
+            ..opts.clone()
         };
         assert!(extract(&vol, &bad).is_err());
         assert!(serde_json::from_str::<MeshOptions>(r#"{"iso": 1, "colour": 3}"#).is_err());

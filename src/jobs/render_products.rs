@@ -1,0 +1,364 @@
+//! Volume rendering (`volume_render`) and shaded surface display (`surface_render`) as products of a volume job:
+//! request specs, checks at submission, and execution on the worker pool. One frame, or a rotating sequence of
+//! `frames` views evenly spread over 360° of azimuth (about the image-up axis of the camera's view). The volume's
+//! min/max bricks are built once per product and shared by its frames. Frames are stored as 8-bit RGB
+//! (`product-{i}.npy`, uint8 `[frames][rows][columns][3]`) and sent as PNG, APNG or RGB Secondary Capture
+//! ([`super::render_outputs`]).
+
+use serde::{Deserialize, Serialize};
+
+use super::model::{ProductResult, VolumeUnits};
+use super::render_outputs::{encode_rgb_npy, file_info};
+use super::run::RunError;
+use crate::error_code::{ErrorCode, Problem};
+use crate::render::{
+    Camera, Clip, DEFAULT_MAX_SIDE, Preset, RenderError, RgbImage, Scene, Shading, SsdOptions,
+    Surface, TransferFunction, VrOptions, surface_render, volume_render,
+};
+use crate::storage::{BlobStore, JobId, ResultName};
+use crate::volume::{MU_WATER_PER_MM, Volume};
+
+/// Units of transfer-function values and iso-values in a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ValueUnits {
+    /// Hounsfield units (μ volumes convert through μ_water = 0.0192 /mm).
+    #[default]
+    Hu,
+    /// The volume's own units.
+    Native,
+}
+
+fn default_size() -> [usize; 2] {
+    [512, 512]
+}
+fn one() -> usize {
+    1
+}
+fn default_depth_cue() -> f64 {
+    0.4
+}
+
+/// `{"type": "volume_render", "preset": "bone", "camera": {"view": "anterior"}, "size": [512, 512]}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VolumeRenderSpec {
+    /// A built-in transfer function (default `bone` when no `transfer_function` is given).
+    #[serde(default)]
+    pub preset: Option<Preset>,
+    #[serde(default)]
+    pub transfer_function: Option<TransferFunction>,
+    /// Units of the `transfer_function` values (presets are always HU).
+    #[serde(default)]
+    pub units: ValueUnits,
+    #[serde(default)]
+    pub camera: Camera,
+    /// `[width, height]` in pixels.
+    #[serde(default = "default_size")]
+    pub size: [usize; 2],
+    #[serde(default)]
+    pub shading: Shading,
+    #[serde(default)]
+    pub clip: Clip,
+    #[serde(default)]
+    pub background: [f64; 3],
+    /// Frames of a rotating sequence (1: a single picture).
+    #[serde(default = "one")]
+    pub frames: usize,
+    #[serde(default)]
+    pub step_mm: Option<f64>,
+}
+
+/// `{"type": "surface_render", "surfaces": [{"iso": -500, "color": [0.9, 0.7, 0.6], "opacity": 0.3},
+/// {"iso": 300}], "camera": {"view": "left"}}`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SurfaceRenderSpec {
+    pub surfaces: Vec<Surface>,
+    /// Units of the iso-values.
+    #[serde(default)]
+    pub units: ValueUnits,
+    #[serde(default)]
+    pub camera: Camera,
+    #[serde(default = "default_size")]
+    pub size: [usize; 2],
+    #[serde(default)]
+    pub shading: Shading,
+    #[serde(default = "default_depth_cue")]
+    pub depth_cue: f64,
+    #[serde(default)]
+    pub clip: Clip,
+    #[serde(default)]
+    pub background: [f64; 3],
+    #[serde(default = "one")]
+    pub frames: usize,
+    #[serde(default)]
+    pub step_mm: Option<f64>,
+}
+
+/// Largest number of frames of a rotating rendering.
+pub const MAX_RENDER_FRAMES: usize = 360;
+
+/// A rendering product, either kind.
+#[derive(Debug, Clone, PartialEq)]
+pub enum RenderSpec {
+    Volume(VolumeRenderSpec),
+    Surface(SurfaceRenderSpec),
+}
+
+impl RenderSpec {
+    fn camera(&self) -> &Camera {
+        match self {
+            RenderSpec::Volume(s) => &s.camera,
+            RenderSpec::Surface(s) => &s.camera,
+        }
+    }
+    fn size(&self) -> [usize; 2] {
+        match self {
+            RenderSpec::Volume(s) => s.size,
+            RenderSpec::Surface(s) => s.size,
+        }
+    }
+    fn frames(&self) -> usize {
+        match self {
+            RenderSpec::Volume(s) => s.frames,
+            RenderSpec::Surface(s) => s.frames,
+        }
+    }
+    pub fn kind(&self) -> &'static str {
+        match self {
+            RenderSpec::Volume(_) => "volume_render",
+            RenderSpec::Surface(_) => "surface_render",
+        }
+    }
+    /// The camera of frame `k`.
+    fn camera_of(&self, k: usize) -> Camera {
+        let mut c = *self.camera();
+        c.azimuth_deg += 360.0 * k as f64 / self.frames().max(1) as f64;
+        c
+    }
+
+    /// VR options with values in the volume's units.
+    fn vr(s: &VolumeRenderSpec, units: VolumeUnits) -> Result<VrOptions, RenderError> {
+        let (tf, tf_units) = match (&s.transfer_function, s.preset) {
+            (Some(_), Some(_)) => {
+                return Err(RenderError::InvalidParameter {
+                    name: "preset",
+                    reason: "give either `preset` or `transfer_function`, not both".into(),
+                });
+            }
+            (Some(tf), None) => (tf.clone(), s.units),
+            (None, p) => (
+                p.unwrap_or(Preset::Bone).transfer_function(),
+                ValueUnits::Hu,
+            ),
+        };
+        tf.validate()?;
+        Ok(VrOptions {
+            transfer_function: tf.map_values(|v| to_volume_units(v, tf_units, units)),
+            shading: s.shading,
+            clip: s.clip.clone(),
+            background: s.background,
+            step_mm: s.step_mm,
+        })
+    }
+
+    fn ssd(s: &SurfaceRenderSpec, units: VolumeUnits) -> SsdOptions {
+        SsdOptions {
+            surfaces: s
+                .surfaces
+                .iter()
+                .map(|sf| Surface {
+                    iso: to_volume_units(sf.iso, s.units, units),
+                    ..*sf
+                })
+                .collect(),
+            shading: s.shading,
+            depth_cue: s.depth_cue,
+            clip: s.clip.clone(),
+            background: s.background,
+            step_mm: s.step_mm,
+        }
+    }
+
+    /// What the picture shows, for labels and DICOM DerivationDescription.
+    pub fn describe(&self) -> String {
+        let cam = self.camera();
+        let what = match self {
+            RenderSpec::Volume(s) => match (&s.transfer_function, s.preset) {
+                (Some(tf), _) => format!(
+                    "volume rendering, custom transfer function of {} points",
+                    tf.points.len()
+                ),
+                (None, p) => format!(
+                    "volume rendering, preset {}",
+                    p.unwrap_or(Preset::Bone).name()
+                ),
+            },
+            RenderSpec::Surface(s) => {
+                let isos: Vec<String> = s
+                    .surfaces
+                    .iter()
+                    .map(|sf| format!("{} at opacity {}", sf.iso, sf.opacity))
+                    .collect();
+                format!("shaded surface display, iso {}", isos.join(", "))
+            }
+        };
+        let projection = match cam.projection {
+            crate::render::Projection::Orthographic => "orthographic",
+            crate::render::Projection::Perspective => "perspective",
+        };
+        format!(
+            "ctrecon {what}; camera {} view, azimuth {}°, elevation {}°, roll {}°, zoom {}, {projection}; {} frame(s)",
+            cam.view.name(),
+            cam.azimuth_deg,
+            cam.elevation_deg,
+            cam.roll_deg,
+            cam.zoom,
+            self.frames()
+        )
+    }
+}
+
+fn to_volume_units(v: f64, given: ValueUnits, volume: VolumeUnits) -> f64 {
+    match (given, volume) {
+        (ValueUnits::Hu, VolumeUnits::MuPerMm) => MU_WATER_PER_MM * (1.0 + v / 1000.0),
+        _ => v,
+    }
+}
+
+fn problem(i: usize, e: &RenderError) -> Problem {
+    Problem::new(
+        ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidParameter),
+        format!("products[{i}]: {e}"),
+    )
+}
+
+/// Check a rendering product against the volume's shape (`dim`, `frame`) before anything runs; returns the
+/// bytes it needs. Sizes are checked against the hard limit [`DEFAULT_MAX_SIDE`]; the configured limit is
+/// [`check_render_size`].
+pub fn plan_render(
+    spec: &RenderSpec,
+    dim: (usize, usize, usize),
+    frame: &crate::volume::Frame,
+    i: usize,
+) -> Result<u64, Problem> {
+    let n = spec.frames();
+    if n == 0 || n > MAX_RENDER_FRAMES {
+        return Err(Problem::new(
+            ErrorCode::InvalidParameter,
+            format!("products[{i}]: `frames` must be in 1..={MAX_RENDER_FRAMES}"),
+        ));
+    }
+    match spec {
+        RenderSpec::Volume(s) => RenderSpec::vr(s, VolumeUnits::Hu)
+            .and_then(|o| o.validate())
+            .map_err(|e| problem(i, &e))?,
+        RenderSpec::Surface(s) => RenderSpec::ssd(s, VolumeUnits::Hu)
+            .validate()
+            .map_err(|e| problem(i, &e))?,
+    }
+    let [w, h] = spec.size();
+    for k in 0..n {
+        spec.camera_of(k)
+            .rays(frame, dim, w, h, DEFAULT_MAX_SIDE)
+            .map_err(|e| problem(i, &e))?;
+    }
+    let bricks = (dim.0 * dim.1 * dim.2 / 512 + 1) as u64 * 8;
+    Ok(n as u64 * w as u64 * h as u64 * 7 + bricks)
+}
+
+/// The configured largest image side, checked at submission.
+pub fn check_render_size(spec: &RenderSpec, i: usize, max_side: usize) -> Result<(), Problem> {
+    let [w, h] = spec.size();
+    if w == 0 || h == 0 || w > max_side || h > max_side {
+        return Err(problem(
+            i,
+            &RenderError::BadSize {
+                width: w,
+                height: h,
+                max: max_side,
+            },
+        ));
+    }
+    Ok(())
+}
+
+/// [`check_render_size`] for every rendering of a volume job.
+pub fn check_render_sizes(
+    req: &super::imaging::VolumeJobRequest,
+    max_side: usize,
+) -> Result<(), Problem> {
+    use super::imaging::ProductSpec;
+    for (i, p) in req.products.iter().enumerate() {
+        match p {
+            ProductSpec::VolumeRender(s) => {
+                check_render_size(&RenderSpec::Volume(s.clone()), i, max_side)?
+            }
+            ProductSpec::SurfaceRender(s) => {
+                check_render_size(&RenderSpec::Surface(s.clone()), i, max_side)?
+            }
+            _ => {}
+        }
+    }
+    Ok(())
+}
+
+/// Render every frame of `spec` from `vol` and store them as `product-{index}.npy` (uint8 RGB).
+pub fn make_render_product(
+    store: &BlobStore,
+    job: JobId,
+    vol: &Volume,
+    index: usize,
+    spec: &RenderSpec,
+    units: VolumeUnits,
+    patient: bool,
+) -> Result<ProductResult, RunError> {
+    let fail = |e: RenderError| RunError::Failed(problem(index, &e));
+    let scene = Scene::new(vol).map_err(fail)?;
+    let [w, h] = spec.size();
+    let mut frames: Vec<RgbImage> = Vec::with_capacity(spec.frames());
+    let mut first = None;
+    for k in 0..spec.frames() {
+        let rays = spec
+            .camera_of(k)
+            .rays(&vol.frame, vol.data.dim(), w, h, DEFAULT_MAX_SIDE)
+            .map_err(fail)?;
+        first.get_or_insert(rays);
+        frames.push(
+            match spec {
+                RenderSpec::Volume(s) => {
+                    volume_render(&scene, &rays, &RenderSpec::vr(s, units).map_err(fail)?)
+                }
+                RenderSpec::Surface(s) => surface_render(&scene, &rays, &RenderSpec::ssd(s, units)),
+            }
+            .map_err(fail)?,
+        );
+    }
+    let rays = first.ok_or_else(|| RunError::Failed(Problem::internal()))?;
+    let encoded = encode_rgb_npy(&frames);
+    let file = file_info(&encoded);
+    store
+        .write_atomic(
+            &store.result_path(job, &ResultName::Product { index, ext: "npy" }),
+            &encoded,
+        )
+        .map_err(|e| {
+            tracing::error!(error = %e, "writing a rendering failed");
+            RunError::Failed(Problem::internal())
+        })?;
+    let plane = rays.screen_plane();
+    Ok(ProductResult {
+        index,
+        kind: spec.kind().into(),
+        shape: Some([frames.len(), h, w]),
+        pixel_mm: (rays.projection == crate::render::Projection::Orthographic)
+            .then_some([rays.pixel; 2]),
+        mesh: None,
+        orientation: Some(plane.sides_for(patient)),
+        plane: None,
+        frame_spacing_mm: None,
+        description: Some(spec.describe()),
+        file,
+    })
+}

@@ -1,0 +1,110 @@
+//! Volume rendering: front-to-back compositing of shaded, transfer-function-coloured trilinear samples.
+
+use serde::{Deserialize, Serialize};
+
+use super::clip::Span;
+use super::image::render_tiles;
+use super::scene::Scene;
+use super::transfer::Lut;
+use super::{Clip, RenderError, RgbImage, Shading, TransferFunction, ViewRays};
+
+/// Accumulated opacity at which a ray stops.
+pub const EARLY_TERMINATION: f32 = 0.99;
+
+/// What a volume rendering shows besides the camera.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct VrOptions {
+    pub transfer_function: TransferFunction,
+    pub shading: Shading,
+    pub clip: Clip,
+    /// RGB 0–1 behind the volume.
+    pub background: [f64; 3],
+    /// Sample step (mm); default half the smallest spacing.
+    pub step_mm: Option<f64>,
+}
+
+impl VrOptions {
+    pub fn validate(&self) -> Result<(), RenderError> {
+        self.transfer_function.validate()?;
+        self.shading.validate()?;
+        self.clip.validate()?;
+        if !self
+            .background
+            .iter()
+            .all(|c| c.is_finite() && (0.0..=1.0).contains(c))
+        {
+            return Err(RenderError::InvalidParameter {
+                name: "background",
+                reason: "RGB values within [0, 1]".into(),
+            });
+        }
+        Ok(())
+    }
+}
+
+/// Ray-cast `scene` for `rays` with `opts`. The depth of a pixel is where its first visible sample lies.
+pub fn volume_render(
+    scene: &Scene<'_>,
+    rays: &ViewRays,
+    opts: &VrOptions,
+) -> Result<RgbImage, RenderError> {
+    opts.validate()?;
+    let step = scene.step(opts.step_mm)?;
+    let tf = &opts.transfer_function;
+    let lut = Lut::new(tf, step);
+    let mask = scene
+        .bricks
+        .mask(|lo, hi| tf.max_opacity(lo as f64, hi as f64) > 0.0);
+    let s = &scene.sampler;
+    let bg = opts.background.map(|c| c as f32);
+    let shading = opts.shading;
+    Ok(render_tiles(rays.width, rays.height, |r, c| {
+        let (o, d) = rays.ray(r as f64, c as f64);
+        let Some((b0, b1)) = s.box_interval(o, d) else {
+            return (bg, f32::NAN);
+        };
+        let mut spans: Vec<Span> = Vec::new();
+        opts.clip.spans(o, d, b0.max(0.0), b1, &mut spans);
+        let io = s.index(o);
+        let id = s.index_direction(d);
+        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
+        let view = d.map(|x| -x);
+        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
+        'spans: for sp in &spans {
+            let mut k = 0u64;
+            loop {
+                let t = sp.t0 + k as f64 * step;
+                if t > sp.t1 {
+                    break;
+                }
+                let idx = at(t);
+                if !mask.busy_at(idx) {
+                    let exit = t + mask.exit(idx, id);
+                    k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
+                    continue;
+                }
+                k += 1;
+                let [cr, cg, cb, a] = lut.get(s.at_index(idx));
+                if a <= 0.0 {
+                    continue;
+                }
+                let (lit, spec) = shading.light(s.gradient(idx), view);
+                let w = (1.0 - alpha) * a;
+                acc[0] += w * (cr * lit + spec);
+                acc[1] += w * (cg * lit + spec);
+                acc[2] += w * (cb * lit + spec);
+                if depth.is_nan() {
+                    depth = t as f32;
+                }
+                alpha += w;
+                if alpha >= EARLY_TERMINATION {
+                    break 'spans;
+                }
+            }
+        }
+        (
+            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
+            depth,
+        )
+    }))
+}
