@@ -168,7 +168,7 @@ fn top_level_modules_import_each_other_without_a_cycle() {
 #[test]
 fn the_application_layer_imports_no_front_door() {
     let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
-    for front in ["http", "cli"] {
+    for front in ["http", "dimse", "cli"] {
         assert!(
             !reaches(&graph, "app", front),
             "app reaches the front door `{front}`: {graph:?}"
@@ -197,15 +197,18 @@ fn the_application_layer_imports_no_front_door() {
 fn adapters_and_lower_layers_import_no_front_door_and_the_stores_not_each_other() {
     let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
     for lower in [
-        "jobs", "storage", "dicom", "series", "recon", "volume", "mesh", "app",
+        "jobs", "storage", "dicom", "series", "recon", "volume", "mesh", "render", "app", "config",
     ] {
-        for front in ["http", "cli"] {
+        for front in ["http", "dimse", "cli"] {
             assert!(
                 !reaches(&graph, lower, front),
                 "`{lower}` reaches the front door `{front}`"
             );
         }
     }
+    // Front doors are adapters beside each other: the HTTP routes and the DICOM node do not import each other.
+    assert!(!reaches(&graph, "http", "dimse"), "http reaches dimse");
+    assert!(!reaches(&graph, "dimse", "http"), "dimse reaches http");
     // The blob store knows nothing of the job store (the job store may name blob ids).
     assert!(!reaches(&graph, "storage", "jobs"), "storage reaches jobs");
 }

@@ -6,7 +6,8 @@
 //! stable age. [`feed`] hands every complete series to the application, which assembles and records it
 //! like an upload.
 //!
-//! - [`settings`]: the `dicom` configuration (AE title, port, allow-list, limits);
+//! - [`NodeSettings`]: the `dicom` configuration (AE title, port, allow-list, limits), kept with the other
+//!   settings in [`crate::config`];
 //! - [`command`]: DIMSE command sets;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
 //! - [`node`]: the listener; [`association`]: one association; [`scu`]: ctrecon calling a peer.
@@ -17,10 +18,9 @@ pub mod feed;
 pub mod inbox;
 pub mod node;
 pub mod scu;
-pub mod settings;
 pub mod tracker;
 
+pub use crate::config::dicom::{NodeSettings, Peer};
 pub use feed::serve_node;
 pub use node::{DicomNode, NodeError};
-pub use settings::{NodeSettings, Peer};
 pub use tracker::CompletedSeries;

@@ -19,8 +19,8 @@ use tokio::sync::{Semaphore, mpsc, watch};
 use super::association::{self, Grant};
 use super::command::VERIFICATION;
 use super::inbox::Inbox;
-use super::settings::NodeSettings;
 use super::tracker::{CompletedSeries, Tracker, count};
+use crate::config::dicom::NodeSettings;
 use crate::dicom::{STORABLE_SOP_CLASSES, decodable_transfer_syntaxes};
 
 /// Why the node could not start.

@@ -9,7 +9,7 @@ use dicom_ul::pdu::{PDataValue, PDataValueType, Pdu, PresentationContextResultRe
 use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
 use super::command::{self, VERIFICATION};
-use super::settings::Peer;
+use crate::config::dicom::Peer;
 use crate::dicom::{Part10, read_part10};
 
 /// How ctrecon calls a peer.

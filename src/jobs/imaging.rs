@@ -12,12 +12,10 @@
 use ndarray::{Array3, Axis as NdAxis, Ix3};
 use sha2::{Digest, Sha256};
 
-use super::render_products::{
-    RenderSpec, make_render_product, plan_render,
-};
 use super::model::{
     FileInfo, Job, JobResult, JobStatus, Notice, ProductResult, VolumeUnits, fill_value,
 };
+use super::render_products::{RenderSpec, make_render_product, plan_render};
 use super::repo::{Db, DbError};
 use super::run::RunError;
 use super::views::volume_problem;

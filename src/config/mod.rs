@@ -26,7 +26,7 @@
 //! | `retain_datasets_secs` | `CTRECON_RETAIN_DATASETS_SECS` | 0 = forever; else datasets this long after creation, unless in use |
 //! | `retain_series_secs` | `CTRECON_RETAIN_SERIES_SECS` | 0 = forever; else series this long after creation, unless in use |
 //! | `retention_sweep_secs` | `CTRECON_RETENTION_SWEEP_SECS` | 3600: retention runs at start and this often |
-//! | `dicom.port` | `CTRECON_DICOM_PORT` | none: no DICOM node; see [`crate::dimse::NodeSettings`] |
+//! | `dicom.port` | `CTRECON_DICOM_PORT` | none: no DICOM node; see [`dicom::NodeSettings`] |
 //! | `dicom.ae_title` | `CTRECON_DICOM_AE_TITLE` | `CTRECON` |
 //! | `dicom.host` | `CTRECON_DICOM_HOST` | `127.0.0.1` |
 //! | `dicom.stable_age_secs` | `CTRECON_DICOM_STABLE_AGE_SECS` | 15: a series is complete after this long without an instance |
@@ -34,6 +34,8 @@
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
+
+pub mod dicom;
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -87,7 +89,7 @@ pub struct Settings {
     pub retain_series_secs: u64,
     pub retention_sweep_secs: u64,
     /// The DICOM node (off unless `dicom.port` is set).
-    pub dicom: crate::dimse::NodeSettings,
+    pub dicom: dicom::NodeSettings,
     pub render_max_side: usize,
 }
 
@@ -118,7 +120,7 @@ impl Default for Settings {
             retain_datasets_secs: 0,
             retain_series_secs: 0,
             retention_sweep_secs: 3600,
-            dicom: crate::dimse::NodeSettings::default(),
+            dicom: dicom::NodeSettings::default(),
             render_max_side: 2048,
         }
     }
@@ -356,6 +358,7 @@ mod tests {
             // A value every setting parses: a number where a number is wanted, else any text.
             let value = match name {
                 "CTRECON_BIND" => "127.0.0.1:0",
+                "CTRECON_DICOM_HOST" => "127.0.0.1",
                 "CTRECON_ALLOW_INSECURE" => "true",
                 "CTRECON_MU_WATER_PER_MM" => "0.02",
                 "CTRECON_DATA_DIR" | "CTRECON_LOG_FORMAT" | "CTRECON_SIMD" => "avx2",

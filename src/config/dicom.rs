@@ -1,4 +1,5 @@
-//! Settings of the DICOM node: the `dicom` object of the configuration file, and `CTRECON_DICOM_*`.
+//! Settings of the DICOM node ([`crate::dimse`]): the `dicom` object of the configuration file, and
+//! `CTRECON_DICOM_*`.
 
 use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
