@@ -885,3 +885,20 @@ fn a_binary_value_that_is_not_a_whole_number_of_values_is_refused_before_the_par
     );
     assert!(read("valid", &valid).is_ok());
 }
+
+#[test]
+fn a_jpeg_frame_header_that_differs_from_the_image_is_refused_before_decoding() {
+    // Found by fuzzing: a 256×256 RGB image whose JPEG frame header says 768×256. dicom-rs sized its buffer
+    // from the DICOM header and copied the larger decoded frame past its end (a panic).
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz-regressions/dicom_read");
+    let bytes =
+        std::fs::read(dir.join("jpeg-frame-768-rows-in-a-256-row-image.dcm")).expect("read");
+    let e = read("jpeg-768", &bytes).expect_err("refused");
+    assert_eq!(e.code(), "dicom_decode_error", "{e}");
+    assert!(
+        e.to_string()
+            .contains("declares 768×256 pixels × 3 components"),
+        "{e}"
+    );
+}

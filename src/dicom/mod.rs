@@ -16,6 +16,7 @@
 
 mod error;
 mod framing;
+mod jpeg;
 mod read;
 mod scan;
 mod unzip;
