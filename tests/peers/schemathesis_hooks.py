@@ -4,13 +4,7 @@ schemathesis loads this file (SCHEMATHESIS_HOOKS, set by tests/contract_schemath
 "valid" requests that break them; each rule is in the description of the parameters concerned.
 """
 
-import sys
-
 import schemathesis
-
-# The request schemas of POST /v1/jobs nest deeply (one of two requests, one of five products, arrays of
-# arrays); generating and shrinking them recurses past Python's default limit of 1000 frames.
-sys.setrecursionlimit(10_000)
 
 
 def _given(query, name):
