@@ -103,7 +103,7 @@ mod tests {
     /// SOI, an APP0 segment, a SOF0 of `h` × `w` × `nc` at 8 bits, SOS.
     fn stream(h: u16, w: u16, nc: u8) -> Vec<u8> {
         let mut d = vec![0xFF, 0xD8, 0xFF, 0xE0, 0, 6, b'J', b'F', b'I', b'F'];
-        d.extend_from_slice(&[0xFF, 0xC0, 0, 8 + 3 * nc as u8, 8]);
+        d.extend_from_slice(&[0xFF, 0xC0, 0, 8 + 3 * nc, 8]);
         d.extend_from_slice(&h.to_be_bytes());
         d.extend_from_slice(&w.to_be_bytes());
         d.push(nc);
