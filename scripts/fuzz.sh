@@ -1,25 +1,52 @@
 #!/usr/bin/env bash
-# Fuzz one target for a bounded time: scripts/fuzz.sh TARGET SECONDS (targets: dicom_read, npy_read).
-# Needs the nightly toolchain and cargo-fuzz (`cargo install cargo-fuzz`). Seeds come from
-# tests/fuzz-regressions/TARGET (and, for dicom_read, the synthetic files of .testdata/pydicom when present);
-# every crash lands in fuzz/artifacts/TARGET: copy it to tests/fuzz-regressions/TARGET so that `cargo test`
-# (tests/fuzz_regressions.rs) replays it forever.
+# Fuzz the parsers for a bounded time (cargo-fuzz, nightly toolchain; `cargo install cargo-fuzz --locked`).
+#   scripts/fuzz.sh TARGET SECONDS     one target (dicom_read, npy_read)
+#   scripts/fuzz.sh --ci [SECONDS]     every target for SECONDS each (default 60); exits non-zero on any crash,
+#                                      leak, timeout or out-of-memory input, after printing it
+# Seeds come from tests/fuzz-regressions/TARGET (and, for dicom_read, the synthetic files of .testdata/pydicom
+# when present). Every finding lands in fuzz/artifacts/TARGET: fix its class, then move it to
+# tests/fuzz-regressions/TARGET with a descriptive name so that `cargo test` (tests/dicom_hostile.rs) replays it
+# forever. The first build of the targets takes about 20 minutes on 2 cores; later ones are incremental.
 set -euo pipefail
-target=${1:?usage: scripts/fuzz.sh TARGET SECONDS}
-seconds=${2:?usage: scripts/fuzz.sh TARGET SECONDS}
 root=$(cd "$(dirname "$0")/.." && pwd)
-corpus="$root/fuzz/corpus/$target"
-mkdir -p "$corpus"
-cp -n "$root/tests/fuzz-regressions/$target"/* "$corpus"/ 2>/dev/null || true
-if [ "$target" = dicom_read ]; then
-    if [ -d "$root/.testdata/pydicom" ]; then
-        find "$root/.testdata/pydicom" -name '*.dcm' -size -64k -exec cp -n {} "$corpus"/ \;
+targets=(dicom_read npy_read)
+
+run() {
+    local target=$1 seconds=$2
+    local corpus="$root/fuzz/corpus/$target"
+    mkdir -p "$corpus"
+    cp -n "$root/tests/fuzz-regressions/$target"/* "$corpus"/ 2>/dev/null || true
+    if [ "$target" = dicom_read ]; then
+        if [ -d "$root/.testdata/pydicom" ]; then
+            find "$root/.testdata/pydicom" -name '*.dcm' -size -64k -exec cp -n {} "$corpus"/ \;
+        fi
+        # JPEG 2000 seeds are left out: openjp2 0.x trips a debug-build UB check (a null NonNull in its decoder
+        # teardown) on a valid GDCM file, which stops every run at once; tests/fuzz-regressions keeps that file.
+        grep -l "1.2.840.10008.1.2.4.9" "$corpus"/* 2>/dev/null | xargs -r rm -f
     fi
-    # JPEG 2000 seeds are left out: openjp2 0.x trips a debug-build UB check (a null NonNull in its decoder
-    # teardown) on a valid GDCM file, which stops every run at once; tests/fuzz-regressions keeps that file.
-    grep -l "1.2.840.10008.1.2.4.9" "$corpus"/* 2>/dev/null | xargs -r rm -f
+    # 2 GB RSS and 256 MB per allocation: a declared length that allocates beyond them is a finding.
+    (cd "$root/fuzz" && cargo +nightly fuzz run "$target" "$corpus" -- \
+        -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=65536 -print_final_stats=1)
+}
+
+if [ "${1:-}" = --ci ]; then
+    seconds=${2:-60}
+    command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
+    rustup toolchain list | grep -q '^nightly' || rustup toolchain install nightly --profile minimal
+    failed=()
+    for target in "${targets[@]}"; do
+        echo "== fuzz $target for ${seconds} s"
+        if ! run "$target" "$seconds"; then
+            failed+=("$target")
+        fi
+    done
+    if [ ${#failed[@]} -gt 0 ]; then
+        echo "fuzzing found inputs that crash: ${failed[*]} (see fuzz/artifacts/)" >&2
+        exit 1
+    fi
+    exit 0
 fi
-cd "$root/fuzz"
-# 2 GB RSS and 256 MB per allocation: a declared length that allocates beyond them is a finding.
-exec cargo +nightly fuzz run "$target" "$corpus" -- \
-    -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=65536 -print_final_stats=1
+
+target=${1:?usage: scripts/fuzz.sh TARGET SECONDS | scripts/fuzz.sh --ci [SECONDS]}
+seconds=${2:?usage: scripts/fuzz.sh TARGET SECONDS | scripts/fuzz.sh --ci [SECONDS]}
+run "$target" "$seconds"

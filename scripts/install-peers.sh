@@ -1,9 +1,17 @@
 #!/usr/bin/env bash
 # Install the real peers that tests drive or compare against, each in its own idempotent, non-interactive
-# section (a section does nothing when its peer is already there): Debian packages, and Python peers in the
-# ignored folder .venv-peers/ of the checkout. Run by .ci/run; safe to run again.
+# section (a section does nothing when its peer is already there): Debian packages, and Python peers in
+# ignored folders of the checkout (.venv-peers/ for VTK, .peers/ for schemathesis). Run by .ci/run; safe to
+# run again. A test whose peer is missing prints one skip line, or fails when CTRECON_REQUIRE_PEERS=1.
+#   scripts/install-peers.sh            every peer
+#   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, vtk, schemathesis)
 set -euo pipefail
 cd "$(dirname "$0")/.."
+root=$(pwd)
+peers="$root/.peers"
+mkdir -p "$peers"
+wanted=("$@")
+want() { [ ${#wanted[@]} -eq 0 ] || [[ " ${wanted[*]} " == *" $1 "* ]]; }
 SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
 export DEBIAN_FRONTEND=noninteractive
 APT_UPDATED=""
@@ -13,28 +21,66 @@ apt_install() {
 }
 
 # --- Chromium + ChromeDriver (same version) for the web viewer's tests (tests/viewer) -------------------
-echo "== peer: chromium"
-if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
-  apt_install chromium chromium-driver
+if want chromium; then
+  echo "== peer: chromium"
+  if ! command -v chromium >/dev/null || ! command -v chromedriver >/dev/null; then
+    apt_install chromium chromium-driver
+  fi
 fi
 
 # --- DCMTK (echoscu, storescu, storescp) for the DICOM node's tests (tests/dimse_node.rs) ---------------
-echo "== peer: dcmtk"
-if ! command -v storescu >/dev/null || ! command -v storescp >/dev/null; then
-  apt_install dcmtk
+if want dcmtk; then
+  echo "== peer: dcmtk"
+  if ! command -v storescu >/dev/null || ! command -v storescp >/dev/null; then
+    apt_install dcmtk
+  fi
 fi
 
 # --- vtk: offscreen rendering (OSMesa) for tests/render_vtk.rs and benches/render_vtk.py ---------------
-echo "== peer: vtk"
-if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
-  apt_install libosmesa6 libgl1
+if want vtk; then
+  echo "== peer: vtk"
+  if ! ldconfig -p 2>/dev/null | grep -q libOSMesa; then
+    apt_install libosmesa6 libgl1
+  fi
+  if [ ! -x .venv-peers/bin/python ]; then
+    python3 -m venv .venv-peers
+  fi
+  if ! .venv-peers/bin/python -c "import vtk, numpy" 2>/dev/null \
+     || ! cmp -s tests/peers/requirements-vtk.txt .venv-peers/.vtk-requirements; then
+    .venv-peers/bin/python -m pip install -q --disable-pip-version-check -r tests/peers/requirements-vtk.txt
+    cp tests/peers/requirements-vtk.txt .venv-peers/.vtk-requirements
+  fi
+  .venv-peers/bin/python -c "import vtk; print('vtk', vtk.vtkVersion.GetVTKVersion())"
 fi
-if [ ! -x .venv-peers/bin/python ]; then
-  python3 -m venv .venv-peers
+
+# --- schemathesis: property-based tests of openapi.yaml against the running server ------------------------
+# tests/contract_schemathesis.rs runs .peers/venv/bin/schemathesis. Pinned with every dependency in
+# tests/peers/schemathesis-requirements.txt (regenerate: fresh venv, pip install schemathesis==X, pip freeze).
+if want schemathesis; then
+    echo "== peer: schemathesis"
+    req="$root/tests/peers/schemathesis-requirements.txt"
+    venv="$peers/venv"
+    stamp="$venv/.schemathesis-requirements"
+    # Python 3.12 or later where there is one: 3.11 up to 3.11.7 fails with "AST constructor recursion depth
+    # mismatch" while generating the deepest request schemas (POST /v1/jobs).
+    py=python3
+    for c in python3.13 python3.12 $(ls -d "$(pyenv root 2>/dev/null || echo /nonexistent)"/versions/3.1[2-9]*/bin/python3 2>/dev/null); do
+        if "$c" -c 'import sys; sys.exit(sys.version_info < (3, 12))' 2>/dev/null; then py=$c; break; fi
+    done
+    want_stamp=$(cat "$req"; "$py" --version)
+    if [ -x "$venv/bin/schemathesis" ] && [ "$want_stamp" = "$(cat "$stamp" 2>/dev/null)" ]; then
+        echo "schemathesis: already installed ($("$venv/bin/schemathesis" --version))"
+    else
+        rm -rf "$venv"
+        if ! "$py" -m venv "$venv" 2>/dev/null; then
+            # Debian ships venv separately.
+            SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO=sudo
+            $SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $SUDO apt-get install -y -qq python3-venv
+            rm -rf "$venv"
+            "$py" -m venv "$venv"
+        fi
+        "$venv/bin/pip" install --quiet --disable-pip-version-check --no-input -r "$req"
+        printf '%s' "$want_stamp" > "$stamp"
+        echo "schemathesis: installed ($("$venv/bin/schemathesis" --version))"
+    fi
 fi
-if ! .venv-peers/bin/python -c "import vtk, numpy" 2>/dev/null \
-   || ! cmp -s tests/peers/requirements-vtk.txt .venv-peers/.vtk-requirements; then
-  .venv-peers/bin/python -m pip install -q --disable-pip-version-check -r tests/peers/requirements-vtk.txt
-  cp tests/peers/requirements-vtk.txt .venv-peers/.vtk-requirements
-fi
-.venv-peers/bin/python -c "import vtk; print('vtk', vtk.vtkVersion.GetVTKVersion())"

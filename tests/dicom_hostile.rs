@@ -559,9 +559,9 @@ fn a_deflated_data_set_that_inflates_past_the_limit_is_refused_at_the_limit() {
         max_pixel_bytes: 1 << 20,
         ..ReadLimits::default()
     };
-    // The limit is the pixel limit plus 64 MiB of attributes; the inflated buffer may double once.
-    let e = read_within("deflate bomb", &bomb, &limits, 2 * (65 << 20) + (4 << 20))
-        .expect_err("refused");
+    // The limit is the pixel limit plus 64 MiB of attributes. The stream is measured before anything is
+    // allocated for it: refusing it costs the inflater's own state (well under 1 MiB), not the limit.
+    let e = read_within("deflate bomb", &bomb, &limits, 1 << 20).expect_err("refused");
     assert_eq!(e.code(), "dicom_parse_error");
     assert!(e.to_string().contains("inflates to more than"), "{e}");
 }
@@ -852,4 +852,54 @@ fn fuzz_regression_inputs_replay_without_panics() {
             r.err()
         );
     }
+}
+
+#[test]
+fn a_binary_value_that_is_not_a_whole_number_of_values_is_refused_before_the_parser_desyncs() {
+    // Found by fuzzing: High Bit (0028,0102) as FD with 2 bytes. dicom-rs reads no value but counts 2 bytes,
+    // then reads an OB length out of the JPEG stream and reserved 555 MB for it.
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz-regressions/dicom_read");
+    let bytes =
+        std::fs::read(dir.join("high-bit-fd-of-2-bytes-desyncs-the-parser.dcm")).expect("read");
+    let e = read("fd-2-bytes", &bytes).expect_err("refused");
+    assert_eq!(e.code(), "dicom_parse_error", "{e}");
+    assert!(
+        e.to_string().contains("(0028,0102) FD declares 2 bytes"),
+        "{e}"
+    );
+    // The neighbour: a US value of 3 bytes in an otherwise valid file.
+    let valid = std::fs::read(dir.join("valid-4x4-explicit.dcm")).expect("read");
+    let at = valid
+        .windows(8)
+        .position(|w| w == [0x28, 0x00, 0x00, 0x01, b'U', b'S', 2, 0])
+        .expect("Bits Allocated");
+    let mut odd = valid.clone();
+    odd[at + 6] = 3;
+    odd.insert(at + 8, 0);
+    let e = read("us-3-bytes", &odd).expect_err("refused");
+    assert_eq!(e.code(), "dicom_parse_error", "{e}");
+    assert!(
+        e.to_string()
+            .contains("(0028,0100) US declares 3 bytes, not a multiple of its 2-byte values"),
+        "{e}"
+    );
+    assert!(read("valid", &valid).is_ok());
+}
+
+#[test]
+fn a_jpeg_frame_header_that_differs_from_the_image_is_refused_before_decoding() {
+    // Found by fuzzing: a 256×256 RGB image whose JPEG frame header says 768×256. dicom-rs sized its buffer
+    // from the DICOM header and copied the larger decoded frame past its end (a panic).
+    let dir =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fuzz-regressions/dicom_read");
+    let bytes =
+        std::fs::read(dir.join("jpeg-frame-768-rows-in-a-256-row-image.dcm")).expect("read");
+    let e = read("jpeg-768", &bytes).expect_err("refused");
+    assert_eq!(e.code(), "dicom_decode_error", "{e}");
+    assert!(
+        e.to_string()
+            .contains("declares 768×256 pixels × 3 components"),
+        "{e}"
+    );
 }

@@ -160,30 +160,25 @@ fn raw(d: &[u8], max_inflated: usize) -> Result<Framed<'_>, FramingError> {
 }
 
 /// Inflate a deflated data set (raw deflate, PS3.5 A.5) up to `max_inflated` bytes, walk it, and frame it with
-/// the meta group's elements and an explicit VR little endian transfer syntax.
+/// the meta group's elements and an explicit VR little endian transfer syntax. A first pass only counts the
+/// inflated bytes (through a small scratch buffer, stopping one past the limit); the second inflates straight
+/// into a framed buffer of exactly that size. Memory never holds more than the inflated data set and the meta
+/// group, and nothing at all is allocated for a stream that inflates past the limit.
 fn deflated(
     meta: &[u8],
     data: &[u8],
     max_inflated: usize,
 ) -> Result<Framed<'static>, FramingError> {
     use std::io::Read;
-    let mut inflated = Vec::new();
-    let read = flate2::read::DeflateDecoder::new(data)
-        .take(max_inflated as u64 + 1)
-        .read_to_end(&mut inflated);
-    if read.is_err() {
-        return Err(FramingError::Defect(Defect::Inflate));
-    }
-    if inflated.len() > max_inflated {
+    let inflater = || flate2::read::DeflateDecoder::new(data).take(max_inflated as u64 + 1);
+    let inflated = std::io::copy(&mut inflater(), &mut std::io::sink())
+        .map_err(|_| FramingError::Defect(Defect::Inflate))?;
+    if inflated > max_inflated as u64 {
         return Err(FramingError::Defect(Defect::InflatesTooFar {
             limit: max_inflated,
         }));
     }
-    let enc = Encoding {
-        explicit: true,
-        big_endian: false,
-    };
-    let kept = scan::dataset(&inflated, enc)?;
+    let inflated = inflated as usize;
     let mut elements = scan::meta_elements(meta)
         .into_iter()
         .filter(|&(tag, _)| tag != (0x0002, 0x0000) && tag != (0x0002, 0x0010))
@@ -194,15 +189,26 @@ fn deflated(
     elements.extend_from_slice(&[0x02, 0x00, 0x10, 0x00, b'U', b'I']);
     elements.extend_from_slice(&(uid.len() as u16).to_le_bytes());
     elements.extend_from_slice(&uid);
-    let mut out = Vec::with_capacity(16 + elements.len() + kept);
-    out.extend_from_slice(b"DICM");
-    push_group_length(&mut out, elements.len());
-    out.extend_from_slice(&elements);
-    out.extend_from_slice(&inflated[..kept]);
+    let start = 16 + elements.len();
+    let mut out = vec![0u8; start + inflated];
+    out[..4].copy_from_slice(b"DICM");
+    out[4..12].copy_from_slice(&[0x02, 0x00, 0x00, 0x00, b'U', b'L', 4, 0]);
+    out[12..16].copy_from_slice(&(elements.len() as u32).to_le_bytes());
+    out[16..start].copy_from_slice(&elements);
+    drop(elements);
+    inflater()
+        .read_exact(&mut out[start..])
+        .map_err(|_| FramingError::Defect(Defect::Inflate))?;
+    let enc = Encoding {
+        explicit: true,
+        big_endian: false,
+    };
+    let kept = scan::dataset(&out[start..], enc)?;
+    out.truncate(start + kept);
     Ok(Framed {
         bytes: Cow::Owned(out),
         transfer_syntax: DEFLATED.to_string(),
         raw_dataset: false,
-        trailing_bytes: inflated.len() - kept,
+        trailing_bytes: inflated - kept,
     })
 }

@@ -17,6 +17,7 @@
 mod error;
 mod framing;
 mod header;
+mod jpeg;
 mod read;
 mod scan;
 mod unzip;

@@ -12,6 +12,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 
 use super::error::DicomError;
 use super::framing::{self, FramingError};
+use super::jpeg;
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -335,6 +336,33 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             label: label_s,
             what: "RGB JPEG without a colour-transform marker (Adobe APP14 or JFIF)".into(),
         });
+    }
+
+    // JPEG: dicom-rs copies each decoded frame at the size its frame header declares, so every frame header
+    // must declare exactly this image.
+    if matches!(
+        transfer_syntax.as_str(),
+        "1.2.840.10008.1.2.4.50"
+            | "1.2.840.10008.1.2.4.51"
+            | "1.2.840.10008.1.2.4.57"
+            | "1.2.840.10008.1.2.4.70"
+    ) {
+        let data: Vec<u8> = pixel
+            .fragments()
+            .into_iter()
+            .flatten()
+            .flatten()
+            .copied()
+            .collect();
+        if let Err(reason) =
+            jpeg::frame_headers_fit(&data, rows, columns, spp, bits_allocated as usize)
+        {
+            return Err(DicomError::Decode {
+                label: label_s,
+                transfer_syntax,
+                reason,
+            });
+        }
     }
 
     // RLE: dicom-rs trusts each fragment's 64-byte header (it allocates by the segment count and slices by

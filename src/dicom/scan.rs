@@ -27,6 +27,15 @@ pub(super) enum Defect {
         declared: u64,
         left: usize,
     },
+    /// Element (group, element) of a binary VR declares a length that is not a whole number of its values
+    /// (`unit` bytes each). dicom-rs reads `len / unit` values but counts `len` bytes as read, so the parser
+    /// and the walk would part ways on where the next element starts.
+    Misaligned {
+        tag: (u16, u16),
+        vr: VR,
+        declared: u32,
+        unit: u32,
+    },
     /// Sequences nest deeper than [`MAX_SEQUENCE_DEPTH`] at element (group, element).
     TooDeep { tag: (u16, u16) },
     /// An item inside encapsulated pixel data has an undefined length.
@@ -47,6 +56,15 @@ impl std::fmt::Display for Defect {
             } => write!(
                 f,
                 "element ({g:04X},{e:04X}) declares {declared} bytes but only {left} remain (truncated or corrupt)"
+            ),
+            Defect::Misaligned {
+                tag: (g, e),
+                vr,
+                declared,
+                unit,
+            } => write!(
+                f,
+                "element ({g:04X},{e:04X}) {vr} declares {declared} bytes, not a multiple of its {unit}-byte values"
             ),
             Defect::TooDeep { tag: (g, e) } => write!(
                 f,
@@ -152,9 +170,22 @@ fn short_length(vr: [u8; 2]) -> bool {
     )
 }
 
-/// An element header: tag, whether it opens a sequence, value length and header size.
+/// Size in bytes of one value of a binary VR, as dicom-rs reads it (`len / unit` values); 1 for the VRs read
+/// as whole byte strings (text, OB, UN, unknown VRs).
+fn unit(vr: VR) -> u32 {
+    match vr {
+        VR::US | VR::SS | VR::OW => 2,
+        VR::UL | VR::SL | VR::OL | VR::FL | VR::OF | VR::AT => 4,
+        VR::FD | VR::OD | VR::SV | VR::UV | VR::OV => 8,
+        _ => 1,
+    }
+}
+
+/// An element header: tag, VR as the parser resolves it, whether it opens a sequence, value length and
+/// header size.
 struct Header {
     tag: (u16, u16),
+    vr: VR,
     sequence: bool,
     len: u32,
     size: usize,
@@ -167,16 +198,19 @@ fn header(d: &[u8], p: usize, enc: Encoding) -> Option<Header> {
     if tag.0 == 0xFFFE {
         return Some(Header {
             tag,
+            vr: VR::UN,
             sequence: false,
             len: u32_at(d, p + 4, big)?,
             size: 8,
         });
     }
     if enc.explicit {
-        let vr = [*d.get(p + 4)?, *d.get(p + 5)?];
-        if short_length(vr) {
+        let code = [*d.get(p + 4)?, *d.get(p + 5)?];
+        let vr = VR::from_binary(code).unwrap_or(VR::UN);
+        if short_length(code) {
             Some(Header {
                 tag,
+                vr,
                 sequence: false,
                 len: u16_at(d, p + 6, big)? as u32,
                 size: 8,
@@ -184,18 +218,25 @@ fn header(d: &[u8], p: usize, enc: Encoding) -> Option<Header> {
         } else {
             Some(Header {
                 tag,
-                sequence: &vr == b"SQ",
+                vr,
+                sequence: &code == b"SQ",
                 len: u32_at(d, p + 8, big)?,
                 size: 12,
             })
         }
     } else {
-        let sequence = StandardDataDictionary
-            .by_tag(Tag(tag.0, tag.1))
-            .is_some_and(|e| e.vr().relaxed() == VR::SQ);
+        // Pixel Data and Overlay Data are OW in implicit VR; other tags take the dictionary's VR, else UN.
+        let vr = if tag == (0x7FE0, 0x0010) || (tag.0 >> 8 == 0x60 && tag.1 == 0x3000) {
+            VR::OW
+        } else {
+            StandardDataDictionary
+                .by_tag(Tag(tag.0, tag.1))
+                .map_or(VR::UN, |e| e.vr().relaxed())
+        };
         Some(Header {
             tag,
-            sequence,
+            vr,
+            sequence: vr == VR::SQ,
             len: u32_at(d, p + 4, big)?,
             size: 8,
         })
@@ -360,6 +401,13 @@ pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
                     }
                     open.push((Open::Sequence, end));
                     p = start;
+                } else if h.len % unit(h.vr) != 0 {
+                    return Err(Defect::Misaligned {
+                        tag: h.tag,
+                        vr: h.vr,
+                        declared: h.len,
+                        unit: unit(h.vr),
+                    });
                 } else {
                     p = start + h.len as usize;
                 }
@@ -431,5 +479,32 @@ mod tests {
         // One level fewer is fine.
         let one = 12 + 8;
         assert_eq!(dataset(&d[one..], EXPLICIT), Ok(d.len() - one));
+    }
+
+    #[test]
+    fn a_binary_value_that_is_not_a_whole_number_of_values_is_refused() {
+        // (0028,0102) FD with 2 bytes: dicom-rs would read no value yet count 2 bytes as read.
+        let mut d = vec![0x28, 0x00, 0x02, 0x01, b'F', b'D', 2, 0, 7, 0];
+        assert_eq!(
+            dataset(&d, EXPLICIT),
+            Err(Defect::Misaligned {
+                tag: (0x0028, 0x0102),
+                vr: VR::FD,
+                declared: 2,
+                unit: 8
+            })
+        );
+        // In implicit VR the dictionary gives the VR: High Bit is US, 3 bytes are refused, 2 are read.
+        let implicit = Encoding {
+            explicit: false,
+            big_endian: false,
+        };
+        d = vec![0x28, 0x00, 0x02, 0x01, 3, 0, 0, 0, 7, 0, 0];
+        assert!(matches!(
+            dataset(&d, implicit),
+            Err(Defect::Misaligned { unit: 2, .. })
+        ));
+        d = vec![0x28, 0x00, 0x02, 0x01, 2, 0, 0, 0, 7, 0];
+        assert_eq!(dataset(&d, implicit), Ok(d.len()));
     }
 }

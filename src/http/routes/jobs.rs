@@ -268,6 +268,14 @@ pub async fn list_jobs(
         }
         statuses.push(JobStatus::parse(s).ok_or_else(|| bad(format!("unknown status `{s}`")))?);
     }
+    if let Some(k) = q
+        .kind
+        .as_deref()
+        .filter(|k| !matches!(*k, "reconstruction" | "volume"))
+    {
+        let k: String = k.chars().take(64).collect();
+        return Err(bad(format!("unknown kind `{k}`: reconstruction or volume")));
+    }
     let time = |v: &Option<String>, name: &str| {
         v.as_deref()
             .map(|t| parse_rfc3339(t).ok_or_else(|| bad(format!("`{name}` must be RFC 3339"))))

@@ -17,6 +17,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::angles::MAX_VIEWS;
 use super::{Angles, FanBeam, FanDetector};
 use crate::recon::error::{GeometryError, count, positive};
 use crate::recon::grid::MAX_AXIS;
@@ -126,24 +127,43 @@ impl MatlabFan {
         (half(self.rows).hypot(half(self.cols))).ceil() + 2.0
     }
 
-    /// MATLAB's rotation angles θ in degrees: 0, inc, … < 360.
+    /// MATLAB's rotation angles θ in degrees: 0, inc, … < 360 (none past [`MAX_VIEWS`]).
     pub fn rotation_angles_deg(&self) -> Vec<f64> {
-        let n = (360.0 / self.rotation_increment_deg).round() as usize;
+        let n = (360.0 / self.rotation_increment_deg).round();
+        let n = if n.is_finite() && n >= 0.0 {
+            n.min(MAX_VIEWS as f64) as usize
+        } else {
+            0
+        };
         (0..n)
             .map(|k| k as f64 * self.rotation_increment_deg)
             .collect()
     }
 
-    /// MATLAB's sensor positions: fan angles in degrees (arc) or x′ positions in pixels (line).
-    pub fn sensor_positions(&self) -> Vec<f64> {
-        let (spacing, reach) = match self.sensors {
+    /// Spacing and reach of MATLAB's sensors: degrees (arc) or pixels along x′ (line).
+    fn sensor_spacing_and_reach(&self) -> (f64, f64) {
+        match self.sensors {
             MatlabSensors::Arc { sensor_spacing } => (
                 sensor_spacing,
                 (self.reach_px() / self.d_px).asin().to_degrees(),
             ),
             MatlabSensors::Line { sensor_spacing } => (sensor_spacing, self.reach_px()),
-        };
-        let k = (reach / spacing + 1e-9).floor() as i64;
+        }
+    }
+
+    /// Number of MATLAB's sensors, 2k + 1, computed without allocating them; `None` past [`MAX_AXIS`] or when
+    /// the spacing and reach give no finite count.
+    pub fn sensor_count(&self) -> Option<usize> {
+        let (spacing, reach) = self.sensor_spacing_and_reach();
+        let k = (reach / spacing + 1e-9).floor();
+        (k.is_finite() && k >= 0.0 && 2.0 * k + 1.0 <= MAX_AXIS as f64).then(|| 2 * k as usize + 1)
+    }
+
+    /// MATLAB's sensor positions: fan angles in degrees (arc) or x′ positions in pixels (line); empty where
+    /// [`Self::sensor_count`] is `None`.
+    pub fn sensor_positions(&self) -> Vec<f64> {
+        let (spacing, _) = self.sensor_spacing_and_reach();
+        let k = self.sensor_count().map_or(-1, |n| (n / 2) as i64);
         (-k..=k).map(|i| i as f64 * spacing).collect()
     }
 
@@ -166,7 +186,14 @@ impl MatlabFan {
                 fov_radius_mm: self.reach_px() * px,
             });
         }
-        let n = self.sensor_positions().len();
+        let spacing = positive("sensor_spacing", self.sensor_spacing_and_reach().0)?;
+        // Counted before anything is allocated: a tiny spacing would ask for more sensors than memory holds.
+        let n = self.sensor_count().ok_or_else(|| GeometryError::TooMany {
+            field: "sensors (reach / sensor_spacing)",
+            value: (2.0 * self.sensor_spacing_and_reach().1 / spacing).min(usize::MAX as f64)
+                as usize,
+            max: MAX_AXIS,
+        })?;
         let detector = match self.sensors {
             MatlabSensors::Arc { sensor_spacing } => FanDetector::Arc {
                 count: n,

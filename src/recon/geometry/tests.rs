@@ -231,3 +231,21 @@ proptest! {
         prop_assert!((vectors::norm3(w.source) - dso).abs() < 1e-9 * dso);
     }
 }
+
+#[test]
+fn matlab_sensors_and_rotations_too_many_to_allocate_are_refused_by_count() {
+    // A spacing of 2e-311 px asks for about 10^314 sensors: refused before any is allocated.
+    let mut m = MatlabFan::arc(2214, 185, 1.57e308, 1.0, 1.0);
+    m.sensors = MatlabSensors::Line {
+        sensor_spacing: 2.225073858507e-311,
+    };
+    assert_eq!(m.sensor_count(), None);
+    assert!(m.sensor_positions().is_empty());
+    assert!(matches!(
+        m.to_fan(),
+        Err(GeometryError::TooMany { max: MAX_AXIS, .. })
+    ));
+    // A rotation increment of 1e-300° is at most MAX_VIEWS angles, never 10^302.
+    m.rotation_increment_deg = 1e-300;
+    assert_eq!(m.rotation_angles_deg().len(), angles::MAX_VIEWS);
+}
