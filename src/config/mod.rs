@@ -336,10 +336,10 @@ mod tests {
     #[test]
     fn every_documented_environment_variable_is_accepted() {
         let docs = [
-            include_str!("../README.md"),
-            include_str!("../benches/README.md"),
-            include_str!("../Dockerfile"),
-            include_str!("config.rs"),
+            include_str!("../../README.md"),
+            include_str!("../../benches/README.md"),
+            include_str!("../../Dockerfile"),
+            include_str!("mod.rs"),
         ];
         let mut names: Vec<&str> = Vec::new();
         for d in docs {
