@@ -122,6 +122,25 @@ fn text(o: &Output) -> String {
     )
 }
 
+/// `storescu` sending every file of `dir` as TESTSCU to CTRECON on 127.0.0.1:`port`.
+async fn storescu(port: &str, dir: &Path) -> Output {
+    let dir = dir.to_string_lossy();
+    run(
+        "storescu",
+        &args(&[
+            "-aet",
+            "TESTSCU",
+            "-aec",
+            "CTRECON",
+            "+sd",
+            "127.0.0.1",
+            port,
+            &dir,
+        ]),
+    )
+    .await
+}
+
 async fn echoscu(node: &DicomNode, calling: &str, called: &str) -> Output {
     let port = node.local_addr().port().to_string();
     run(
@@ -193,21 +212,7 @@ async fn a_series_sent_by_storescu_is_filed_whole_and_announced_once_stable() {
     let src = tempfile::tempdir().unwrap();
     let (series_uid, files) = synthetic_series(src.path(), 12);
     let port = node.local_addr().port().to_string();
-    let dirname = src.path().to_string_lossy().to_string();
-    let out = run(
-        "storescu",
-        &args(&[
-            "-aet",
-            "TESTSCU",
-            "-aec",
-            "CTRECON",
-            "+sd",
-            "127.0.0.1",
-            &port,
-            &dirname,
-        ]),
-    )
-    .await;
+    let out = storescu(&port, src.path()).await;
     assert!(out.status.success(), "{}", text(&out));
     let done = completed(&mut node).await;
     assert_eq!(done.series_uid, series_uid);
@@ -238,21 +243,7 @@ async fn lidc_sent_by_storescu_arrives_exactly() {
     }
     let (mut node, _dir) = start_node(|_| {}).await;
     let port = node.local_addr().port().to_string();
-    let dirname = lidc.to_string_lossy().to_string();
-    let out = run(
-        "storescu",
-        &args(&[
-            "-aet",
-            "TESTSCU",
-            "-aec",
-            "CTRECON",
-            "+sd",
-            "127.0.0.1",
-            &port,
-            &dirname,
-        ]),
-    )
-    .await;
+    let out = storescu(&port, &lidc).await;
     assert!(out.status.success(), "{}", text(&out));
     let done = completed(&mut node).await;
     assert_eq!(done.instances, 133);
@@ -521,21 +512,7 @@ async fn a_series_stored_into_the_service_becomes_a_series_of_the_api() {
     let port = app.dicom.expect("a DICOM node").port().to_string();
     let src = tempfile::tempdir().unwrap();
     let (series_uid, _) = synthetic_series(src.path(), 12);
-    let dirname = src.path().to_string_lossy().to_string();
-    let out = run(
-        "storescu",
-        &args(&[
-            "-aet",
-            "TESTSCU",
-            "-aec",
-            "CTRECON",
-            "+sd",
-            "127.0.0.1",
-            &port,
-            &dirname,
-        ]),
-    )
-    .await;
+    let out = storescu(&port, src.path()).await;
     assert!(out.status.success(), "{}", text(&out));
     // The assembled volume appears as series/<id>.npy; the API then serves the series.
     let series_dir = app.dir.path().join("series");
