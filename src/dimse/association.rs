@@ -124,14 +124,7 @@ async fn reply(
     bytes: Vec<u8>,
 ) -> Result<(), AssociationEnd> {
     assoc
-        .send(&Pdu::PData {
-            data: vec![PDataValue {
-                presentation_context_id: context_id,
-                value_type: PDataValueType::Command,
-                is_last: true,
-                data: bytes,
-            }],
-        })
+        .send(&command::pdu(context_id, bytes))
         .await
         .map_err(|e| AssociationEnd::Network(e.to_string()))
 }

@@ -206,6 +206,19 @@ pub fn unrecognized_response(request: &Command) -> Vec<u8> {
     ])
 }
 
+/// The P-DATA PDU carrying one whole command set on presentation context `context_id`.
+pub fn pdu(context_id: u8, bytes: Vec<u8>) -> dicom_ul::pdu::Pdu {
+    use dicom_ul::pdu::{PDataValue, PDataValueType, Pdu};
+    Pdu::PData {
+        data: vec![PDataValue {
+            presentation_context_id: context_id,
+            value_type: PDataValueType::Command,
+            is_last: true,
+            data: bytes,
+        }],
+    }
+}
+
 /// The Verification SOP class (C-ECHO).
 pub const VERIFICATION: &str = "1.2.840.10008.1.1";
 

@@ -4,6 +4,8 @@
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
 
+use tracing::Instrument as _;
+
 use super::node::{DicomNode, NodeError};
 use super::tracker::CompletedSeries;
 use crate::app::{App, AppError};
@@ -19,7 +21,8 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
     let addr = node.local_addr();
     tokio::spawn(async move {
         while let Some(done) = node.next_completed().await {
-            assemble(&app, done).await;
+            let span = tracing::info_span!("received_series", series_uid = %done.series_uid, calling_ae = %done.calling_ae);
+            assemble(&app, done).instrument(span).await;
         }
     });
     Ok(Some(addr))
@@ -46,9 +49,6 @@ fn instance_files(folder: &Path) -> std::io::Result<Vec<UploadFile>> {
 /// Assemble one complete series; its folder is removed once the outcome is recorded (kept for the next
 /// start when the database or storage failed).
 async fn assemble(app: &App, done: CompletedSeries) {
-    let span = tracing::info_span!("received_series", series_uid = %done.series_uid, calling_ae = %done.calling_ae);
-    let _enter = span.enter();
-    drop(_enter);
     let folder = done.folder.clone();
     let listed = {
         let f = folder.clone();

@@ -89,19 +89,21 @@ impl Inbox {
         Ok(sink)
     }
 
-    /// Put a received, checked instance in its series folder (replacing an earlier copy of the same
-    /// instance). Both UIDs must be valid UIDs (digits and dots), which makes them safe as names.
+    /// Put a received, checked instance in its series folder, replacing an earlier copy of the same
+    /// instance; returns its path and whether it replaced one. Both UIDs must be valid UIDs (digits and
+    /// dots), which makes them safe as names.
     pub fn file(
         &self,
         temp: &Path,
         series_uid: &str,
         sop_instance_uid: &str,
-    ) -> io::Result<PathBuf> {
+    ) -> io::Result<(PathBuf, bool)> {
         let dir = self.root.join("incoming").join(series_uid);
         std::fs::create_dir_all(&dir)?;
         let dest = dir.join(format!("{sop_instance_uid}.dcm"));
+        let replaced = dest.exists();
         std::fs::rename(temp, &dest)?;
-        Ok(dest)
+        Ok((dest, replaced))
     }
 
     /// Hand a series over: its `incoming/` folder becomes a new `complete/` folder.
@@ -218,7 +220,8 @@ mod tests {
         let mut whole = inbox.begin(b"AB", 1 << 20).await.unwrap();
         whole.write(b"CD").await.unwrap();
         let received = whole.finish().await.unwrap();
-        let dest = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
+        let (dest, replaced) = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
+        assert!(!replaced);
         received.keep();
         assert_eq!(std::fs::read(&dest).unwrap(), b"ABCD");
         assert_eq!(count("tmp"), 0);

@@ -15,6 +15,7 @@ use dicom_ul::pdu::{
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Semaphore, mpsc, watch};
+use tracing::Instrument as _;
 
 use super::association::{self, Grant};
 use super::command::VERIFICATION;
@@ -244,13 +245,14 @@ async fn accept_loop(
             continue;
         };
         let (peers, tracker) = (peers.clone(), tracker.clone());
-        tokio::spawn(async move {
-            let span = tracing::info_span!("association", %remote);
-            let _enter = span.enter();
-            drop(_enter);
-            handle(socket, remote, &peers, tracker).await;
-            drop(slot);
-        });
+        let span = tracing::info_span!("association", %remote);
+        tokio::spawn(
+            async move {
+                handle(socket, remote, &peers, tracker).await;
+                drop(slot);
+            }
+            .instrument(span),
+        );
     }
 }
 

@@ -152,14 +152,7 @@ async fn send_command(
     bytes: Vec<u8>,
 ) -> Result<(), ScuError> {
     assoc
-        .send(&Pdu::PData {
-            data: vec![PDataValue {
-                presentation_context_id: context,
-                value_type: PDataValueType::Command,
-                is_last: true,
-                data: bytes,
-            }],
-        })
+        .send(&command::pdu(context, bytes))
         .await
         .map_err(|e| ScuError::Network {
             peer: peer.ae_title.clone(),

@@ -83,14 +83,7 @@ impl Tracker {
             .arriving
             .lock()
             .map_err(|_| io::Error::other("series tracker poisoned"))?;
-        let existed = self
-            .inbox
-            .root()
-            .join("incoming")
-            .join(a.series_uid)
-            .join(format!("{}.dcm", a.sop_instance_uid))
-            .exists();
-        let dest = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
+        let (dest, existed) = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
         let entry = arriving
             .entry(a.series_uid.to_string())
             .or_insert_with(|| Arriving {
