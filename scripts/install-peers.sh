@@ -4,7 +4,8 @@
 # ignored folders of the checkout (.venv-peers/ for VTK, .peers/ for schemathesis). Run by .ci/run; safe to
 # run again. A test whose peer is missing prints one skip line, or fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
-#   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, vtk, schemathesis)
+#   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, vtk,
+#                                       schemathesis)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -34,6 +35,25 @@ if want dcmtk; then
   if ! command -v storescu >/dev/null || ! command -v storescp >/dev/null; then
     apt_install dcmtk
   fi
+fi
+
+# --- Orthanc 1.10 + DICOMweb plugin: the PACS the DICOM node's tests send to and pull from ------------------
+if want orthanc; then
+  echo "== peer: orthanc"
+  if [ ! -x /usr/sbin/Orthanc ] || [ ! -f /usr/share/orthanc/plugins/libOrthancDicomWeb.so ]; then
+    apt_install orthanc orthanc-dicomweb
+  fi
+  # The package starts a system Orthanc on 8042/4242; tests run their own on ports of their own.
+  $SUDO service orthanc stop >/dev/null 2>&1 || true
+fi
+
+# --- PostgreSQL 15: throwaway clusters (initdb in a temp dir) for the PostgreSQL job store's tests ----------
+if want postgres; then
+  echo "== peer: postgres"
+  if [ ! -x /usr/lib/postgresql/15/bin/initdb ]; then
+    apt_install postgresql-15
+  fi
+  $SUDO service postgresql stop >/dev/null 2>&1 || true
 fi
 
 # --- vtk: offscreen rendering (OSMesa) for tests/render_vtk.rs and benches/render_vtk.py ---------------
