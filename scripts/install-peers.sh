@@ -4,8 +4,8 @@
 # ignored folders of the checkout (.venv-peers/ for VTK, .peers/ for schemathesis). Run by .ci/run; safe to
 # run again. A test whose peer is missing prints one skip line, or fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
-#   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, vtk,
-#                                       schemathesis)
+#   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, s3,
+#                                       vtk, schemathesis)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -54,6 +54,16 @@ if want postgres; then
     apt_install postgresql-15
   fi
   $SUDO service postgresql stop >/dev/null 2>&1 || true
+fi
+
+# --- s3s-fs 0.14.1: an S3 server that checks SigV4 signatures, for the object-storage adapter's tests -------
+# Built from crates.io into .peers/s3s/ (about 3 minutes on 2 cores; 0.17 needs a newer rustc).
+if want s3; then
+  echo "== peer: s3"
+  if [ ! -x "$peers/s3s/bin/s3s-fs" ]; then
+    cargo install --quiet --locked --root "$peers/s3s" s3s-fs --version 0.14.1 --features binary
+  fi
+  "$peers/s3s/bin/s3s-fs" --version 2>/dev/null || echo "s3s-fs: $peers/s3s/bin/s3s-fs"
 fi
 
 # --- vtk: offscreen rendering (OSMesa) for tests/render_vtk.rs and benches/render_vtk.py ---------------

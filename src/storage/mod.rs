@@ -13,6 +13,8 @@
 
 pub mod ids;
 pub mod npy;
+#[cfg(feature = "s3")]
+pub mod object;
 pub mod port;
 pub mod sweep;
 

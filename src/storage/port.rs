@@ -326,10 +326,18 @@ pub mod conformance {
     }
 
     /// Instantiate every check as a `#[tokio::test]` for the store `$make` (a future of a fresh store).
+    /// `maybe: $make` takes a future of `Option<(store, guard)>` instead, for adapters whose server may be
+    /// missing: `None` ends the test (the fixture has said why), and the guard lives until the check ends.
     #[macro_export]
     macro_rules! blob_store_conformance {
+        (maybe: $make:expr) => {
+            $crate::blob_store_conformance!(@maybe $make; @all);
+        };
         ($make:expr) => {
-            $crate::blob_store_conformance!(@cases $make;
+            $crate::blob_store_conformance!(@always $make; @all);
+        };
+        (@$how:ident $make:expr; @all) => {
+            $crate::blob_store_conformance!(@$how $make;
                 put_then_get_whole_and_ranges,
                 a_failed_put_leaves_the_object_complete_or_absent,
                 remove_is_idempotent_and_absent_objects_are_not_found,
@@ -337,11 +345,20 @@ pub mod conformance {
                 keys_cannot_escape,
             );
         };
-        (@cases $make:expr; $($case:ident),* $(,)?) => {
+        (@always $make:expr; $($case:ident),* $(,)?) => {
             $(
                 #[tokio::test]
                 async fn $case() {
                     let store = $make.await;
+                    $crate::storage::port::conformance::$case(&store).await;
+                }
+            )*
+        };
+        (@maybe $make:expr; $($case:ident),* $(,)?) => {
+            $(
+                #[tokio::test]
+                async fn $case() {
+                    let Some((store, _guard)) = $make.await else { return };
                     $crate::storage::port::conformance::$case(&store).await;
                 }
             )*
