@@ -119,11 +119,8 @@ impl ObjectBlobs {
         })
     }
 
-    /// An adapter over an S3-compatible server. Installs the TLS crypto provider once per process.
+    /// An adapter over an S3-compatible server.
     pub fn s3(location: &S3Location, cache: &FsPath) -> io::Result<Self> {
-        // reqwest is built without a bundled provider; the first caller installs ring's (a second
-        // install is refused, which is fine: one is in place).
-        let _ = rustls::crypto::ring::default_provider().install_default();
         let mut builder = AmazonS3Builder::from_env().with_bucket_name(&location.bucket);
         if let Some(endpoint) = &location.endpoint {
             builder = builder
