@@ -643,26 +643,89 @@ fn a_meta_group_without_its_group_length_is_read() {
     assert_eq!(pixels_of(&inst), want);
 }
 
-#[test]
-fn jpeg_ls_is_refused_with_its_own_code() {
-    for ts in ["1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.4.81"] {
-        let obj = with(
-            ct(8, 10),
-            DataElement::new(
-                tags::PIXEL_DATA,
-                VR::OB,
-                dicom_core::value::Value::PixelSequence(
-                    dicom_core::value::PixelFragmentSequence::new(
-                        vec![],
-                        vec![vec![0xFF, 0xD8, 0xFF, 0xF7, 0, 0, 0, 0, 0xFF, 0xD9]],
-                    ),
-                ),
-            ),
-        );
-        let e = read(ts, &part10(obj, ts)).expect_err("refused");
-        assert_eq!(e.code(), "dicom_unsupported_transfer_syntax", "{e}");
-        assert!(e.to_string().contains("JPEG-LS"), "{e}");
+/// `ct(rows, columns)` with its pixel data replaced by the JPEG-LS frames `frames` (one fragment each).
+fn ct_jpeg_ls(rows: u16, columns: u16, frames: Vec<Vec<u8>>) -> InMemDicomObject {
+    with(
+        ct(rows, columns),
+        DataElement::new(
+            tags::PIXEL_DATA,
+            VR::OB,
+            dicom_core::value::Value::PixelSequence(dicom_core::value::PixelFragmentSequence::new(
+                vec![],
+                frames,
+            )),
+        ),
+    )
+}
+
+/// The stored values of `ct(rows, columns)` as JPEG-LS codes them (16-bit two's complement words).
+fn ct_words(rows: u16, columns: u16) -> Vec<u16> {
+    (0..rows as i32)
+        .flat_map(|r| (0..columns as i32).map(move |c| (100 * r + c - 500) as i16 as u16))
+        .collect()
+}
+
+fn jls(words: &[u16], columns: u32, rows: u32, near: u8) -> Vec<u8> {
+    let mut o = jpegls::EncodeOptions::default();
+    o.near = near;
+    o.precision = Some(16);
+    let mut out = Vec::new();
+    jpegls::encode_with_options(words, columns, rows, &o, &mut out).expect("encode");
+    if out.len() % 2 == 1 {
+        out.push(0); // fragments have even length
     }
+    out
+}
+
+#[test]
+fn jpeg_ls_decodes_exactly_and_bad_streams_are_decode_errors() {
+    // Lossless: the same HU as the uncompressed file.
+    let plain = read("plain", &part10(ct(8, 10), EXPLICIT_LE)).expect("plain");
+    let frame = jls(&ct_words(8, 10), 10, 8, 0);
+    let lossless = read(
+        "jpeg-ls",
+        &part10(
+            ct_jpeg_ls(8, 10, vec![frame.clone()]),
+            "1.2.840.10008.1.2.4.80",
+        ),
+    )
+    .expect("JPEG-LS lossless is read");
+    assert_eq!(pixels_of(&lossless), pixels_of(&plain));
+    // Near-lossless (NEAR = 2 on the 16-bit words): within 2 of the truth.
+    let near = jls(&ct_words(8, 10), 10, 8, 2);
+    let got = read(
+        "jpeg-ls near",
+        &part10(ct_jpeg_ls(8, 10, vec![near]), "1.2.840.10008.1.2.4.81"),
+    )
+    .expect("near-lossless is read");
+    let worst = pixels_of(&got)
+        .iter()
+        .zip(pixels_of(&plain))
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 2.0, "near-lossless error {worst}");
+
+    // A frame of another size, a stream cut short, and garbage after SOI are decode errors.
+    let other_size = jls(&ct_words(8, 9), 9, 8, 0);
+    let mut cut = frame.clone();
+    cut.truncate(frame.len() / 2);
+    for (what, bad) in [
+        ("other size", other_size),
+        ("cut", cut),
+        (
+            "garbage",
+            vec![0xFF, 0xD8, 0xFF, 0xF7, 0, 0, 0, 0, 0xFF, 0xD9],
+        ),
+    ] {
+        for ts in ["1.2.840.10008.1.2.4.80", "1.2.840.10008.1.2.4.81"] {
+            let bytes = part10(ct_jpeg_ls(8, 10, vec![bad.clone()]), ts);
+            assert_eq!(refusal(what, &bytes), "dicom_decode_error", "{what} {ts}");
+        }
+    }
+}
+
+#[test]
+fn unregistered_transfer_syntaxes_are_refused_with_their_own_code() {
     // A transfer syntax nobody registered.
     let e = read("unknown ts", &unknown_ts()).expect_err("refused");
     assert_eq!(e.code(), "dicom_unsupported_transfer_syntax", "{e}");

@@ -282,7 +282,8 @@ async fn undecodable_transfer_syntaxes_and_foreign_sop_classes_are_not_accepted(
         ],
     )
     .await;
-    // Only the decodable CT contexts are accepted: not JPEG-LS, not MR Image Storage.
+    // Only the CT contexts are accepted, each in a syntax the reader decodes (JPEG-LS included); not MR
+    // Image Storage.
     let accepted: Vec<(u8, String, String)> = assoc
         .presentation_contexts()
         .iter()
@@ -298,6 +299,7 @@ async fn undecodable_transfer_syntaxes_and_foreign_sop_classes_are_not_accepted(
     assert_eq!(
         accepted,
         vec![
+            (1, CT.to_string(), "1.2.840.10008.1.2.4.80".to_string()),
             (5, CT.to_string(), EXPLICIT_LE.to_string()),
             (7, CT.to_string(), "1.2.840.10008.1.2.4.90".to_string()),
         ]

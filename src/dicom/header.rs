@@ -22,17 +22,19 @@ pub const STORABLE_SOP_CLASSES: &[&str] = &[
     "1.2.840.10008.5.1.4.1.1.104.3",
 ];
 
-/// Transfer syntaxes whose data sets and pixel data the reader decodes, as the codec registry of this
-/// build says (native and deflated encodings, JPEG baseline/extended/lossless, RLE, JPEG 2000; JPEG-LS is
-/// not among them).
+/// Transfer syntaxes whose data sets and pixel data the reader decodes: what the codec registry of this
+/// build decodes (native and deflated encodings, JPEG baseline/extended/lossless, RLE, JPEG 2000) and
+/// JPEG-LS lossless and near-lossless, which the reader decodes itself (grey images).
 pub fn decodable_transfer_syntaxes() -> Vec<&'static str> {
     use dicom_transfer_syntax_registry::TransferSyntaxRegistry;
     let mut uids: Vec<&'static str> = TransferSyntaxRegistry
         .iter()
         .filter(|ts| ts.can_decode_all())
         .map(|ts| ts.uid())
+        .chain([super::jpeg_ls::LOSSLESS, super::jpeg_ls::NEAR_LOSSLESS])
         .collect();
     uids.sort_unstable();
+    uids.dedup();
     uids
 }
 
@@ -283,8 +285,8 @@ mod tests {
         ] {
             assert!(uids.contains(&uid), "{uid} missing from {uids:?}");
         }
-        // JPEG-LS lossless and near-lossless: not decoded by this build.
-        assert!(!uids.contains(&"1.2.840.10008.1.2.4.80"));
-        assert!(!uids.contains(&"1.2.840.10008.1.2.4.81"));
+        // JPEG-LS lossless and near-lossless, decoded by the reader itself.
+        assert!(uids.contains(&"1.2.840.10008.1.2.4.80"));
+        assert!(uids.contains(&"1.2.840.10008.1.2.4.81"));
     }
 }

@@ -18,6 +18,7 @@ mod error;
 mod framing;
 mod header;
 mod jpeg;
+mod jpeg_ls;
 mod read;
 mod scan;
 mod unzip;

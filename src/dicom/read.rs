@@ -12,7 +12,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 
 use super::error::DicomError;
 use super::framing::{self, FramingError};
-use super::jpeg;
+use super::{jpeg, jpeg_ls};
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -306,9 +306,15 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
             )
         })?;
     let encapsulated = pixel.fragments().is_some();
-    // JPEG-LS (no CharLS in this build) and other codecs dicom-pixeldata lacks.
-    if encapsulated && !ts_entry.can_decode_all() {
+    // Codecs dicom-pixeldata lacks in this build; JPEG-LS is decoded here (`jpeg_ls`), grey images only.
+    if encapsulated && !ts_entry.can_decode_all() && !jpeg_ls::is_jpeg_ls(&transfer_syntax) {
         return Err(unsupported_ts(ts_entry.name()));
+    }
+    if encapsulated && jpeg_ls::is_jpeg_ls(&transfer_syntax) && spp != 1 {
+        return Err(DicomError::Unsupported {
+            label: label_s,
+            what: format!("colour JPEG-LS ({spp} samples per pixel); grey JPEG-LS is read"),
+        });
     }
     if !encapsulated {
         let got = pixel.to_bytes().map(|b| b.len()).unwrap_or(0);
@@ -390,22 +396,48 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         transfer_syntax: transfer_syntax.clone(),
         reason,
     };
-    let decoded = match catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data())) {
-        Ok(Ok(d)) => d,
-        Ok(Err(e)) => return Err(decode_err(e.to_string())),
-        Err(_) => return Err(decode_err("the codec failed on malformed data".into())),
-    };
-    if decoded.rows() as usize != rows
-        || decoded.columns() as usize != columns
-        || (decoded.number_of_frames() as usize) < frames
-    {
-        return Err(decode_err("decoded size differs from the header".into()));
-    }
+    let jls_data: Vec<u8>;
+    let decoded;
+    let (data, decoded_spp, decoded_bits): (&[u8], usize, usize) =
+        if jpeg_ls::is_jpeg_ls(&transfer_syntax) {
+            let fragments: Vec<&[u8]> = pixel
+                .fragments()
+                .into_iter()
+                .flatten()
+                .map(|f| f.as_slice())
+                .collect();
+            jls_data = jpeg_ls::decode_frames(
+                &fragments,
+                frames,
+                rows,
+                columns,
+                spp,
+                bits_allocated as u16,
+            )
+            .map_err(decode_err)?;
+            (&jls_data, 1, bits_allocated as usize)
+        } else {
+            decoded = match catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data())) {
+                Ok(Ok(d)) => d,
+                Ok(Err(e)) => return Err(decode_err(e.to_string())),
+                Err(_) => return Err(decode_err("the codec failed on malformed data".into())),
+            };
+            if decoded.rows() as usize != rows
+                || decoded.columns() as usize != columns
+                || (decoded.number_of_frames() as usize) < frames
+            {
+                return Err(decode_err("decoded size differs from the header".into()));
+            }
+            // Colour images decoded from JPEG may be RGB regardless of the declared photometric
+            // interpretation.
+            (
+                decoded.data(),
+                decoded.samples_per_pixel() as usize,
+                decoded.bits_allocated() as usize,
+            )
+        };
     let bytes_per = bits_allocated as usize / 8;
     let frame_len = rows * columns * spp;
-    let data = decoded.data();
-    // Colour images decoded from JPEG may be RGB regardless of the declared photometric interpretation.
-    let decoded_spp = decoded.samples_per_pixel() as usize;
     let frame_bytes = frame_len * bytes_per / spp * decoded_spp;
     if data.len() < frame_bytes * frames {
         return Err(DicomError::PixelDataShort {
@@ -415,7 +447,6 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         });
     }
     let big_endian = transfer_syntax == "1.2.840.10008.1.2.2" && !encapsulated;
-    let decoded_bits = decoded.bits_allocated() as usize;
     if decoded_bits / 8 != bytes_per {
         return Err(decode_err(format!(
             "decoder returned {decoded_bits}-bit samples for {bits_allocated}-bit data"
