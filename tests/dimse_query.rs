@@ -14,7 +14,7 @@ use std::process::Output;
 use std::time::Duration;
 
 use common::TestApp;
-use ctrecon::dicom::{ReadLimits, SeriesMeta, read_path, write_ct_series};
+use ctrecon::dicom::{ReadLimits, SeriesMeta, read_part10, read_path, write_ct_series};
 use ctrecon::dimse::Peer;
 use ctrecon::volume::{Frame, Volume};
 use dicom_core::header::Header as _;
@@ -586,6 +586,7 @@ async fn movescu_retrieves_a_series_into_storescp_instance_for_instance() {
     let _storescp = Running(
         std::process::Command::new("storescp")
             .args(args(&[
+                "+B",
                 "--aetitle",
                 "DEST",
                 "--output-directory",
@@ -601,6 +602,7 @@ async fn movescu_retrieves_a_series_into_storescp_instance_for_instance() {
             peer("TESTSCU", 1, true, true),
             peer("NOMOVE", 1, true, false),
             peer("DEST", dest_port, false, false),
+            peer("DOWN", free_port(), false, false),
         ],
         1,
     )
@@ -636,6 +638,18 @@ async fn movescu_retrieves_a_series_into_storescp_instance_for_instance() {
         text(&out)
     );
     assert_eq!(got, want);
+    // Bit for bit: each received data set is the one storescu sent (storescp +B writes it as it came).
+    let data_set = |f: &Path| {
+        let p = read_part10(f).unwrap();
+        let bytes = std::fs::read(f).unwrap();
+        (
+            p.sop_instance_uid,
+            bytes[p.dataset_offset as usize..].to_vec(),
+        )
+    };
+    let sent: BTreeMap<String, Vec<u8>> = a.files.iter().map(|f| data_set(f)).collect();
+    let came: BTreeMap<String, Vec<u8>> = received.iter().map(|f| data_set(f)).collect();
+    assert_eq!(came, sent);
     // One pending response after each instance but the last, then success.
     let log = text(&out);
     assert_eq!(log.matches("(Pending)").count(), 6, "{log}");
@@ -653,6 +667,20 @@ async fn movescu_retrieves_a_series_into_storescp_instance_for_instance() {
     );
     let out = movescu(port, "NOMOVE", "DEST", &series_keys).await;
     assert!(says(&out, &["0x124", "notauthorized"]), "{}", text(&out));
+    // A listed destination that does not answer: no sub-operation could be performed.
+    let out = movescu(port, "TESTSCU", "DOWN", &series_keys).await;
+    assert!(
+        says(
+            &out,
+            &[
+                "0xa702",
+                "outofresourcessuboperations",
+                "unabletoperformsuboperations"
+            ]
+        ),
+        "{}",
+        text(&out)
+    );
     assert_eq!(files_in(out_dir.path()).len(), 7, "nothing more was sent");
     drop(app);
 }

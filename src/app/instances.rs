@@ -146,8 +146,11 @@ impl App {
 
     /// Index the DICOM results of job `id` once it succeeded: the derived CT series of its volume, in the
     /// study and frame of reference of its source series. A job without a source series (no patient) is
-    /// marked indexed with no instance. Returns the instances indexed.
+    /// marked indexed with no instance. A job indexed before is left as it is. Returns the instances indexed.
     pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
+        if self.db.job_indexed(id).await? {
+            return Ok(0);
+        }
         let Some(job) = self.db.get_job(id).await? else {
             return Ok(0);
         };

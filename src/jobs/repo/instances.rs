@@ -216,6 +216,15 @@ impl Db {
             .collect()
     }
 
+    /// Whether a job's results were indexed.
+    pub async fn job_indexed(&self, id: JobId) -> Result<bool, DbError> {
+        let row = sqlx::query("SELECT 1 FROM indexed_jobs WHERE job_id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.is_some())
+    }
+
     /// Mark a job as indexed without instances (its results carry no patient).
     pub async fn mark_job_indexed(&self, id: JobId) -> Result<(), DbError> {
         self.insert_instances(InstanceOwner::Job(id), &[]).await
