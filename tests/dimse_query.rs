@@ -114,10 +114,21 @@ fn frame() -> Frame {
 }
 
 async fn write_study(dir: &Path, nz: usize, patient: &str, attrs: &[(&str, &str)]) -> Written {
-    let data = ndarray::Array3::from_shape_fn((nz, 20, 24), |(k, j, i)| {
-        (k * 100 + j * 10 + i) as f32 - 1000.0
-    });
+    write_series(dir, (nz, 20, 24), None, patient, attrs).await
+}
+
+/// A series of `shape` slices (in study `study_uid`, or a new study), as [`write_study`].
+async fn write_series(
+    dir: &Path,
+    shape: (usize, usize, usize),
+    study_uid: Option<String>,
+    patient: &str,
+    attrs: &[(&str, &str)],
+) -> Written {
+    let data =
+        ndarray::Array3::from_shape_fn(shape, |(k, j, i)| (k * 100 + j * 10 + i) as f32 - 1000.0);
     let meta = SeriesMeta {
+        study_uid,
         patient_id: Some(patient.into()),
         series_description: "query test".into(),
         series_number: 3,
@@ -826,4 +837,106 @@ async fn instances_of_a_series_still_arriving_are_not_listed() {
         assert!(out.status.success(), "{}", text(&out));
         assert!(found.is_empty(), "{level}: {found:?}");
     }
+}
+
+#[tokio::test]
+async fn a_move_whose_destination_refuses_some_instances_ends_in_a_warning_with_the_rest_delivered()
+{
+    if !dcmtk_present() {
+        return;
+    }
+    // The destination: another DICOM node that refuses instances over 6000 bytes (Out of Resources).
+    let dest_dir = tempfile::tempdir().unwrap();
+    let dest = ctrecon::dimse::DicomNode::start(
+        &ctrecon::dimse::NodeSettings {
+            ae_title: "SMALL".into(),
+            port: Some(0),
+            peers: vec![peer("CTRECON", 1, true, false)],
+            stable_age_secs: 3600,
+            max_instance_bytes: 6000,
+            ..Default::default()
+        },
+        dest_dir.path(),
+    )
+    .await
+    .unwrap();
+    let (app, port) = spawn(
+        vec![
+            peer("TESTSCU", 1, true, true),
+            peer("SMALL", dest.local_addr().port(), false, false),
+        ],
+        1,
+    )
+    .await;
+    // One study: a series of 3 small slices (24 × 20) and one of 2 large ones (64 × 64).
+    let src = tempfile::tempdir().unwrap();
+    let small = write_series(&src.path().join("s"), (3, 20, 24), None, "PAT-S", &[]).await;
+    let large = write_series(
+        &src.path().join("l"),
+        (2, 64, 64),
+        Some(small.study_uid.clone()),
+        "PAT-S",
+        &[],
+    )
+    .await;
+    assert_eq!(large.study_uid, small.study_uid);
+    let size = |w: &Written| std::fs::metadata(&w.files[0]).unwrap().len();
+    assert!(
+        size(&small) < 5000 && size(&large) > 8000,
+        "{} {}",
+        size(&small),
+        size(&large)
+    );
+    storescu(port, src.path()).await;
+    wait_indexed(port, &small.study_uid, &small.series_uid, 3).await;
+    wait_indexed(port, &large.study_uid, &large.series_uid, 2).await;
+
+    // Debug output (-d) dumps each response, the failed SOP Instance UID list included.
+    let study_key = format!("StudyInstanceUID={}", small.study_uid);
+    let out = run(
+        "movescu",
+        &args(&[
+            "-S",
+            "-d",
+            "-aet",
+            "TESTSCU",
+            "-aem",
+            "SMALL",
+            "-aec",
+            "CTRECON",
+            "-k",
+            "QueryRetrieveLevel=STUDY",
+            "-k",
+            &study_key,
+            "127.0.0.1",
+            &port.to_string(),
+        ]),
+        None,
+    )
+    .await;
+    let log = text(&out);
+    assert_eq!(log.matches("Received Move Response").count(), 4, "{log}");
+    assert!(
+        says(&out, &["suboperationscompleteoneormorefailures", "0xb000"]),
+        "{log}"
+    );
+    let failed_list = log
+        .lines()
+        .find(|l| l.contains("(0008,0058)"))
+        .unwrap_or_else(|| panic!("no Failed SOP Instance UID List in {log}"));
+    for uid in &large.sop_uids {
+        assert!(
+            failed_list.contains(uid.as_str()),
+            "{uid} not in {failed_list}"
+        );
+    }
+    for uid in &small.sop_uids {
+        assert!(
+            !failed_list.contains(uid.as_str()),
+            "{uid} in {failed_list}"
+        );
+    }
+    // The small instances arrived, the large ones did not.
+    assert_eq!(dest.arriving(), vec![(small.series_uid.clone(), 3)]);
+    drop(app);
 }
