@@ -940,3 +940,175 @@ async fn a_move_whose_destination_refuses_some_instances_ends_in_a_warning_with_
     assert_eq!(dest.arriving(), vec![(small.series_uid.clone(), 3)]);
     drop(app);
 }
+
+fn orthanc_present() -> bool {
+    let ok = Path::new("/usr/sbin/Orthanc").exists();
+    if !ok {
+        assert!(
+            std::env::var("CTRECON_REQUIRE_PEERS").as_deref() != Ok("1"),
+            "Orthanc is missing and CTRECON_REQUIRE_PEERS=1"
+        );
+        eprintln!("skipped: Orthanc is not installed (apt-get install orthanc)");
+    }
+    ok
+}
+
+fn element(tag: u32, vr: &str, value: &str) -> ctrecon::dicom::IdentifierElement {
+    ctrecon::dicom::IdentifierElement {
+        tag,
+        vr: vr.into(),
+        value: value.into(),
+    }
+}
+
+#[tokio::test]
+async fn ctrecon_finds_a_series_on_orthanc_and_moves_it_into_its_own_index() {
+    if !dcmtk_present() || !orthanc_present() {
+        return;
+    }
+    let t = tempfile::tempdir().unwrap();
+    let (node_port, http_port, dicom_port) = (free_port(), free_port(), free_port());
+    let config = serde_json::json!({
+        "Name": "TEST-ORTHANC",
+        "StorageDirectory": t.path().join("db"), "IndexDirectory": t.path().join("db"),
+        "HttpPort": http_port, "RemoteAccessAllowed": false, "AuthenticationEnabled": false,
+        "DicomServerEnabled": true, "DicomAet": "ORTHANC", "DicomPort": dicom_port,
+        "DicomCheckCalledAet": false, "DicomAlwaysAllowStore": true, "DicomAlwaysAllowEcho": true,
+        "DicomCheckModalityHost": false,
+        "DicomModalities": { "CTRECON": [ "CTRECON", "127.0.0.1", node_port ] }
+    });
+    let config_path = t.path().join("orthanc.json");
+    std::fs::write(&config_path, config.to_string()).unwrap();
+    std::fs::create_dir_all(t.path().join("logs")).unwrap();
+    let _orthanc = Running(
+        std::process::Command::new("/usr/sbin/Orthanc")
+            .arg(format!("--logdir={}", t.path().join("logs").display()))
+            .arg(&config_path)
+            .env("TCP_NODELAY", "1")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    let rest = format!("http://127.0.0.1:{http_port}");
+    let client = reqwest::Client::new();
+    let mut ready = false;
+    for _ in 0..200 {
+        if client
+            .get(format!("{rest}/system"))
+            .send()
+            .await
+            .is_ok_and(|r| r.status() == 200)
+        {
+            ready = true;
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    }
+    assert!(ready, "Orthanc answers within 10 s");
+    let orthanc = Peer {
+        ae_title: "ORTHANC".into(),
+        host: "127.0.0.1".into(),
+        port: dicom_port,
+        store: true,
+        query: true,
+        retrieve: true,
+    };
+    let app = common::spawn_app_with(|s| {
+        s.dicom.port = Some(node_port);
+        s.dicom.stable_age_secs = 1;
+        s.dicom.peers = vec![orthanc.clone(), peer("TESTSCU", 1, true, true)];
+    })
+    .await;
+    // Orthanc holds a series (uploaded over its REST API); ctrecon does not.
+    let src = tempfile::tempdir().unwrap();
+    let a = write_study(
+        &src.path().join("a"),
+        4,
+        "PAT-O",
+        &[("StudyDate", "20230303")],
+    )
+    .await;
+    for f in &a.files {
+        let r = client
+            .post(format!("{rest}/instances"))
+            .body(std::fs::read(f).unwrap())
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200);
+    }
+    let caller = ctrecon::dimse::scu::Caller {
+        ae_title: "CTRECON".into(),
+        timeout: Duration::from_secs(10),
+        max_pdu_length: 65_536,
+    };
+    let keys = [
+        element(0x0008_0052, "CS", "SERIES"),
+        element(0x0008_0060, "CS", ""),
+        element(STUDY_UID, "UI", ""),
+        element(SERIES_UID, "UI", &a.series_uid),
+        element(0x0020_1209, "IS", ""),
+    ];
+    let found = ctrecon::dimse::pull::find(&caller, &orthanc, &keys)
+        .await
+        .unwrap();
+    assert_eq!(found.len(), 1, "{found:?}");
+    let value = |tag: u32| {
+        found[0]
+            .iter()
+            .find(|e| e.tag == tag)
+            .map(|e| e.value.clone())
+            .unwrap_or_default()
+    };
+    assert_eq!(value(STUDY_UID), a.study_uid);
+    assert_eq!(value(0x0008_0060), "CT");
+    assert_eq!(value(0x0020_1209), "4");
+
+    let moved = ctrecon::dimse::pull::retrieve(
+        &caller,
+        &orthanc,
+        "CTRECON",
+        &[
+            element(0x0008_0052, "CS", "SERIES"),
+            element(STUDY_UID, "UI", &a.study_uid),
+            element(SERIES_UID, "UI", &a.series_uid),
+        ],
+    )
+    .await
+    .unwrap();
+    assert_eq!(moved.status, 0, "{moved:?}");
+    assert_eq!(
+        (moved.sub_operations.completed, moved.sub_operations.failed),
+        (4, 0)
+    );
+    // The series arrived by C-STORE from Orthanc, was assembled and indexed: ctrecon now answers it.
+    wait_indexed(node_port, &a.study_uid, &a.series_uid, 4).await;
+    let (_, images) = findscu(
+        node_port,
+        "TESTSCU",
+        &[
+            "QueryRetrieveLevel=IMAGE",
+            &format!("SeriesInstanceUID={}", a.series_uid),
+            "SOPInstanceUID",
+        ],
+    )
+    .await;
+    let uids: BTreeSet<String> = images.iter().map(|i| i[&SOP_UID].clone()).collect();
+    assert_eq!(uids, a.sop_uids);
+    // An unknown destination: Orthanc 1.10 refuses the move with C000 (unable to process), reported as
+    // the outcome's status.
+    let refused = ctrecon::dimse::pull::retrieve(
+        &caller,
+        &orthanc,
+        "NOBODY",
+        &[
+            element(0x0008_0052, "CS", "SERIES"),
+            element(STUDY_UID, "UI", &a.study_uid),
+            element(SERIES_UID, "UI", &a.series_uid),
+        ],
+    )
+    .await;
+    assert_eq!(refused.map(|m| m.status).ok(), Some(0xC000));
+    drop(app);
+}

@@ -65,6 +65,8 @@ pub struct Command {
     pub move_destination: Option<String>,
     /// Message ID Being Responded To (0000,0120) of a C-CANCEL request (or of a response).
     pub responded_to: Option<u16>,
+    /// Sub-operation counts of a C-MOVE response (remaining absent from a final one).
+    pub sub_operations: Option<SubOperations>,
 }
 
 /// Why a command set could not be read.
@@ -106,6 +108,14 @@ pub fn parse(bytes: &[u8]) -> Result<Command, CommandError> {
         error_comment: text(&obj, tags::ERROR_COMMENT),
         move_destination: text(&obj, tags::MOVE_DESTINATION),
         responded_to: uint(&obj, tags::MESSAGE_ID_BEING_RESPONDED_TO),
+        sub_operations: uint(&obj, tags::NUMBER_OF_COMPLETED_SUBOPERATIONS).map(|completed| {
+            SubOperations {
+                remaining: uint(&obj, tags::NUMBER_OF_REMAINING_SUBOPERATIONS).unwrap_or(0),
+                completed,
+                failed: uint(&obj, tags::NUMBER_OF_FAILED_SUBOPERATIONS).unwrap_or(0),
+                warning: uint(&obj, tags::NUMBER_OF_WARNING_SUBOPERATIONS).unwrap_or(0),
+            }
+        }),
     })
 }
 
@@ -211,6 +221,29 @@ pub fn store_response(
         ));
     }
     encode(e)
+}
+
+/// C-FIND-RQ (medium priority); the identifier follows.
+pub fn find_request(message_id: u16, sop_class_uid: &str) -> Vec<u8> {
+    encode(vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_FIND_RQ),
+        us(tags::MESSAGE_ID, message_id),
+        us(tags::PRIORITY, 0),
+        us(tags::COMMAND_DATA_SET_TYPE, 0x0000),
+    ])
+}
+
+/// C-MOVE-RQ (medium priority) to `destination`; the identifier follows.
+pub fn move_request(message_id: u16, sop_class_uid: &str, destination: &str) -> Vec<u8> {
+    encode(vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_MOVE_RQ),
+        us(tags::MESSAGE_ID, message_id),
+        ae(tags::MOVE_DESTINATION, destination),
+        us(tags::PRIORITY, 0),
+        us(tags::COMMAND_DATA_SET_TYPE, 0x0000),
+    ])
 }
 
 /// C-FIND-RSP: `pending` says whether an identifier follows (a match) or this is the final response.

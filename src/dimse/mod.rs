@@ -12,13 +12,15 @@
 //! - [`command`]: DIMSE command sets;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
 //! - [`node`]: the listener; [`association`]: one association; [`query`]: C-FIND and C-MOVE over the
-//!   application's instance index; [`scu`]: ctrecon calling a peer.
+//!   application's instance index; [`scu`]: ctrecon calling a peer; [`pull`]: ctrecon querying and
+//!   retrieving from a peer.
 
 pub mod association;
 pub mod command;
 pub mod feed;
 pub mod inbox;
 pub mod node;
+pub mod pull;
 pub mod query;
 pub mod scu;
 pub mod tracker;

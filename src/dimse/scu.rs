@@ -52,13 +52,13 @@ impl StoreOutcome {
     }
 }
 
-type Assoc = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
+pub(super) type Assoc = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
 
 fn address(peer: &Peer) -> String {
     format!("{}:{}", peer.host, peer.port)
 }
 
-async fn timed<T, E: std::fmt::Display>(
+pub(super) async fn timed<T, E: std::fmt::Display>(
     peer: &Peer,
     limit: Duration,
     f: impl std::future::Future<Output = Result<T, E>>,
@@ -74,7 +74,7 @@ async fn timed<T, E: std::fmt::Display>(
     }
 }
 
-async fn associate(
+pub(super) async fn associate(
     caller: &Caller,
     peer: &Peer,
     contexts: &[(String, Vec<String>)],
@@ -145,7 +145,7 @@ async fn response(
     }
 }
 
-async fn send_command(
+pub(super) async fn send_command(
     assoc: &mut Assoc,
     peer: &Peer,
     context: u8,
