@@ -35,8 +35,8 @@ const SPECIFIC_CHARACTER_SET: u32 = 0x0008_0005;
 const RETRIEVE_AE_TITLE: u32 = 0x0008_0054;
 const FAILED_SOP_INSTANCE_UID_LIST: u32 = 0x0008_0058;
 
-/// What C-FIND and C-MOVE need: the application (its index), ctrecon as a caller, the peers it may send
-/// to, and its own AE title.
+/// What C-FIND and C-MOVE need: the application (its index), ctrecon as the caller of sub-associations
+/// (its AE title is also the Retrieve AE Title answered), and the peers it may send to.
 #[derive(Clone)]
 pub struct Retrieval {
     pub app: App,
