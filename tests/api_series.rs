@@ -492,7 +492,17 @@ async fn hostile_uploads_get_clear_errors_and_nothing_is_written_outside_the_dat
         .filter(|n| !n.starts_with("ctrecon.sqlite"))
         .collect();
     names.sort();
-    assert_eq!(names, ["datasets", "results", "series", "tmp", "uploads"]);
+    assert_eq!(
+        names,
+        [
+            "datasets",
+            "instances",
+            "results",
+            "series",
+            "tmp",
+            "uploads"
+        ]
+    );
     assert_eq!(
         std::fs::read_dir(app.dir.path().join("tmp"))
             .unwrap()

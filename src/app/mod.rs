@@ -7,7 +7,10 @@
 
 pub mod error;
 pub mod idempotency;
+pub mod instances;
 pub mod jobs;
+pub mod matching;
+pub mod query;
 pub mod series;
 
 use std::time::Duration;
@@ -90,13 +93,18 @@ impl App {
             },
         )
         .await?;
-        Ok(Self {
+        let app = Self {
             db,
             store,
             engine,
             settings,
             retention,
-        })
+        };
+        match app.sweep_instances().await {
+            Ok(n) => tracing::info!(removed = n, "instance folders paired with their rows"),
+            Err(e) => tracing::warn!(error = %e, "pairing instance folders with their rows failed"),
+        }
+        Ok(app)
     }
 
     /// Start the periodic retention sweep; it ends when `shutdown` turns true.

@@ -60,6 +60,11 @@ pub struct InstanceHeader {
     pub image_type: Vec<String>,
     pub slice_thickness_mm: Option<f64>,
     pub frame_of_reference_uid: Option<String>,
+    pub patient_birth_date: Option<String>,
+    pub patient_sex: Option<String>,
+    pub study_time: Option<String>,
+    pub referring_physician: Option<String>,
+    pub study_id: Option<String>,
 }
 
 /// Whether `uid` is a well-formed DICOM UID: 1 to 64 characters of digits and dots, no empty component, no
@@ -149,6 +154,11 @@ pub fn header_of(label: &str, bytes: &[u8]) -> Result<InstanceHeader, DicomError
         image_type,
         slice_thickness_mm: float(&obj, tags::SLICE_THICKNESS),
         frame_of_reference_uid: text(&obj, tags::FRAME_OF_REFERENCE_UID),
+        patient_birth_date: text(&obj, tags::PATIENT_BIRTH_DATE),
+        patient_sex: text(&obj, tags::PATIENT_SEX),
+        study_time: text(&obj, tags::STUDY_TIME),
+        referring_physician: text(&obj, tags::REFERRING_PHYSICIAN_NAME),
+        study_id: text(&obj, tags::STUDY_ID),
     })
 }
 

@@ -12,11 +12,14 @@
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
 //!   file), [`write_secondary_capture`] (a 2D image), [`write_secondary_capture_rgb`] (rendered RGB frames), [`write_encapsulated_stl`] and [`write_zip`].
 //!
+//! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
+//!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
 mod error;
 mod framing;
 mod header;
+mod identifier;
 mod jpeg;
 mod jpeg_ls;
 mod read;
@@ -30,6 +33,7 @@ pub use header::{
     IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
     decodable_transfer_syntaxes, header_of, is_valid_uid, part10_prefix, read_header, read_part10,
 };
+pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{

@@ -1,5 +1,6 @@
 //! One association accepted by the node: C-ECHO and C-STORE, each instance streamed to a temporary file as
-//! its fragments arrive, checked, then filed in its series (or refused with a DIMSE status, leaving nothing).
+//! its fragments arrive, checked, then filed in its series (or refused with a DIMSE status, leaving nothing);
+//! C-FIND and C-MOVE handed to [`super::query`] once their identifier arrived.
 
 use std::sync::Arc;
 
@@ -9,6 +10,7 @@ use tokio::net::TcpStream;
 
 use super::command::{self, Command, status};
 use super::inbox::{InstanceSink, SinkError};
+use super::query::{self, Retrieval};
 use super::tracker::{Arrival, Tracker};
 use crate::dicom::{part10_prefix, read_header};
 
@@ -17,6 +19,8 @@ use crate::dicom::{part10_prefix, read_header};
 pub struct Grant {
     pub calling_ae: String,
     pub may_store: bool,
+    pub may_query: bool,
+    pub may_retrieve: bool,
     pub max_instance_bytes: u64,
     pub dimse_timeout: std::time::Duration,
 }
@@ -28,6 +32,8 @@ struct Pending {
     /// `None` once the instance was refused: its remaining fragments are read and dropped.
     sink: Option<InstanceSink>,
     refusal: Option<(u16, String)>,
+    /// The identifier of a C-FIND or C-MOVE request, as it arrives.
+    identifier: Option<Vec<u8>>,
 }
 
 /// Why an association ended other than by release.
@@ -48,6 +54,7 @@ pub async fn serve(
     mut assoc: AsyncServerAssociation<TcpStream>,
     grant: Grant,
     tracker: Arc<Tracker>,
+    retrieval: Option<Retrieval>,
 ) -> Result<usize, AssociationEnd> {
     let mut command_bytes: Vec<u8> = Vec::new();
     let mut pending: Option<Pending> = None;
@@ -77,7 +84,15 @@ pub async fn serve(
                             .await
                         }
                         PDataValueType::Data => {
-                            on_data(&mut assoc, &grant, &tracker, value, &mut pending).await
+                            on_data(
+                                &mut assoc,
+                                &grant,
+                                &tracker,
+                                retrieval.as_ref(),
+                                value,
+                                &mut pending,
+                            )
+                            .await
                         }
                     };
                     match step {
@@ -218,8 +233,21 @@ async fn on_command(
                 context_id: value.presentation_context_id,
                 sink,
                 refusal,
+                identifier: None,
             });
         }
+        command::C_FIND_RQ | command::C_MOVE_RQ if cmd.has_data_set => {
+            *pending = Some(Pending {
+                command: cmd,
+                context_id: value.presentation_context_id,
+                sink: None,
+                refusal: None,
+                identifier: Some(Vec::new()),
+            });
+        }
+        // Matches and sub-operations are answered before the next request is read, so a cancel always
+        // comes after the operation ended: there is nothing left to cancel, and a cancel has no response.
+        command::C_CANCEL_RQ => {}
         _ => {
             reply(
                 assoc,
@@ -237,6 +265,7 @@ async fn on_data(
     assoc: &mut AsyncServerAssociation<TcpStream>,
     grant: &Grant,
     tracker: &Arc<Tracker>,
+    retrieval: Option<&Retrieval>,
     value: PDataValue,
     pending: &mut Option<Pending>,
 ) -> Result<bool, AssociationEnd> {
@@ -249,6 +278,26 @@ async fn on_data(
         return Err(AssociationEnd::Protocol(
             "a data set fragment on another presentation context".into(),
         ));
+    }
+    if let Some(buf) = p.identifier.as_mut() {
+        if buf.len() + value.data.len() > crate::dicom::MAX_IDENTIFIER_BYTES {
+            return Err(AssociationEnd::Protocol("identifier too long".into()));
+        }
+        buf.extend_from_slice(&value.data);
+        if !value.is_last {
+            return Ok(false);
+        }
+        let Some(Pending {
+            command: cmd,
+            context_id,
+            identifier: Some(bytes),
+            ..
+        }) = pending.take()
+        else {
+            return Ok(false);
+        };
+        on_query(assoc, grant, retrieval, cmd, context_id, bytes).await?;
+        return Ok(false);
     }
     if let Some(sink) = p.sink.as_mut()
         && let Err(e) = sink.write(&value.data).await
@@ -273,6 +322,7 @@ async fn on_data(
         context_id,
         sink,
         refusal,
+        ..
     }) = pending.take()
     else {
         return Ok(false);
@@ -299,6 +349,36 @@ async fn on_data(
     )
     .await?;
     Ok(code == status::SUCCESS)
+}
+
+/// Run a C-FIND or C-MOVE whose identifier arrived whole.
+async fn on_query(
+    assoc: &mut AsyncServerAssociation<TcpStream>,
+    grant: &Grant,
+    retrieval: Option<&Retrieval>,
+    cmd: Command,
+    context_id: u8,
+    identifier: Vec<u8>,
+) -> Result<(), AssociationEnd> {
+    let context = assoc
+        .presentation_contexts()
+        .iter()
+        .find(|pc| pc.id == context_id)
+        .cloned()
+        .ok_or_else(|| AssociationEnd::Protocol("unknown presentation context".into()))?;
+    let Some(retrieval) = retrieval else {
+        return reply(assoc, context_id, command::unrecognized_response(&cmd)).await;
+    };
+    use tracing::Instrument as _;
+    if cmd.field == command::C_FIND_RQ {
+        query::find(assoc, grant, retrieval, &cmd, &context, &identifier)
+            .instrument(tracing::info_span!("c_find"))
+            .await
+    } else {
+        query::move_instances(assoc, grant, retrieval, &cmd, &context, &identifier)
+            .instrument(tracing::info_span!("c_move"))
+            .await
+    }
 }
 
 /// Check a received instance and file it in its series: (status, reason).

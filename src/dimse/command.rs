@@ -9,7 +9,9 @@ use dicom_transfer_syntax_registry::entries::IMPLICIT_VR_LITTLE_ENDIAN;
 pub const C_STORE_RQ: u16 = 0x0001;
 pub const C_STORE_RSP: u16 = 0x8001;
 pub const C_FIND_RQ: u16 = 0x0020;
+pub const C_FIND_RSP: u16 = 0x8020;
 pub const C_MOVE_RQ: u16 = 0x0021;
+pub const C_MOVE_RSP: u16 = 0x8021;
 pub const C_ECHO_RQ: u16 = 0x0030;
 pub const C_ECHO_RSP: u16 = 0x8030;
 pub const C_CANCEL_RQ: u16 = 0x0FFF;
@@ -32,6 +34,16 @@ pub mod status {
     pub const CANNOT_UNDERSTAND: u16 = 0xC000;
     /// Unrecognized operation.
     pub const UNRECOGNIZED_OPERATION: u16 = 0x0211;
+    /// Pending: matches or sub-operations are continuing.
+    pub const PENDING: u16 = 0xFF00;
+    /// Cancel: matching or sub-operations were terminated by a C-CANCEL.
+    pub const CANCEL: u16 = 0xFE00;
+    /// C-MOVE refused: move destination unknown.
+    pub const MOVE_DESTINATION_UNKNOWN: u16 = 0xA801;
+    /// C-MOVE refused: out of resources, unable to perform sub-operations.
+    pub const SUB_OPERATIONS_IMPOSSIBLE: u16 = 0xA702;
+    /// Warning: sub-operations complete, one or more failures.
+    pub const SUB_OPERATIONS_FAILED: u16 = 0xB000;
 }
 
 /// The largest command set ctrecon reads (bytes); real ones are a few hundred.
@@ -49,6 +61,12 @@ pub struct Command {
     /// Status of a response.
     pub status: Option<u16>,
     pub error_comment: Option<String>,
+    /// Move Destination (0000,0600) of a C-MOVE request.
+    pub move_destination: Option<String>,
+    /// Message ID Being Responded To (0000,0120) of a C-CANCEL request (or of a response).
+    pub responded_to: Option<u16>,
+    /// Sub-operation counts of a C-MOVE response (remaining absent from a final one).
+    pub sub_operations: Option<SubOperations>,
 }
 
 /// Why a command set could not be read.
@@ -88,6 +106,16 @@ pub fn parse(bytes: &[u8]) -> Result<Command, CommandError> {
         has_data_set: data_set_type != NO_DATA_SET,
         status: uint(&obj, tags::STATUS),
         error_comment: text(&obj, tags::ERROR_COMMENT),
+        move_destination: text(&obj, tags::MOVE_DESTINATION),
+        responded_to: uint(&obj, tags::MESSAGE_ID_BEING_RESPONDED_TO),
+        sub_operations: uint(&obj, tags::NUMBER_OF_COMPLETED_SUBOPERATIONS).map(|completed| {
+            SubOperations {
+                remaining: uint(&obj, tags::NUMBER_OF_REMAINING_SUBOPERATIONS).unwrap_or(0),
+                completed,
+                failed: uint(&obj, tags::NUMBER_OF_FAILED_SUBOPERATIONS).unwrap_or(0),
+                warning: uint(&obj, tags::NUMBER_OF_WARNING_SUBOPERATIONS).unwrap_or(0),
+            }
+        }),
     })
 }
 
@@ -193,6 +221,105 @@ pub fn store_response(
         ));
     }
     encode(e)
+}
+
+/// C-FIND-RQ (medium priority); the identifier follows.
+pub fn find_request(message_id: u16, sop_class_uid: &str) -> Vec<u8> {
+    encode(vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_FIND_RQ),
+        us(tags::MESSAGE_ID, message_id),
+        us(tags::PRIORITY, 0),
+        us(tags::COMMAND_DATA_SET_TYPE, 0x0000),
+    ])
+}
+
+/// C-MOVE-RQ (medium priority) to `destination`; the identifier follows.
+pub fn move_request(message_id: u16, sop_class_uid: &str, destination: &str) -> Vec<u8> {
+    encode(vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_MOVE_RQ),
+        us(tags::MESSAGE_ID, message_id),
+        ae(tags::MOVE_DESTINATION, destination),
+        us(tags::PRIORITY, 0),
+        us(tags::COMMAND_DATA_SET_TYPE, 0x0000),
+    ])
+}
+
+/// C-FIND-RSP: `pending` says whether an identifier follows (a match) or this is the final response.
+pub fn find_response(
+    message_id: u16,
+    sop_class_uid: &str,
+    status: u16,
+    comment: Option<&str>,
+) -> Vec<u8> {
+    let with_data = status == status::PENDING || status == 0xFF01;
+    let mut e = vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_FIND_RSP),
+        us(tags::MESSAGE_ID_BEING_RESPONDED_TO, message_id),
+        us(
+            tags::COMMAND_DATA_SET_TYPE,
+            if with_data { 0x0000 } else { NO_DATA_SET },
+        ),
+        us(tags::STATUS, status),
+    ];
+    e.extend(error_comment(comment));
+    encode(e)
+}
+
+/// Sub-operation counts of a C-MOVE response.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct SubOperations {
+    pub remaining: u16,
+    pub completed: u16,
+    pub failed: u16,
+    pub warning: u16,
+}
+
+/// C-MOVE-RSP; `with_identifier` when a data set (the Failed SOP Instance UID List) follows.
+pub fn move_response(
+    message_id: u16,
+    sop_class_uid: &str,
+    status: u16,
+    counts: Option<SubOperations>,
+    with_identifier: bool,
+    comment: Option<&str>,
+) -> Vec<u8> {
+    let mut e = vec![
+        ui(tags::AFFECTED_SOP_CLASS_UID, sop_class_uid),
+        us(tags::COMMAND_FIELD, C_MOVE_RSP),
+        us(tags::MESSAGE_ID_BEING_RESPONDED_TO, message_id),
+        us(
+            tags::COMMAND_DATA_SET_TYPE,
+            if with_identifier { 0x0000 } else { NO_DATA_SET },
+        ),
+        us(tags::STATUS, status),
+    ];
+    if let Some(c) = counts {
+        if status == status::PENDING {
+            e.push(us(tags::NUMBER_OF_REMAINING_SUBOPERATIONS, c.remaining));
+        }
+        e.push(us(tags::NUMBER_OF_COMPLETED_SUBOPERATIONS, c.completed));
+        e.push(us(tags::NUMBER_OF_FAILED_SUBOPERATIONS, c.failed));
+        e.push(us(tags::NUMBER_OF_WARNING_SUBOPERATIONS, c.warning));
+    }
+    e.extend(error_comment(comment));
+    encode(e)
+}
+
+fn error_comment(comment: Option<&str>) -> Option<DataElement<InMemDicomObject>> {
+    let c: String = comment?
+        .chars()
+        .filter(|c| !c.is_control())
+        .take(64)
+        .collect();
+    let c = if c.len() % 2 == 1 { c + " " } else { c };
+    Some(DataElement::new(
+        tags::ERROR_COMMENT,
+        VR::LO,
+        PrimitiveValue::from(c),
+    ))
 }
 
 /// Response to a request ctrecon does not perform.

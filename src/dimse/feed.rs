@@ -1,5 +1,6 @@
 //! The node as a front door of the application: every series it completes is assembled and recorded
-//! through [`App::ingest_received`], exactly like an uploaded one.
+//! through [`App::ingest_received`], exactly like an uploaded one, and its instances are kept in the
+//! instance index ([`App::index_received`]) that C-FIND and C-MOVE answer from.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -17,7 +18,13 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
     if app.settings.dicom.port.is_none() {
         return Ok(None);
     }
-    let mut node = DicomNode::start(&app.settings.dicom, &app.settings.data_dir).await?;
+    let mut node = DicomNode::start_with(
+        &app.settings.dicom,
+        &app.settings.data_dir,
+        Some(app.clone()),
+    )
+    .await?;
+    app.spawn_result_indexer();
     let addr = node.local_addr();
     tokio::spawn(async move {
         while let Some(done) = node.next_completed().await {
@@ -65,10 +72,15 @@ async fn assemble(app: &App, done: CompletedSeries) {
             return;
         }
     };
+    let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
     let keep = match app.ingest_received(files, done.bytes).await {
         Ok(r) => {
             let ready = r.ingested.ready().count();
             tracing::info!(upload_id = %r.upload_id, series_uid = %done.series_uid, instances = done.instances, ready, refused = r.ingested.series.len() - ready, "received series recorded");
+            let records: Vec<_> = r.ingested.ready().cloned().collect();
+            if let Err(e) = app.index_received(r.upload_id, paths, &records).await {
+                tracing::error!(upload_id = %r.upload_id, error = %e, "received instances not indexed");
+            }
             false
         }
         Err(AppError::Refused(p)) => {

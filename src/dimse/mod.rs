@@ -1,4 +1,5 @@
-//! The DICOM node: ctrecon as a DIMSE service class provider (C-ECHO, C-STORE) beside the HTTP API.
+//! The DICOM node: ctrecon as a DIMSE service class provider (C-ECHO, C-STORE, C-FIND, C-MOVE) beside the
+//! HTTP API.
 //!
 //! A front door like the HTTP routes: it receives instances over DICOM upper-layer associations
 //! (`dicom-ul`), streams each to disk as its fragments arrive, checks it with the same hardened reader as
@@ -10,13 +11,17 @@
 //!   settings in [`crate::config`];
 //! - [`command`]: DIMSE command sets;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
-//! - [`node`]: the listener; [`association`]: one association; [`scu`]: ctrecon calling a peer.
+//! - [`node`]: the listener; [`association`]: one association; [`query`]: C-FIND and C-MOVE over the
+//!   application's instance index; [`scu`]: ctrecon calling a peer; [`pull`]: ctrecon querying and
+//!   retrieving from a peer.
 
 pub mod association;
 pub mod command;
 pub mod feed;
 pub mod inbox;
 pub mod node;
+pub mod pull;
+pub mod query;
 pub mod scu;
 pub mod tracker;
 

@@ -20,6 +20,8 @@ use tracing::Instrument as _;
 use super::association::{self, Grant};
 use super::command::VERIFICATION;
 use super::inbox::Inbox;
+use super::query::{QUERY_RETRIEVE_SOP_CLASSES, Retrieval};
+use super::scu::Caller;
 use super::tracker::{CompletedSeries, Tracker, count};
 use crate::config::dicom::NodeSettings;
 use crate::dicom::{STORABLE_SOP_CLASSES, decodable_transfer_syntaxes};
@@ -127,10 +129,19 @@ fn same_host(a: IpAddr, b: IpAddr) -> bool {
 
 impl DicomNode {
     /// Start the node described by `settings` (its `port` must be set), keeping instances under
-    /// `data_dir/dimse/`.
+    /// `data_dir/dimse/`; C-ECHO and C-STORE only.
     pub async fn start(
         settings: &NodeSettings,
         data_dir: &std::path::Path,
+    ) -> Result<Self, NodeError> {
+        Self::start_with(settings, data_dir, None).await
+    }
+
+    /// [`start`](Self::start), also providing C-FIND and C-MOVE over `app`'s instance index when given.
+    pub async fn start_with(
+        settings: &NodeSettings,
+        data_dir: &std::path::Path,
+        app: Option<crate::app::App>,
     ) -> Result<Self, NodeError> {
         if let Some(p) = settings.problem() {
             return Err(NodeError::Settings(p));
@@ -157,10 +168,20 @@ impl DicomNode {
         }
         let (stop, stopped) = watch::channel(false);
         let peers = Arc::new(Peers::resolve(settings.clone()).await);
+        let retrieval = app.map(|app| Retrieval {
+            app,
+            caller: Caller {
+                ae_title: settings.ae_title.clone(),
+                timeout: settings.dimse_timeout(),
+                max_pdu_length: settings.max_pdu_length,
+            },
+            peers: settings.peers.clone(),
+        });
         tokio::spawn(accept_loop(
             listener,
             peers,
             tracker.clone(),
+            retrieval,
             stopped.clone(),
         ));
         tokio::spawn(seal_loop(
@@ -224,6 +245,7 @@ async fn accept_loop(
     listener: TcpListener,
     peers: Arc<Peers>,
     tracker: Arc<Tracker>,
+    retrieval: Option<Retrieval>,
     mut stopped: watch::Receiver<bool>,
 ) {
     let slots = Arc::new(Semaphore::new(peers.settings.max_associations));
@@ -244,11 +266,11 @@ async fn accept_loop(
             tokio::spawn(reject_busy(socket));
             continue;
         };
-        let (peers, tracker) = (peers.clone(), tracker.clone());
+        let (peers, tracker, retrieval) = (peers.clone(), tracker.clone(), retrieval.clone());
         let span = tracing::info_span!("association", %remote);
         tokio::spawn(
             async move {
-                handle(socket, remote, &peers, tracker).await;
+                handle(socket, remote, &peers, tracker, retrieval).await;
                 drop(slot);
             }
             .instrument(span),
@@ -271,7 +293,13 @@ async fn reject_busy(mut socket: TcpStream) {
     tracing::warn!("association refused: too many at once");
 }
 
-async fn handle(socket: TcpStream, remote: SocketAddr, peers: &Peers, tracker: Arc<Tracker>) {
+async fn handle(
+    socket: TcpStream,
+    remote: SocketAddr,
+    peers: &Peers,
+    tracker: Arc<Tracker>,
+    retrieval: Option<Retrieval>,
+) {
     let s = &peers.settings;
     let mut options = ServerAssociationOptions::new()
         .ae_access_control(Gate {
@@ -284,6 +312,11 @@ async fn handle(socket: TcpStream, remote: SocketAddr, peers: &Peers, tracker: A
         .with_abstract_syntax(VERIFICATION);
     for uid in STORABLE_SOP_CLASSES {
         options = options.with_abstract_syntax(*uid);
+    }
+    if retrieval.is_some() {
+        for uid in QUERY_RETRIEVE_SOP_CLASSES {
+            options = options.with_abstract_syntax(*uid);
+        }
     }
     for ts in decodable_transfer_syntaxes() {
         options = options.with_transfer_syntax(ts);
@@ -302,15 +335,19 @@ async fn handle(socket: TcpStream, remote: SocketAddr, peers: &Peers, tracker: A
         }
     };
     let calling_ae = assoc.peer_ae_title().trim().to_string();
-    let may_store = s.peers.is_empty() || s.peer(&calling_ae).is_some_and(|p| p.store);
+    let may = |f: fn(&crate::config::dicom::Peer) -> bool| {
+        s.peers.is_empty() || s.peer(&calling_ae).is_some_and(f)
+    };
     let grant = Grant {
         calling_ae: calling_ae.clone(),
-        may_store,
+        may_store: may(|p| p.store),
+        may_query: may(|p| p.query),
+        may_retrieve: may(|p| p.retrieve),
         max_instance_bytes: s.max_instance_bytes,
         dimse_timeout: s.dimse_timeout(),
     };
     tracing::info!(%remote, calling_ae = %calling_ae, "association accepted");
-    match association::serve(assoc, grant, tracker).await {
+    match association::serve(assoc, grant, tracker, retrieval).await {
         Ok(stored) => {
             tracing::info!(%remote, calling_ae = %calling_ae, stored, "association released")
         }

@@ -52,13 +52,13 @@ impl StoreOutcome {
     }
 }
 
-type Assoc = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
+pub(super) type Assoc = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
 
 fn address(peer: &Peer) -> String {
     format!("{}:{}", peer.host, peer.port)
 }
 
-async fn timed<T, E: std::fmt::Display>(
+pub(super) async fn timed<T, E: std::fmt::Display>(
     peer: &Peer,
     limit: Duration,
     f: impl std::future::Future<Output = Result<T, E>>,
@@ -74,7 +74,7 @@ async fn timed<T, E: std::fmt::Display>(
     }
 }
 
-async fn associate(
+pub(super) async fn associate(
     caller: &Caller,
     peer: &Peer,
     contexts: &[(String, Vec<String>)],
@@ -145,7 +145,7 @@ async fn response(
     }
 }
 
-async fn send_command(
+pub(super) async fn send_command(
     assoc: &mut Assoc,
     peer: &Peer,
     context: u8,
@@ -197,6 +197,33 @@ pub async fn store(
     peer: &Peer,
     files: &[PathBuf],
 ) -> Result<Vec<StoreOutcome>, ScuError> {
+    store_with(caller, peer, files, &StoreOptions::default()).await
+}
+
+/// How a C-STORE batch is sent: on behalf of a C-MOVE, and who hears of each outcome as it comes.
+#[derive(Debug, Clone, Default)]
+pub struct StoreOptions {
+    /// The C-MOVE this sending serves: its caller's AE title and its Message ID.
+    pub move_originator: Option<(String, u16)>,
+    /// Receives each file's outcome as soon as it is known.
+    pub progress: Option<tokio::sync::mpsc::UnboundedSender<StoreOutcome>>,
+}
+
+/// [`store`] with options.
+pub async fn store_with(
+    caller: &Caller,
+    peer: &Peer,
+    files: &[PathBuf],
+    options: &StoreOptions,
+) -> Result<Vec<StoreOutcome>, ScuError> {
+    let mut outcomes = Outcomes {
+        list: Vec::with_capacity(files.len()),
+        progress: options.progress.clone(),
+    };
+    let originator = options
+        .move_originator
+        .as_ref()
+        .map(|(ae, id)| (ae.as_str(), *id));
     let list = files.to_vec();
     let metas: Vec<Result<Part10, String>> = tokio::task::spawn_blocking(move || {
         list.iter()
@@ -215,12 +242,11 @@ pub async fn store(
             contexts.push(c);
         }
     }
-    let mut outcomes = Vec::with_capacity(files.len());
     if contexts.is_empty() {
         for (file, m) in files.iter().zip(metas) {
             outcomes.push(not_sent(file, String::new(), m.err().unwrap_or_default()));
         }
-        return Ok(outcomes);
+        return Ok(outcomes.list);
     }
     let mut assoc = associate(caller, peer, &contexts).await?;
     for (i, (file, meta)) in files.iter().zip(metas).enumerate() {
@@ -247,7 +273,7 @@ pub async fn store(
             message_id,
             &meta.sop_class_uid,
             &meta.sop_instance_uid,
-            None,
+            originator,
         );
         send_command(&mut assoc, peer, context, rq).await?;
         send_data_set(&mut assoc, caller, peer, context, file, meta.dataset_offset).await?;
@@ -260,7 +286,22 @@ pub async fn store(
         });
     }
     let _ = assoc.release().await;
-    Ok(outcomes)
+    Ok(outcomes.list)
+}
+
+/// The outcomes so far, each also sent to the progress listener.
+struct Outcomes {
+    list: Vec<StoreOutcome>,
+    progress: Option<tokio::sync::mpsc::UnboundedSender<StoreOutcome>>,
+}
+
+impl Outcomes {
+    fn push(&mut self, o: StoreOutcome) {
+        if let Some(p) = &self.progress {
+            let _ = p.send(o.clone());
+        }
+        self.list.push(o);
+    }
 }
 
 fn not_sent(file: &Path, sop_instance_uid: String, reason: String) -> StoreOutcome {

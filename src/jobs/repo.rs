@@ -13,9 +13,11 @@ use sqlx::sqlite::{
 use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
+mod instances;
 mod job_store;
 
 pub use blobs::{Deleted, SweepReport, sweep_blobs};
+pub use instances::{IndexScope, IndexedInstance, NewInstance, StoredInstance};
 
 use super::cache::JobCache;
 use super::model::{

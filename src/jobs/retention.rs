@@ -105,6 +105,8 @@ pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<
         }
         for id in uploads {
             check(store.remove_upload(id));
+            // Its indexed instances' rows went with it.
+            check(store.remove_instances(id));
         }
         failures
     })

@@ -76,6 +76,10 @@ id_type!(
     SeriesId
 );
 id_type!(
+    /// Id of a DICOM instance kept in the instance index (names its file, never a DICOM UID).
+    InstanceId
+);
+id_type!(
     /// An id of some resource (a series or a job) whose type is found by looking it up.
     AnyId
 );

@@ -6,6 +6,8 @@
 //!   named by the SHA-256 of their parameters);
 //! - `series/<series id>.npy`: assembled CT series (HU volumes);
 //! - `uploads/<upload id>/<sha256>.dcm`: instances of an open upload;
+//! - `instances/<upload id>/<instance id>.dcm`: received instances kept in the instance index (a job's
+//!   indexed DICOM results are `results/<job id>/instances/<instance id>.dcm`);
 //! - `tmp/`: uploads, unpacked archives and results being written. Every write goes to a temporary file, is
 //!   flushed to disk and then renamed into place, so a file under `datasets/` or `results/` is always
 //!   complete. A blob that has a database row is renamed into place only after its row is committed.
@@ -22,7 +24,7 @@ use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
 
-pub use ids::{AnyId, BadId, DatasetId, JobId, SeriesId, UploadId};
+pub use ids::{AnyId, BadId, DatasetId, InstanceId, JobId, SeriesId, UploadId};
 
 /// Names of the files a job's result directory holds.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -46,6 +48,13 @@ impl ResultName {
             ResultName::Product { index, ext } => format!("product-{index}.{ext}"),
         }
     }
+}
+
+/// Who an indexed instance belongs to: the upload that received it, or the job that made it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum InstanceOwner {
+    Upload(UploadId),
+    Job(JobId),
 }
 
 /// The local blob store rooted at the data directory.
@@ -116,7 +125,14 @@ fn sync_dir(dir: &Path) {
 impl BlobStore {
     /// Create the layout under `root` and empty `tmp/`.
     pub fn open(root: &Path) -> io::Result<Self> {
-        for sub in ["datasets", "results", "series", "uploads", "tmp"] {
+        for sub in [
+            "datasets",
+            "results",
+            "series",
+            "uploads",
+            "instances",
+            "tmp",
+        ] {
             fs::create_dir_all(root.join(sub))?;
         }
         for entry in fs::read_dir(root.join("tmp"))? {
@@ -156,6 +172,30 @@ impl BlobStore {
     /// Remove an upload's instances (missing is fine).
     pub fn remove_upload(&self, id: UploadId) -> io::Result<()> {
         match fs::remove_dir_all(self.upload_dir(id)) {
+            Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
+            _ => Ok(()),
+        }
+    }
+
+    /// The file of an indexed instance: received ones under their upload, derived ones under their job.
+    pub fn instance_path(&self, owner: InstanceOwner, id: InstanceId) -> PathBuf {
+        match owner {
+            InstanceOwner::Upload(u) => self.instance_dir(u).join(format!("{id}.dcm")),
+            InstanceOwner::Job(j) => self
+                .result_dir(j)
+                .join("instances")
+                .join(format!("{id}.dcm")),
+        }
+    }
+
+    /// The folder of the indexed instances an upload received.
+    pub fn instance_dir(&self, upload: UploadId) -> PathBuf {
+        self.root.join("instances").join(upload.to_string())
+    }
+
+    /// Remove the indexed instances an upload received (missing is fine).
+    pub fn remove_instances(&self, upload: UploadId) -> io::Result<()> {
+        match fs::remove_dir_all(self.instance_dir(upload)) {
             Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
             _ => Ok(()),
         }

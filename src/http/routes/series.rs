@@ -600,6 +600,10 @@ pub async fn delete_series(
             if let Err(e) = BlobStore::remove_file(&st.store.series_path(id)).await {
                 tracing::warn!(error = %e, series_id = %id, "removing a deleted series' volume failed");
             }
+            // Its indexed instances went with its row; their folder goes once no row names it.
+            if let Err(e) = st.sweep_instances().await {
+                tracing::warn!(error = %e, series_id = %id, "removing a deleted series' instances failed");
+            }
             tracing::info!(series_id = %id, "series deleted");
             Ok(StatusCode::NO_CONTENT.into_response())
         }

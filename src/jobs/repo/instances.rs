@@ -1,0 +1,246 @@
+//! The instance index in SQL (every statement of it is here, bound, never built from query strings): rows
+//! of the DICOM instances ctrecon holds, with the attributes queries match, and which upload, series or job
+//! each belongs to. Matching itself happens in the application (`app::query`), over the rows read here.
+
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+use super::{Db, DbError, corrupt};
+use crate::jobs::model::now_us;
+use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
+
+/// One indexed instance: its identity, the attributes of its patient, study, series and itself, and where
+/// its file is.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct IndexedInstance {
+    pub sop_class_uid: String,
+    pub sop_instance_uid: String,
+    pub transfer_syntax: String,
+    pub study_uid: String,
+    pub series_uid: String,
+    pub patient_id: Option<String>,
+    pub patient_name: Option<String>,
+    pub patient_birth_date: Option<String>,
+    pub patient_sex: Option<String>,
+    pub study_date: Option<String>,
+    pub study_time: Option<String>,
+    pub accession_number: Option<String>,
+    pub study_description: Option<String>,
+    pub referring_physician: Option<String>,
+    pub study_id: Option<String>,
+    pub modality: Option<String>,
+    pub series_number: Option<i64>,
+    pub series_description: Option<String>,
+    pub body_part: Option<String>,
+    pub instance_number: Option<i64>,
+    /// Size of the file (bytes).
+    pub bytes: u64,
+}
+
+/// An instance as stored: its row id (which names its file), owner, series and time of indexing.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StoredInstance {
+    pub id: InstanceId,
+    pub owner: InstanceOwner,
+    /// The assembled series it belongs to, when it is a received instance of one.
+    pub series_id: Option<SeriesId>,
+    pub created_us: i64,
+    pub instance: IndexedInstance,
+}
+
+const COLUMNS: &str = "id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid, transfer_syntax, \
+     study_uid, series_uid, patient_id, patient_name, patient_birth_date, patient_sex, study_date, \
+     study_time, accession_number, study_description, referring_physician, study_id, modality, \
+     series_number, series_description, body_part, instance_number, bytes, created_us";
+
+fn parse_row(row: &SqliteRow) -> Result<StoredInstance, DbError> {
+    let bad = |e: crate::storage::BadId| corrupt("instances", e);
+    let id: String = row.try_get("id")?;
+    let upload: Option<String> = row.try_get("upload_id")?;
+    let job: Option<String> = row.try_get("job_id")?;
+    let series: Option<String> = row.try_get("series_id")?;
+    let owner = match (upload, job) {
+        (Some(u), None) => InstanceOwner::Upload(UploadId::parse(&u).map_err(bad)?),
+        (None, Some(j)) => InstanceOwner::Job(JobId::parse(&j).map_err(bad)?),
+        _ => return Err(corrupt("instances", "an instance needs one owner")),
+    };
+    let bytes: i64 = row.try_get("bytes")?;
+    Ok(StoredInstance {
+        id: InstanceId::parse(&id).map_err(bad)?,
+        owner,
+        series_id: series
+            .as_deref()
+            .map(SeriesId::parse)
+            .transpose()
+            .map_err(bad)?,
+        created_us: row.try_get("created_us")?,
+        instance: IndexedInstance {
+            sop_class_uid: row.try_get("sop_class_uid")?,
+            sop_instance_uid: row.try_get("sop_instance_uid")?,
+            transfer_syntax: row.try_get("transfer_syntax")?,
+            study_uid: row.try_get("study_uid")?,
+            series_uid: row.try_get("series_uid")?,
+            patient_id: row.try_get("patient_id")?,
+            patient_name: row.try_get("patient_name")?,
+            patient_birth_date: row.try_get("patient_birth_date")?,
+            patient_sex: row.try_get("patient_sex")?,
+            study_date: row.try_get("study_date")?,
+            study_time: row.try_get("study_time")?,
+            accession_number: row.try_get("accession_number")?,
+            study_description: row.try_get("study_description")?,
+            referring_physician: row.try_get("referring_physician")?,
+            study_id: row.try_get("study_id")?,
+            modality: row.try_get("modality")?,
+            series_number: row.try_get("series_number")?,
+            series_description: row.try_get("series_description")?,
+            body_part: row.try_get("body_part")?,
+            instance_number: row.try_get("instance_number")?,
+            bytes: bytes.max(0) as u64,
+        },
+    })
+}
+
+/// A row to insert: the instance, its new id and its series.
+#[derive(Debug, Clone)]
+pub struct NewInstance {
+    pub id: InstanceId,
+    pub series_id: Option<SeriesId>,
+    pub instance: IndexedInstance,
+}
+
+/// Narrowing of an index read by exact UIDs (taken from single-valued unique keys of a query).
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct IndexScope {
+    pub study_uid: Option<String>,
+    pub series_uid: Option<String>,
+}
+
+impl Db {
+    /// Index `rows` as belonging to `owner`, in one transaction; for a job, also mark it indexed.
+    pub async fn insert_instances(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+    ) -> Result<(), DbError> {
+        let mut tx = self.pool.begin().await?;
+        let (upload, job) = match owner {
+            InstanceOwner::Upload(u) => (Some(u.to_string()), None),
+            InstanceOwner::Job(j) => (None, Some(j.to_string())),
+        };
+        let now = now_us();
+        for r in rows {
+            let i = &r.instance;
+            sqlx::query(
+                "INSERT INTO instances (id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid,
+                 transfer_syntax, study_uid, series_uid, patient_id, patient_name, patient_birth_date,
+                 patient_sex, study_date, study_time, accession_number, study_description,
+                 referring_physician, study_id, modality, series_number, series_description, body_part,
+                 instance_number, bytes, created_us)
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            )
+            .bind(r.id.to_string())
+            .bind(&upload)
+            .bind(r.series_id.map(|s| s.to_string()))
+            .bind(&job)
+            .bind(&i.sop_class_uid)
+            .bind(&i.sop_instance_uid)
+            .bind(&i.transfer_syntax)
+            .bind(&i.study_uid)
+            .bind(&i.series_uid)
+            .bind(&i.patient_id)
+            .bind(&i.patient_name)
+            .bind(&i.patient_birth_date)
+            .bind(&i.patient_sex)
+            .bind(&i.study_date)
+            .bind(&i.study_time)
+            .bind(&i.accession_number)
+            .bind(&i.study_description)
+            .bind(&i.referring_physician)
+            .bind(&i.study_id)
+            .bind(&i.modality)
+            .bind(i.series_number)
+            .bind(&i.series_description)
+            .bind(&i.body_part)
+            .bind(i.instance_number)
+            .bind(i.bytes as i64)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+        }
+        if let Some(job) = &job {
+            sqlx::query(
+                "INSERT INTO indexed_jobs (job_id, instances, created_us) VALUES (?, ?, ?)
+                 ON CONFLICT (job_id) DO NOTHING",
+            )
+            .bind(job)
+            .bind(rows.len() as i64)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// The indexed instances in `scope`, newest first.
+    pub async fn indexed_instances(
+        &self,
+        scope: &IndexScope,
+    ) -> Result<Vec<StoredInstance>, DbError> {
+        let sql = format!(
+            "SELECT {COLUMNS} FROM instances
+             WHERE (?1 IS NULL OR study_uid = ?1) AND (?2 IS NULL OR series_uid = ?2)
+             ORDER BY created_us DESC, id DESC"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(&scope.study_uid)
+            .bind(&scope.series_uid)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(parse_row).collect()
+    }
+
+    /// Succeeded volume jobs whose DICOM results are not indexed yet, oldest first.
+    pub async fn jobs_to_index(&self) -> Result<Vec<JobId>, DbError> {
+        let rows = sqlx::query(
+            "SELECT id FROM jobs WHERE status = 'succeeded' AND kind = 'volume'
+             AND id NOT IN (SELECT job_id FROM indexed_jobs) ORDER BY id",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                let id: String = r.try_get("id")?;
+                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
+            })
+            .collect()
+    }
+
+    /// Whether a job's results were indexed.
+    pub async fn job_indexed(&self, id: JobId) -> Result<bool, DbError> {
+        let row = sqlx::query("SELECT 1 FROM indexed_jobs WHERE job_id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.is_some())
+    }
+
+    /// Mark a job as indexed without instances (its results carry no patient).
+    pub async fn mark_job_indexed(&self, id: JobId) -> Result<(), DbError> {
+        self.insert_instances(InstanceOwner::Job(id), &[]).await
+    }
+
+    /// Uploads that own indexed instances (for pairing `instances/<upload>/` folders with rows).
+    pub async fn uploads_with_instances(&self) -> Result<Vec<UploadId>, DbError> {
+        let rows =
+            sqlx::query("SELECT DISTINCT upload_id FROM instances WHERE upload_id IS NOT NULL")
+                .fetch_all(&self.pool)
+                .await?;
+        rows.iter()
+            .map(|r| {
+                let id: String = r.try_get("upload_id")?;
+                UploadId::parse(&id).map_err(|e| corrupt("instances", e))
+            })
+            .collect()
+    }
+}
