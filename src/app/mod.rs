@@ -5,9 +5,11 @@
 //! It imports no web framework: answers are domain values or an [`AppError`], which each front door maps
 //! to its own wire form (the HTTP layer to problem+json, in one place).
 
+pub mod deliveries;
 pub mod error;
 pub mod idempotency;
 pub mod jobs;
+pub mod rules;
 pub mod series;
 
 use std::time::Duration;
@@ -45,6 +47,7 @@ pub struct App {
     pub engine: Engine,
     pub settings: Settings,
     retention: Retention,
+    outbound: deliveries::Outbound,
 }
 
 impl App {
@@ -90,13 +93,16 @@ impl App {
             },
         )
         .await?;
-        Ok(Self {
+        let app = Self {
             db,
             store,
             engine,
             settings,
             retention,
-        })
+            outbound: deliveries::Outbound::default(),
+        };
+        app.load_config_rules().await?;
+        Ok(app)
     }
 
     /// Start the periodic retention sweep; it ends when `shutdown` turns true.

@@ -18,6 +18,7 @@ pub mod feed;
 pub mod inbox;
 pub mod node;
 pub mod scu;
+pub mod sender;
 pub mod tracker;
 
 pub use crate::config::dicom::{NodeSettings, Peer};

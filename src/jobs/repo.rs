@@ -14,6 +14,7 @@ use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
 mod job_store;
+mod rules;
 
 pub use blobs::{Deleted, SweepReport, sweep_blobs};
 
