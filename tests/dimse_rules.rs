@@ -453,6 +453,21 @@ async fn orthanc_pushes_a_series_into_ctrecon_and_the_bone_stl_rule_sends_back_a
         3,
         "source, STL and rotating MIP series"
     );
+    // The STL keeps the source's study and frame of reference and references the source series.
+    let mut stl = None;
+    for id in &all {
+        let t = o.tags(id).await;
+        if t["SOPClassUID"] == STL {
+            stl = Some(t);
+        }
+    }
+    let stl = stl.expect("the STL instance in Orthanc");
+    assert_eq!(stl["StudyInstanceUID"], src.study_uid.as_str());
+    assert_eq!(stl["FrameOfReferenceUID"], src.for_uid.as_str());
+    assert_eq!(
+        stl["ReferencedSeriesSequence"][0]["SeriesInstanceUID"],
+        src.series_uid.as_str()
+    );
     let rule = json_of(app.get("/v1/rules/bone").await).await;
     assert_eq!(rule["runs"][0]["calling_ae"], "ORTHANC");
     let job = app.job(rule["runs"][0]["job_id"].as_str().unwrap()).await;
