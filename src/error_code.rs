@@ -115,6 +115,18 @@ catalogue! {
     SeriesUnevenSpacing = ("series_uneven_spacing", 422, "The slice spacing is uneven"),
     SeriesSpacingJump = ("series_spacing_jump", 422, "A gap between slices is too wide to interpolate"),
     SeriesTooLarge = ("series_too_large", 413, "The assembled volume exceeds the size limit"),
+    // Processing rules, DICOM peers and deliveries.
+    RuleNotFound = ("rule_not_found", 404, "No such rule"),
+    RuleExists = ("rule_exists", 409, "A rule of that name exists"),
+    RuleReadOnly = ("rule_read_only", 409, "The rule comes from the configuration file and cannot be changed here"),
+    InvalidRule = ("invalid_rule", 422, "The rule is invalid"),
+    InvalidPattern = ("invalid_pattern", 422, "A match pattern is not a valid wildcard pattern"),
+    UnknownPeer = ("unknown_peer", 422, "A destination is not a configured DICOM peer"),
+    PeerNotFound = ("peer_not_found", 404, "No such DICOM peer"),
+    PeerUnreachable = ("peer_unreachable", 502, "The DICOM peer did not answer"),
+    DimseUnavailable = ("dimse_unavailable", 503, "ctrecon cannot call DICOM peers in this process"),
+    DeliveryNotFound = ("delivery_not_found", 404, "No such delivery"),
+    DeliveryNotRetryable = ("delivery_not_retryable", 409, "Only a failed delivery can be retried"),
     // Protocol.
     IdempotencyKeyReused = ("idempotency_key_reused", 422, "The Idempotency-Key was used with another request"),
     InvalidIdempotencyKey = ("invalid_idempotency_key", 400, "The Idempotency-Key header is malformed"),

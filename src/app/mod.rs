@@ -5,12 +5,14 @@
 //! It imports no web framework: answers are domain values or an [`AppError`], which each front door maps
 //! to its own wire form (the HTTP layer to problem+json, in one place).
 
+pub mod deliveries;
 pub mod error;
 pub mod idempotency;
 pub mod instances;
 pub mod jobs;
 pub mod matching;
 pub mod query;
+pub mod rules;
 pub mod series;
 
 use std::time::Duration;
@@ -48,6 +50,7 @@ pub struct App {
     pub engine: Engine,
     pub settings: Settings,
     retention: Retention,
+    outbound: deliveries::Outbound,
 }
 
 impl App {
@@ -99,11 +102,13 @@ impl App {
             engine,
             settings,
             retention,
+            outbound: deliveries::Outbound::default(),
         };
         match app.sweep_instances().await {
             Ok(n) => tracing::info!(removed = n, "instance folders paired with their rows"),
             Err(e) => tracing::warn!(error = %e, "pairing instance folders with their rows failed"),
         }
+        app.load_config_rules().await?;
         Ok(app)
     }
 

@@ -105,6 +105,17 @@ impl App {
     /// stored like uploaded ones (rows first, then the volumes in place). An upload none of whose series
     /// could be assembled is recorded too, so `GET /v1/uploads/{id}` says why.
     pub async fn ingest_received(&self, files: Vec<UploadFile>, bytes: u64) -> AppResult<Received> {
+        self.ingest_received_from(files, bytes, None).await
+    }
+
+    /// [`ingest_received`](Self::ingest_received) of instances sent by `calling_ae`, then the processing
+    /// rules fire on the series stored.
+    pub async fn ingest_received_from(
+        &self,
+        files: Vec<UploadFile>,
+        bytes: u64,
+        calling_ae: Option<&str>,
+    ) -> AppResult<Received> {
         let id = UploadId::generate();
         let (ingested, staged) = self.ingest_files(id, files, None).await?;
         let instances = ingested.files() as u32;
@@ -121,6 +132,8 @@ impl App {
                 return Err(e.into());
             }
         }
+        self.fire_rules(&ingested, calling_ae.filter(|a| !a.is_empty()))
+            .await;
         Ok(Received {
             upload_id: id,
             ingested,

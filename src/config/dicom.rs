@@ -56,6 +56,14 @@ pub struct NodeSettings {
     pub stable_age_secs: u64,
     /// Largest instance accepted by C-STORE (bytes).
     pub max_instance_bytes: u64,
+    /// Processing rules read at every start (the `POST /v1/rules` body each); read-only in the API.
+    pub rules: Vec<serde_json::Value>,
+    /// First wait before a delivery to an unreachable peer is tried again (milliseconds); doubled after
+    /// each failed attempt up to `delivery_retry_max_ms`.
+    pub delivery_retry_base_ms: u64,
+    pub delivery_retry_max_ms: u64,
+    /// Attempts of a delivery to an unreachable peer before it is `failed`.
+    pub delivery_max_attempts: u32,
 }
 
 impl Default for NodeSettings {
@@ -72,6 +80,10 @@ impl Default for NodeSettings {
             max_associations: 16,
             stable_age_secs: 15,
             max_instance_bytes: 2 << 30,
+            rules: Vec::new(),
+            delivery_retry_base_ms: 5_000,
+            delivery_retry_max_ms: 600_000,
+            delivery_max_attempts: 10,
         }
     }
 }
@@ -118,6 +130,11 @@ impl NodeSettings {
         }
         if self.max_pdu_length < 4096 || self.max_pdu_length > (16 << 20) {
             return Some("max_pdu_length must be between 4096 and 16 MiB".into());
+        }
+        if self.delivery_max_attempts == 0 || self.delivery_retry_base_ms == 0 {
+            return Some(
+                "delivery_max_attempts and delivery_retry_base_ms must be positive".into(),
+            );
         }
         if self.max_associations == 0 || self.max_instance_bytes == 0 {
             return Some("max_associations and max_instance_bytes must be positive".into());

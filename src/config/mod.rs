@@ -30,6 +30,10 @@
 //! | `dicom.ae_title` | `CTRECON_DICOM_AE_TITLE` | `CTRECON` |
 //! | `dicom.host` | `CTRECON_DICOM_HOST` | `127.0.0.1` |
 //! | `dicom.stable_age_secs` | `CTRECON_DICOM_STABLE_AGE_SECS` | 15: a series is complete after this long without an instance |
+//! | `dicom.rules` | — | processing rules (`POST /v1/rules` bodies) read at every start; read-only in the API |
+//! | `dicom.delivery_retry_base_ms` | — | 5000: first wait before a delivery to an unreachable peer is tried again, doubled each time |
+//! | `dicom.delivery_retry_max_ms` | — | 600000: longest wait between attempts of a delivery |
+//! | `dicom.delivery_max_attempts` | — | 10: attempts before a delivery to an unreachable peer is `failed` |
 //! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up

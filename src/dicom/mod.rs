@@ -42,5 +42,6 @@ pub use upload::{
 pub use write::{
     DerivedSeries, RgbFrames, ScOrientation, SeriesMeta, new_uid, write_ct_series,
     write_encapsulated_stl, write_enhanced_ct, write_secondary_capture,
-    write_secondary_capture_placed, write_secondary_capture_rgb, write_zip,
+    write_secondary_capture_frame, write_secondary_capture_placed, write_secondary_capture_rgb,
+    write_zip,
 };

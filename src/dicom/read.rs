@@ -59,6 +59,10 @@ pub struct Instance {
     pub patient_id: Option<String>,
     pub series_description: Option<String>,
     pub instance_number: Option<i64>,
+    /// Body Part Examined (0018,0015).
+    pub body_part: Option<String>,
+    /// Image Type (0008,0008) values.
+    pub image_type: Vec<String>,
     /// One slice per frame (stored values; colour images keep all samples interleaved).
     pub slices: Vec<Slice>,
     pub warnings: Vec<Warning>,
@@ -607,6 +611,17 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         patient_id: text(&obj, tags::PATIENT_ID),
         series_description: text(&obj, tags::SERIES_DESCRIPTION),
         instance_number: int(&obj, tags::INSTANCE_NUMBER),
+        body_part: text(&obj, tags::BODY_PART_EXAMINED),
+        image_type: obj
+            .element_opt(tags::IMAGE_TYPE)
+            .ok()
+            .flatten()
+            .and_then(|e| e.to_multi_str().ok().map(|v| v.to_vec()))
+            .unwrap_or_default()
+            .into_iter()
+            .map(|s| s.trim().to_string())
+            .filter(|s| !s.is_empty())
+            .collect(),
         slices,
         warnings,
     })

@@ -155,6 +155,12 @@ pub struct SeriesReport {
     pub size_bytes: usize,
     pub transfer_syntaxes: Vec<String>,
     pub warnings: Vec<Warning>,
+    /// Body Part Examined of the first instance (for processing rules; not part of the API document).
+    #[serde(skip)]
+    pub body_part: Option<String>,
+    /// Image Type values of the first instance (for processing rules; not part of the API document).
+    #[serde(skip)]
+    pub image_type: Vec<String>,
 }
 
 /// Decoded upload: series and the files refused.
@@ -278,6 +284,8 @@ impl SeriesGroup {
             size_bytes: self.instances.iter().map(|i| i.size_bytes).sum(),
             transfer_syntaxes: ts,
             warnings,
+            body_part: first.and_then(|i| i.body_part.clone()),
+            image_type: first.map(|i| i.image_type.clone()).unwrap_or_default(),
         }
     }
 

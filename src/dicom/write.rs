@@ -27,6 +27,11 @@ pub struct SeriesMeta {
     pub patient_id: Option<String>,
     pub series_description: String,
     pub series_number: i32,
+    /// The series the result derives from: written as Referenced Series Sequence (0008,1115) with its
+    /// study.
+    pub source_series_uid: Option<String>,
+    /// How the result was made, written as Derivation Description (0008,2111).
+    pub derivation_description: Option<String>,
 }
 
 /// A written series: its UIDs, the rescale used and the files (`IM00001.dcm`, …).
@@ -163,7 +168,28 @@ impl Builder {
             .str(tags::SERIES_INSTANCE_UID, VR::UI, series_uid)
             .str(tags::STUDY_ID, VR::SH, "")
             .str(tags::SERIES_NUMBER, VR::IS, &meta.series_number.to_string())
-            .str(tags::INSTANCE_NUMBER, VR::IS, &instance_number.to_string())
+            .str(tags::INSTANCE_NUMBER, VR::IS, &instance_number.to_string());
+        self.provenance(meta)
+    }
+    /// Where the result comes from: the source series (Referenced Series Sequence, with the study in
+    /// each item), the source frame of reference, and how it was derived.
+    fn provenance(&mut self, meta: &SeriesMeta) -> &mut Self {
+        if let Some(series) = &meta.source_series_uid {
+            let mut item = Builder::new();
+            item.str(tags::SERIES_INSTANCE_UID, VR::UI, series);
+            if let Some(study) = &meta.study_uid {
+                item.str(tags::STUDY_INSTANCE_UID, VR::UI, study);
+            }
+            self.seq(tags::REFERENCED_SERIES_SEQUENCE, vec![item.0]);
+        }
+        if let Some(for_uid) = &meta.frame_of_reference_uid {
+            self.str(tags::FRAME_OF_REFERENCE_UID, VR::UI, for_uid);
+        }
+        if let Some(d) = &meta.derivation_description {
+            let d: String = d.chars().take(1024).collect();
+            self.str(tags::DERIVATION_DESCRIPTION, VR::ST, &d);
+        }
+        self
     }
     fn finish(self) -> Result<Vec<u8>, DicomError> {
         let werr = |e: &dyn std::fmt::Display| DicomError::Write(e.to_string());
@@ -462,6 +488,19 @@ pub fn write_secondary_capture_placed(
     series_uid: Option<&str>,
     orientation: Option<&ScOrientation>,
 ) -> Result<(String, Vec<u8>), DicomError> {
+    write_secondary_capture_frame(img, window, meta, series_uid, 1, orientation)
+}
+
+/// [`write_secondary_capture_placed`] as instance `instance_number` of a series (e.g. the frames of a
+/// rotating MIP, each its own instance of one series).
+pub fn write_secondary_capture_frame(
+    img: ArrayView2<'_, f32>,
+    window: Window,
+    meta: &SeriesMeta,
+    series_uid: Option<&str>,
+    instance_number: usize,
+    orientation: Option<&ScOrientation>,
+) -> Result<(String, Vec<u8>), DicomError> {
     let (h, w) = img.dim();
     if h == 0 || w == 0 || h > 65535 || w > 65535 {
         return Err(DicomError::Write(format!(
@@ -481,7 +520,7 @@ pub fn write_secondary_capture_placed(
             modality: "OT",
             study_uid: &study_uid,
             series_uid: &series_uid,
-            instance_number: 1,
+            instance_number,
         },
         meta,
     )

@@ -12,9 +12,13 @@ use super::tracker::CompletedSeries;
 use crate::app::{App, AppError};
 use crate::dicom::UploadFile;
 
-/// Start the DICOM node of `app` when its settings give it a port, feeding complete series to the
-/// application; returns the node's address. The node runs as long as the runtime.
+/// Start the delivery worker of `app` (sending through [`super::scu`]) and, when its settings give it a
+/// port, the DICOM node, feeding complete series to the application; returns the node's address. The node runs as long as the runtime.
 pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
+    // Deliveries go out whether or not the node listens.
+    app.start_deliveries(std::sync::Arc::new(super::sender::ScuCaller::new(
+        &app.settings.dicom,
+    )));
     if app.settings.dicom.port.is_none() {
         return Ok(None);
     }
@@ -73,7 +77,10 @@ async fn assemble(app: &App, done: CompletedSeries) {
         }
     };
     let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
-    let keep = match app.ingest_received(files, done.bytes).await {
+    let keep = match app
+        .ingest_received_from(files, done.bytes, Some(done.calling_ae.as_str()))
+        .await
+    {
         Ok(r) => {
             let ready = r.ingested.ready().count();
             tracing::info!(upload_id = %r.upload_id, series_uid = %done.series_uid, instances = done.instances, ready, refused = r.ingested.series.len() - ready, "received series recorded");

@@ -23,6 +23,7 @@ pub mod node;
 pub mod pull;
 pub mod query;
 pub mod scu;
+pub mod sender;
 pub mod tracker;
 
 pub use crate::config::dicom::{NodeSettings, Peer};

@@ -44,7 +44,7 @@ use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
-use routes::{datasets, events, health, jobs, results, series};
+use routes::{datasets, events, health, jobs, results, rules, series};
 
 /// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
 /// and what only the HTTP layer needs.
@@ -199,6 +199,21 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         )
         .route("/v1/series/{id}/volume.npy", get(series::series_volume))
         .route("/v1/jobs/{id}/result/metrics", get(results::metrics))
+        .route("/v1/rules", post(rules::post_rule).get(rules::list_rules))
+        .route(
+            "/v1/rules/{name}",
+            get(rules::get_rule)
+                .put(rules::put_rule)
+                .delete(rules::delete_rule),
+        )
+        .route(
+            "/v1/deliveries",
+            get(rules::list_deliveries).post(rules::post_delivery),
+        )
+        .route("/v1/deliveries/{id}", get(rules::get_delivery))
+        .route("/v1/deliveries/{id}/retry", post(rules::retry_delivery))
+        .route("/v1/peers", get(rules::list_peers))
+        .route("/v1/peers/{ae_title}/echo", post(rules::echo_peer))
         .layer(DefaultBodyLimit::max(s.max_json_bytes))
         .layer(timeout(request_timeout));
     let simulations = Router::new()

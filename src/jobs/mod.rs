@@ -5,7 +5,9 @@
 //! jobs and their products), `views` (rendered 2D images and meshes of results), `ingest` (DICOM → series).
 
 pub mod cache;
+pub mod deliveries;
 pub mod engine;
+pub mod export;
 pub mod imaging;
 pub mod ingest;
 pub mod lifecycle;
@@ -16,6 +18,7 @@ pub mod render_outputs;
 pub mod render_products;
 pub mod repo;
 pub mod retention;
+pub mod rules;
 pub mod run;
 pub mod store;
 pub mod views;

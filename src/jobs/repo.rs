@@ -15,6 +15,7 @@ use sqlx::{AssertSqlSafe, Row};
 mod blobs;
 mod instances;
 mod job_store;
+mod rules;
 
 pub use blobs::{Deleted, SweepReport, sweep_blobs};
 pub use instances::{IndexScope, IndexedInstance, NewInstance, StoredInstance};

@@ -5,4 +5,5 @@ pub mod events;
 pub mod health;
 pub mod jobs;
 pub mod results;
+pub mod rules;
 pub mod series;

@@ -99,6 +99,8 @@ async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext
             .take(64)
             .collect(),
             series_number: 900,
+            source_series_uid: Some(s.series_uid),
+            derivation_description: Some("ctrecon: derived from the source series".into()),
         },
         None => SeriesMeta {
             series_description: "ctrecon reconstruction".into(),

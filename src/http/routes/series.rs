@@ -299,6 +299,7 @@ pub async fn post_series(
     if let Some(r) = commit_series(&st, staged, recorded).await? {
         return Ok(r);
     }
+    st.fire_rules(&ingested, None).await;
     tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
     Ok(created(&format!("/v1/uploads/{id}"), view))
 }
@@ -544,6 +545,7 @@ pub async fn complete_upload(
         Err(e) => Err(e.into()),
     };
     commit_series(&st, staged, recorded).await?;
+    st.fire_rules(&ingested, None).await;
     let store = st.store.clone();
     let removed = tokio::task::spawn_blocking(move || store.remove_upload(id)).await;
     if let Ok(Err(e)) = removed {

@@ -1,0 +1,444 @@
+//! Deliveries of DICOM results to DIMSE peers, and the peers themselves.
+//!
+//! The application owns what a delivery is and how it moves (queued → sending → succeeded | failed, back
+//! to queued with exponential backoff while the peer is unreachable); the wire is a port,
+//! [`DicomCaller`], that the DICOM front door installs ([`App::start_deliveries`]), so that the
+//! application imports no front door. One worker task makes the deliveries of finished rule jobs and
+//! sends whatever is due; deliveries left `sending` by a stop are queued again at start.
+
+use std::future::Future;
+use std::path::PathBuf;
+use std::pin::Pin;
+use std::sync::{Arc, OnceLock};
+use std::time::{Duration, Instant};
+
+use serde_json::{Value, json};
+use tokio::sync::Notify;
+
+use super::App;
+use super::error::{AppError, AppResult, refused};
+use crate::config::dicom::Peer;
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::deliveries::{
+    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun, RunState,
+    backoff_us,
+};
+use crate::jobs::export::{ExportOptions, export_dir, export_job};
+use crate::jobs::model::{JobStatus, now_us, rfc3339};
+use crate::storage::JobId;
+
+/// A boxed future (the port's methods are async).
+pub type CallFuture<'a, T> = Pin<Box<dyn Future<Output = T> + Send + 'a>>;
+
+/// Why a call to a peer failed as a whole (refused connection, rejected association, timeout, a broken
+/// association): worth trying again later.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CallError(pub String);
+
+/// What a peer answered for one file sent by C-STORE.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SentInstance {
+    /// The peer's DIMSE status; `None` when the file was not sent (e.g. its SOP class was not accepted).
+    pub status: Option<u16>,
+    /// The status means stored (success or a warning).
+    pub stored: bool,
+    pub detail: Option<String>,
+}
+
+/// ctrecon calling DIMSE peers: the port the DICOM front door implements.
+pub trait DicomCaller: Send + Sync + 'static {
+    /// C-ECHO: the peer's status.
+    fn echo<'a>(&'a self, peer: &'a Peer) -> CallFuture<'a, Result<u16, CallError>>;
+    /// C-STORE `files` in one association: one answer per file, in order.
+    fn store<'a>(
+        &'a self,
+        peer: &'a Peer,
+        files: Vec<PathBuf>,
+    ) -> CallFuture<'a, Result<Vec<SentInstance>, CallError>>;
+}
+
+/// The installed caller and the worker's wake-up.
+#[derive(Clone, Default)]
+pub struct Outbound {
+    caller: Arc<OnceLock<Arc<dyn DicomCaller>>>,
+    wake: Arc<Notify>,
+}
+
+impl std::fmt::Debug for Outbound {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Outbound")
+            .field("installed", &self.caller.get().is_some())
+            .finish()
+    }
+}
+
+/// The JSON view of a delivery (with its instances when they were loaded).
+pub fn delivery_view(d: &Delivery, with_instances: bool) -> Value {
+    let mut v = json!({
+        "id": d.id,
+        "job_id": d.job_id,
+        "destination": d.destination,
+        "state": d.state,
+        "attempts": d.attempts,
+        "created_at": rfc3339(d.created_us),
+        "updated_at": rfc3339(d.updated_us),
+        "links": {"self": format!("/v1/deliveries/{}", d.id), "job": format!("/v1/jobs/{}", d.job_id)},
+    });
+    if let Some(r) = &d.rule_name {
+        v["rule"] = json!(r);
+        v["links"]["rule"] = json!(format!("/v1/rules/{r}"));
+    }
+    if let Some(r) = &d.run_id {
+        v["run_id"] = json!(r);
+    }
+    if let (DeliveryState::Queued, Some(t)) = (d.state, d.next_attempt_us) {
+        v["next_attempt_at"] = json!(rfc3339(t));
+    }
+    if let Some(e) = &d.last_error {
+        v["last_error"] = json!(e);
+    }
+    if let Some(t) = d.finished_us {
+        v["finished_at"] = json!(rfc3339(t));
+    }
+    if with_instances {
+        let count = |s: InstanceState| d.instances.iter().filter(|i| i.state == s).count();
+        v["counts"] = json!({
+            "total": d.instances.len(),
+            "succeeded": count(InstanceState::Succeeded),
+            "failed": count(InstanceState::Failed),
+            "pending": count(InstanceState::Pending),
+        });
+        v["instances"] = json!(d.instances);
+    }
+    v
+}
+
+/// The JSON view of a configured peer.
+pub fn peer_view(p: &Peer) -> Value {
+    json!({
+        "ae_title": p.ae_title,
+        "host": p.host,
+        "port": p.port,
+        "store": p.store,
+        "query": p.query,
+        "retrieve": p.retrieve,
+        "links": {"echo": format!("/v1/peers/{}/echo", p.ae_title)},
+    })
+}
+
+fn delivery_not_found(id: &str) -> AppError {
+    refused(
+        ErrorCode::DeliveryNotFound,
+        format!("no delivery {:?}", id.chars().take(80).collect::<String>()),
+    )
+}
+
+impl App {
+    fn caller(&self) -> AppResult<Arc<dyn DicomCaller>> {
+        self.outbound.caller.get().cloned().ok_or_else(|| {
+            refused(
+                ErrorCode::DimseUnavailable,
+                "this process has no DICOM front door to call peers with",
+            )
+        })
+    }
+
+    /// Install the DICOM caller and start the delivery worker (once; later calls do nothing).
+    pub fn start_deliveries(&self, caller: Arc<dyn DicomCaller>) {
+        if self.outbound.caller.set(caller).is_err() {
+            return;
+        }
+        let app = self.clone();
+        tokio::spawn(async move { app.delivery_loop().await });
+    }
+
+    /// The configured peer called `ae_title`.
+    pub fn peer(&self, ae_title: &str) -> AppResult<&Peer> {
+        self.settings.dicom.peer(ae_title).ok_or_else(|| {
+            refused(
+                ErrorCode::PeerNotFound,
+                format!(
+                    "no DICOM peer {:?} is configured (`dicom.peers`)",
+                    ae_title.chars().take(80).collect::<String>()
+                ),
+            )
+        })
+    }
+
+    /// C-ECHO a configured peer: its status and the round trip (association, echo, release).
+    pub async fn echo_peer(&self, ae_title: &str) -> AppResult<(u16, Duration)> {
+        let peer = self.peer(ae_title)?.clone();
+        let caller = self.caller()?;
+        let t0 = Instant::now();
+        match caller.echo(&peer).await {
+            Ok(status) => Ok((status, t0.elapsed())),
+            Err(CallError(reason)) => Err(refused(
+                ErrorCode::PeerUnreachable,
+                format!("C-ECHO to {}: {reason}", peer.ae_title),
+            )),
+        }
+    }
+
+    /// Queue a delivery of a succeeded job's DICOM results to a configured peer.
+    pub async fn create_delivery(&self, job: JobId, destination: &str) -> AppResult<Delivery> {
+        if self.settings.dicom.peer(destination).is_none() {
+            return Err(refused(
+                ErrorCode::UnknownPeer,
+                format!(
+                    "destination {:?} is not a configured DICOM peer (`dicom.peers`)",
+                    destination.chars().take(80).collect::<String>()
+                ),
+            ));
+        }
+        let j = self.get_job(job).await?;
+        if j.status != JobStatus::Succeeded {
+            return Err(refused(
+                ErrorCode::JobNotSucceeded,
+                format!(
+                    "the job is {}; only a succeeded job's results can be sent",
+                    j.status.as_str()
+                ),
+            ));
+        }
+        let run = self.db.run_of_job(job).await?;
+        let id = self
+            .db
+            .insert_delivery(job, run.as_ref(), destination)
+            .await?;
+        self.outbound.wake.notify_one();
+        self.get_delivery(&id).await
+    }
+
+    pub async fn get_delivery(&self, id: &str) -> AppResult<Delivery> {
+        self.db
+            .get_delivery(id)
+            .await?
+            .ok_or_else(|| delivery_not_found(id))
+    }
+
+    pub async fn list_deliveries(&self, f: &DeliveryFilter) -> AppResult<Vec<Delivery>> {
+        Ok(self.db.list_deliveries(f).await?)
+    }
+
+    /// Queue a failed delivery again: its failed instances are sent again, now.
+    pub async fn retry_delivery(&self, id: &str) -> AppResult<Delivery> {
+        let d = self.get_delivery(id).await?;
+        if !self.db.retry_delivery(id).await? {
+            return Err(refused(
+                ErrorCode::DeliveryNotRetryable,
+                format!(
+                    "the delivery is {}; only a failed delivery can be retried",
+                    d.state.as_str()
+                ),
+            ));
+        }
+        self.outbound.wake.notify_one();
+        self.get_delivery(id).await
+    }
+
+    async fn delivery_loop(self) {
+        match self.db.requeue_sending_deliveries().await {
+            Ok(0) => {}
+            Ok(n) => tracing::info!(
+                deliveries = n,
+                "deliveries interrupted by a stop queued again"
+            ),
+            Err(e) => tracing::error!(error = %e, "cannot queue interrupted deliveries again"),
+        }
+        loop {
+            if let Err(e) = self.delivery_round().await {
+                tracing::error!(error = %e, "delivery round failed");
+            }
+            let wait = match self.db.next_delivery_due().await {
+                Ok(Some(t)) => Duration::from_micros((t - now_us()).clamp(10_000, 500_000) as u64),
+                _ => Duration::from_millis(500),
+            };
+            tokio::select! {
+                _ = self.outbound.wake.notified() => {}
+                _ = tokio::time::sleep(wait) => {}
+            }
+        }
+    }
+
+    /// Make the deliveries of finished rule jobs, then send every due delivery.
+    async fn delivery_round(&self) -> AppResult<()> {
+        for (run, status) in self.db.runs_with_finished_jobs().await? {
+            self.settle_run(&run, status).await?;
+        }
+        while let Some(d) = self.db.claim_due_delivery(now_us()).await? {
+            let span = tracing::info_span!("delivery", delivery_id = %d.id, job_id = %d.job_id, destination = %d.destination);
+            if let Err(e) = tracing::Instrument::instrument(self.attempt(d), span).await {
+                tracing::error!(error = %e, "recording a delivery attempt failed");
+            }
+        }
+        Ok(())
+    }
+
+    async fn settle_run(&self, run: &RuleRun, status: JobStatus) -> AppResult<()> {
+        let Some(job) = run.job_id else {
+            return Ok(());
+        };
+        if status != JobStatus::Succeeded {
+            let error = self.db.get_job(job).await?.and_then(|j| j.error);
+            self.db
+                .set_run_state(&run.id, RunState::Done, error.as_ref())
+                .await?;
+            return Ok(());
+        }
+        let destinations = match self.db.get_rule(&run.rule_name).await? {
+            Some(r) => r.spec.destinations,
+            None => Vec::new(),
+        };
+        for d in &destinations {
+            let id = self.db.insert_delivery(job, Some(run), d).await?;
+            tracing::info!(delivery_id = %id, rule = %run.rule_name, %job, destination = %d, "delivery queued");
+        }
+        self.db
+            .set_run_state(&run.id, RunState::Done, None)
+            .await
+            .map_err(AppError::from)
+    }
+
+    /// One attempt of a claimed (`sending`) delivery.
+    async fn attempt(&self, mut d: Delivery) -> AppResult<()> {
+        let fail = |d: &Delivery, why: String| (d.clone(), DeliveryState::Failed, None, Some(why));
+        let (d, state, next, error) = match self.prepare(&mut d).await {
+            Err(p) => fail(&d, p.detail),
+            Ok(()) => self.send(d).await,
+        };
+        if let Some(e) = &error {
+            tracing::warn!(state = state.as_str(), attempts = d.attempts, error = %e, "delivery attempt ended");
+        } else {
+            tracing::info!(instances = d.instances.len(), "delivery succeeded");
+        }
+        self.db
+            .finish_delivery_attempt(&d, state, next, error.as_deref())
+            .await?;
+        Ok(())
+    }
+
+    /// Export the job's results (once) and give the delivery its instances.
+    async fn prepare(&self, d: &mut Delivery) -> Result<(), Problem> {
+        if !d.instances.is_empty() {
+            return Ok(());
+        }
+        let job = match self.db.get_job(d.job_id).await {
+            Ok(Some(j)) => j,
+            Ok(None) => return Err(Problem::new(ErrorCode::JobNotFound, "the job was deleted")),
+            Err(e) => return Err(AppError::from(e).into_problem()),
+        };
+        let Some(result) = job
+            .result
+            .clone()
+            .filter(|_| job.status == JobStatus::Succeeded)
+        else {
+            return Err(Problem::new(
+                ErrorCode::JobNotSucceeded,
+                "the job has no results",
+            ));
+        };
+        let rule = match &d.rule_name {
+            Some(name) => self.db.get_rule(name).await.ok().flatten(),
+            None => None,
+        };
+        let source = match result.source_series {
+            Some(id) => self.db.get_series(id).await.ok().flatten(),
+            None => None,
+        };
+        let opts = ExportOptions {
+            window: rule.as_ref().and_then(|r| r.spec.result_window()),
+            send_volume: rule.as_ref().is_some_and(|r| r.spec.send_volume),
+            mu_water: self.settings.mu_water_per_mm,
+        };
+        let store = self.store.clone();
+        let id = d.job_id;
+        let spec = job.request.clone();
+        let files = self
+            .engine
+            .compute(move || export_job(&store, id, &spec, &result, source.as_ref(), &opts))
+            .await?;
+        d.instances = files
+            .into_iter()
+            .map(|f| DeliveryInstance {
+                file: f.file,
+                sop_class_uid: f.sop_class_uid,
+                sop_instance_uid: f.sop_instance_uid,
+                state: InstanceState::Pending,
+                status: None,
+                detail: None,
+            })
+            .collect();
+        self.db
+            .set_delivery_instances(&d.id, &d.instances)
+            .await
+            .map_err(|e| AppError::from(e).into_problem())?;
+        Ok(())
+    }
+
+    /// Send the instances not yet stored; the new state, next attempt and error.
+    async fn send(
+        &self,
+        mut d: Delivery,
+    ) -> (Delivery, DeliveryState, Option<i64>, Option<String>) {
+        let Some(peer) = self.settings.dicom.peer(&d.destination).cloned() else {
+            let why = format!("{} is no longer a configured peer", d.destination);
+            return (d, DeliveryState::Failed, None, Some(why));
+        };
+        let caller = match self.caller() {
+            Ok(c) => c,
+            Err(e) => return (d, DeliveryState::Failed, None, Some(e.to_string())),
+        };
+        let dir = export_dir(&self.store, d.job_id);
+        let todo: Vec<usize> = (0..d.instances.len())
+            .filter(|&k| d.instances[k].state != InstanceState::Succeeded)
+            .collect();
+        let files = todo
+            .iter()
+            .map(|&k| dir.join(&d.instances[k].file))
+            .collect();
+        match caller.store(&peer, files).await {
+            Ok(sent) => {
+                for (&k, s) in todo.iter().zip(sent) {
+                    let i = &mut d.instances[k];
+                    i.status = s.status;
+                    i.detail = s.detail;
+                    i.state = if s.stored {
+                        InstanceState::Succeeded
+                    } else {
+                        InstanceState::Failed
+                    };
+                }
+                let failed = d
+                    .instances
+                    .iter()
+                    .filter(|i| i.state != InstanceState::Succeeded)
+                    .count();
+                if failed == 0 {
+                    (d, DeliveryState::Succeeded, None, None)
+                } else {
+                    let why = format!(
+                        "{failed} of {} instances were not stored by {}",
+                        d.instances.len(),
+                        peer.ae_title
+                    );
+                    (d, DeliveryState::Failed, None, Some(why))
+                }
+            }
+            Err(CallError(reason)) => {
+                let s = &self.settings.dicom;
+                if d.attempts >= s.delivery_max_attempts {
+                    let why = format!("{reason} (gave up after {} attempts)", d.attempts);
+                    (d, DeliveryState::Failed, None, Some(why))
+                } else {
+                    let next = now_us()
+                        + backoff_us(
+                            d.attempts,
+                            s.delivery_retry_base_ms,
+                            s.delivery_retry_max_ms,
+                        );
+                    (d, DeliveryState::Queued, Some(next), Some(reason))
+                }
+            }
+        }
+    }
+}
