@@ -10,6 +10,11 @@
 //! that stops is handed back to the queue (`running → queued`) without spending an attempt, so rolling
 //! restarts never exhaust a job. Only a crash (the process killed) counts as an attempt.
 
+mod leases;
+mod wakeups;
+
+pub use leases::{LEASE, expiry_interval, heartbeat_interval};
+
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -20,10 +25,11 @@ use serde::Serialize;
 use tokio::sync::{Notify, broadcast, oneshot};
 use tracing::Instrument;
 
+use super::database::Database;
 use super::imaging::{VolumeInput, VolumeJobRequest, execute_volume, resolve_input};
-use super::lifecycle::{Lease, Outcome};
-use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus, now_us};
-use super::repo::{Db, DbError};
+use super::lifecycle::Outcome;
+use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus};
+use super::repo::DbError;
 use super::run::{RunError, execute};
 use super::store::{JobStore, StoreError};
 use crate::error_code::{ErrorCode, Problem};
@@ -71,6 +77,9 @@ pub struct EngineConfig {
     pub memory_budget_bytes: u64,
     pub max_attempts: u32,
     pub progress_interval: Duration,
+    /// How long a claim holds a job without a heartbeat ([`LEASE`] by default); heartbeats come every
+    /// [`heartbeat_interval`], expired leases are looked for every [`expiry_interval`].
+    pub lease: Duration,
 }
 
 struct Running {
@@ -78,17 +87,8 @@ struct Running {
     estimate: u64,
 }
 
-/// How long a claim holds a job without a heartbeat; running jobs renew it every third of that.
-pub const LEASE: Duration = Duration::from_secs(30);
-
-fn lease_from_now() -> Lease {
-    Lease {
-        expires_us: now_us() + LEASE.as_micros() as i64,
-    }
-}
-
 struct Inner {
-    db: Db,
+    db: Database,
     store: BlobStore,
     pool: rayon::ThreadPool,
     config: EngineConfig,
@@ -164,7 +164,11 @@ impl Progress for Sink {
 impl Engine {
     /// Build the pool, recover from a crash (re-queue or fail jobs left running, remove partial results)
     /// and start the scheduler on the current runtime.
-    pub async fn start(db: Db, store: BlobStore, config: EngineConfig) -> Result<Self, StartError> {
+    pub async fn start(
+        db: Database,
+        store: BlobStore,
+        config: EngineConfig,
+    ) -> Result<Self, StartError> {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.worker_threads)
             .thread_name(|i| format!("ctrecon-worker-{i}"))
@@ -199,6 +203,12 @@ impl Engine {
         };
         let scheduler = engine.clone();
         tokio::spawn(async move { scheduler.schedule().await });
+        let expiry = engine.clone();
+        tokio::spawn(async move { expiry.expire_leases_periodically().await });
+        if engine.inner.db.is_shared() {
+            let listener = engine.clone();
+            tokio::spawn(async move { listener.listen_for_wakeups().await });
+        }
         Ok(engine)
     }
 
@@ -224,6 +234,15 @@ impl Engine {
             flag.cancel();
         }
         self.inner.wake.notify_one();
+    }
+
+    /// The cancel flag of a job this engine runs.
+    fn cancel_flag(&self, id: JobId) -> Option<Cancel> {
+        self.inner
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()))
     }
 
     fn is_stopping(&self) -> bool {
@@ -299,8 +318,10 @@ impl Engine {
         match db.get_job(id).await? {
             None => Err(CancelError::NotFound),
             Some(j) if j.status.is_terminal() => Err(CancelError::Finished(j.status)),
-            // Claimed between the two checks: the flag is registered before the claim, look again.
+            // Running here (claimed between the two checks: the flag is registered before the claim) or in
+            // another process, which learns of the request at its next heartbeat (within a second).
             Some(_) => {
+                db.request_cancel(id).await?;
                 let flag = self
                     .inner
                     .running
@@ -308,7 +329,6 @@ impl Engine {
                     .ok()
                     .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
                 if let Some(flag) = flag {
-                    db.request_cancel(id).await?;
                     flag.cancel();
                 }
                 Ok(())
@@ -359,7 +379,7 @@ impl Engine {
                     },
                 );
             }
-            match JobStore::claim(&self.inner.db, id, lease_from_now()).await {
+            match JobStore::claim(&self.inner.db, id, self.lease_from_now()).await {
                 Ok(attempt) => {
                     let engine = self.clone();
                     let span = tracing::info_span!("job", job_id = %id, attempt);
@@ -393,7 +413,7 @@ impl Engine {
         let db = &self.inner.db;
         if outcome == Outcome::Canceled && self.is_stopping() {
             // Stopped by a graceful stop, unless a client asked to cancel it (that ends canceled).
-            match JobStore::hand_back(db, id).await {
+            match JobStore::hand_back(db, id, attempt).await {
                 Ok(()) => {
                     tracing::info!("job handed back to the queue");
                     self.release(id);
@@ -412,9 +432,16 @@ impl Engine {
             }
         }
         let status = outcome.status();
-        let recorded = JobStore::finish(db, id, &outcome)
-            .await
-            .inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"));
+        let recorded = match JobStore::finish(db, id, attempt, &outcome).await {
+            Err(StoreError::LeaseLost) => {
+                // This worker's lease expired and another attempt holds the job: its outcome is not ours.
+                tracing::warn!("the job's lease was lost: its outcome is not recorded");
+                Err(StoreError::LeaseLost)
+            }
+            r => {
+                r.inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"))
+            }
+        };
         self.release(id);
         if recorded.is_ok() {
             tracing::info!(status = status.as_str(), "job finished");
@@ -506,11 +533,11 @@ impl Engine {
             let _ = tx.send(r);
         });
         let mut tick = tokio::time::interval(self.inner.config.progress_interval);
-        let mut heartbeat = tokio::time::interval(LEASE / 3);
+        let mut heartbeat = tokio::time::interval(heartbeat_interval(self.inner.config.lease));
         let outcome = loop {
             tokio::select! {
                 r = &mut rx => break r,
-                _ = tick.tick() => self.persist_progress(id, &latest).await,
+                _ = tick.tick() => self.persist_progress(id, attempt, &latest).await,
                 _ = heartbeat.tick() => self.renew(id, attempt, &cancel_flag).await,
             }
         };
@@ -525,19 +552,7 @@ impl Engine {
         }
     }
 
-    /// Renew the lease of a running job; a job whose lease was lost (another worker took it over) stops.
-    async fn renew(&self, id: JobId, attempt: u32, cancel: &Cancel) {
-        match JobStore::heartbeat(&self.inner.db, id, attempt, lease_from_now()).await {
-            Ok(()) => {}
-            Err(StoreError::LeaseLost | StoreError::Illegal(_)) => {
-                tracing::warn!("the job's lease was lost: stopping it");
-                cancel.cancel();
-            }
-            Err(StoreError::Backend(e)) => tracing::warn!(error = %e, "renewing a lease failed"),
-        }
-    }
-
-    async fn persist_progress(&self, id: JobId, latest: &Mutex<Latest>) {
+    async fn persist_progress(&self, id: JobId, attempt: u32, latest: &Mutex<Latest>) {
         let snapshot = match latest.lock() {
             Ok(mut l) if l.dirty => {
                 l.dirty = false;
@@ -546,7 +561,7 @@ impl Engine {
             _ => None,
         };
         if let Some((p, stage)) = snapshot
-            && let Err(e) = self.inner.db.set_progress(id, p, &stage).await
+            && let Err(e) = JobStore::set_progress(&self.inner.db, id, attempt, p, &stage).await
         {
             tracing::warn!(error = %e, "persisting progress failed");
         }
