@@ -359,7 +359,10 @@ fn an_unreachable_database_stops_the_start_with_a_clear_message() {
         .expect("ctrecon runs");
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(stderr.contains("database"), "{stderr}");
+    assert!(
+        stderr.contains("database: cannot connect to postgres://ctrecon@127.0.0.1:9/ctrecon"),
+        "{stderr}"
+    );
     assert!(started.elapsed() < Duration::from_secs(30));
     assert!(
         String::from_utf8_lossy(&out.stdout).is_empty(),

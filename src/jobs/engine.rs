@@ -10,7 +10,9 @@
 //! that stops is handed back to the queue (`running → queued`) without spending an attempt, so rolling
 //! restarts never exhaust a job. Only a crash (the process killed) counts as an attempt.
 
+mod cancel;
 mod leases;
+mod progress;
 mod wakeups;
 
 pub use leases::{LEASE, expiry_interval, heartbeat_interval};
@@ -22,6 +24,8 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
+
+use progress::{Latest, Sink};
 use tokio::sync::{Notify, broadcast, oneshot};
 use tracing::Instrument;
 
@@ -33,7 +37,7 @@ use super::repo::DbError;
 use super::run::{RunError, execute};
 use super::store::{JobStore, StoreError};
 use crate::error_code::{ErrorCode, Problem};
-use crate::recon::control::{Cancel, Control, Progress};
+use crate::recon::control::{Cancel, Control};
 use crate::recon::grid::Limits;
 use crate::storage::{BlobStore, JobId};
 use crate::telemetry::names;
@@ -112,53 +116,6 @@ enum Work {
 #[derive(Clone)]
 pub struct Engine {
     inner: Arc<Inner>,
-}
-
-/// Latest progress of a running job, written by the pool, read by the persisting task.
-#[derive(Default)]
-struct Latest {
-    progress: u8,
-    stage: String,
-    iteration: Option<usize>,
-    dirty: bool,
-}
-
-/// The progress sink handed to a running job: publishes each change of whole percent or stage.
-struct Sink {
-    id: JobId,
-    latest: Arc<Mutex<Latest>>,
-    events: broadcast::Sender<JobEvent>,
-}
-
-impl Progress for Sink {
-    fn report(&self, stage: &str, fraction: f64, iteration: Option<usize>, residual: Option<f64>) {
-        // Never 100 while running: 100 means succeeded.
-        let pct = (fraction.clamp(0.0, 1.0) * 100.0).floor().min(99.0) as u8;
-        let Ok(mut l) = self.latest.lock() else {
-            return;
-        };
-        let new_residual = residual.is_some() && iteration != l.iteration;
-        if l.progress == pct && l.stage == stage && !new_residual {
-            return;
-        }
-        l.iteration = iteration;
-        if let Some(r) = residual {
-            metrics::gauge!(names::JOB_RESIDUAL).set(r);
-        }
-        l.progress = pct;
-        if l.stage != stage {
-            l.stage = stage.to_string();
-        }
-        l.dirty = true;
-        let _ = self.events.send(JobEvent {
-            id: self.id,
-            status: JobStatus::Running,
-            progress: pct,
-            stage: l.stage.clone(),
-            iteration,
-            residual,
-        });
-    }
 }
 
 impl Engine {
@@ -290,48 +247,6 @@ impl Engine {
             _ => {
                 tracing::error!("a computation panicked");
                 Err(Problem::internal())
-            }
-        }
-    }
-
-    /// Cancel a job: a queued job is canceled at once; a running one is flagged and stops at its next
-    /// check (within a second). Terminal jobs answer `job_already_finished`.
-    pub async fn cancel(&self, id: JobId) -> Result<(), CancelError> {
-        let db = &self.inner.db;
-        if db.cancel_queued(id).await? {
-            if let Some(job) = db.get_job(id).await? {
-                self.publish(&job);
-            }
-            return Ok(());
-        }
-        let flag = self
-            .inner
-            .running
-            .lock()
-            .ok()
-            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
-        if let Some(flag) = flag {
-            db.request_cancel(id).await?;
-            flag.cancel();
-            return Ok(());
-        }
-        match db.get_job(id).await? {
-            None => Err(CancelError::NotFound),
-            Some(j) if j.status.is_terminal() => Err(CancelError::Finished(j.status)),
-            // Running here (claimed between the two checks: the flag is registered before the claim) or in
-            // another process, which learns of the request at its next heartbeat (within a second).
-            Some(_) => {
-                db.request_cancel(id).await?;
-                let flag = self
-                    .inner
-                    .running
-                    .lock()
-                    .ok()
-                    .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
-                if let Some(flag) = flag {
-                    flag.cancel();
-                }
-                Ok(())
             }
         }
     }
@@ -549,21 +464,6 @@ impl Engine {
                 tracing::error!("a job panicked");
                 failed(Problem::internal())
             }
-        }
-    }
-
-    async fn persist_progress(&self, id: JobId, attempt: u32, latest: &Mutex<Latest>) {
-        let snapshot = match latest.lock() {
-            Ok(mut l) if l.dirty => {
-                l.dirty = false;
-                Some((l.progress, l.stage.clone()))
-            }
-            _ => None,
-        };
-        if let Some((p, stage)) = snapshot
-            && let Err(e) = JobStore::set_progress(&self.inner.db, id, attempt, p, &stage).await
-        {
-            tracing::warn!(error = %e, "persisting progress failed");
         }
     }
 }

@@ -9,26 +9,25 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use sqlx::postgres::{PgPool, PgPoolOptions, PgRow};
+use sqlx::Connection;
+use sqlx::postgres::{PgConnection, PgPool, PgPoolOptions, PgRow};
 use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
 mod job_store;
 pub mod listen;
+mod retention;
+mod rows;
 mod uploads;
 
-use super::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary, now_us};
+use rows::{
+    SUMMARY_COLUMNS, dataset_from_row, job_from_row, json_col, opt_json_col, summary_from_row,
+};
+
+use super::model::{Dataset, Job, JobStatus, JobSummary, now_us};
 pub use super::repo::{Appended, Completed, DbError, IdempotencyKey, Inserted, JobFilter};
 use super::repo::{corrupt, to_json};
-use crate::error_code::Problem;
-use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
-
-/// The inputs (datasets, series, jobs) of queued and running jobs: never removed.
-macro_rules! active_inputs {
-    () => {
-        "SELECT dataset_id FROM jobs WHERE status IN ('queued', 'running')"
-    };
-}
+use crate::storage::{DatasetId, JobId};
 
 /// The channel on which a new or re-queued job is announced (payload: the job id).
 pub const QUEUED_CHANNEL: &str = "ctrecon_queued";
@@ -47,117 +46,28 @@ pub struct PgDb {
     generation: Arc<AtomicU64>,
 }
 
-fn json_col<T: serde::de::DeserializeOwned>(
-    row: &PgRow,
-    col: &str,
-    table: &'static str,
-) -> Result<T, DbError> {
-    let text: String = row.try_get(col)?;
-    serde_json::from_str(&text).map_err(|e| corrupt(table, format!("{col}: {e}")))
-}
-
-fn opt_json_col<T: serde::de::DeserializeOwned>(
-    row: &PgRow,
-    col: &str,
-    table: &'static str,
-) -> Result<Option<T>, DbError> {
-    let text: Option<String> = row.try_get(col)?;
-    text.map(|t| serde_json::from_str(&t).map_err(|e| corrupt(table, format!("{col}: {e}"))))
-        .transpose()
-}
-
-fn dataset_from_row(row: &PgRow) -> Result<Dataset, DbError> {
-    let id: String = row.try_get("id")?;
-    let kind: String = row.try_get("kind")?;
-    let bytes: i64 = row.try_get("bytes")?;
-    Ok(Dataset {
-        id: DatasetId::parse(&id).map_err(|e| corrupt("datasets", e))?,
-        kind: match kind.as_str() {
-            "upload" => DatasetKind::Upload,
-            "simulation" => DatasetKind::Simulation,
-            other => return Err(corrupt("datasets", format!("kind {other}"))),
-        },
-        geometry: json_col(row, "geometry", "datasets")?,
-        shape: json_col(row, "shape", "datasets")?,
-        dtype: row.try_get("dtype")?,
-        bytes: bytes as u64,
-        sha256: row.try_get("sha256")?,
-        phantom: opt_json_col(row, "phantom", "datasets")?,
-        noise: opt_json_col(row, "noise", "datasets")?,
-        created_us: row.try_get("created_us")?,
-    })
-}
-
-fn job_from_row(row: &PgRow) -> Result<Job, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let estimate: i64 = row.try_get("estimate_bytes")?;
-    let attempts: i64 = row.try_get("attempts")?;
-    let cancel: i64 = row.try_get("cancel_requested")?;
-    Ok(Job {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
-        kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
-        stage: row.try_get("stage")?,
-        request: json_col::<JobSpec>(row, "spec", "jobs")?,
-        estimate_bytes: estimate.max(0) as u64,
-        attempts: attempts.max(0) as u32,
-        cancel_requested: cancel != 0,
-        error: opt_json_col::<Problem>(row, "error", "jobs")?,
-        result: opt_json_col::<JobResult>(row, "result", "jobs")?,
-        created_us: row.try_get("created_us")?,
-        started_us: row.try_get("started_us")?,
-        finished_us: row.try_get("finished_us")?,
-    })
-}
-
-/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
-/// (comma-separated).
-const SUMMARY_COLUMNS: &str =
-    "id, kind, status, progress, stage, created_us, started_us, finished_us,
-    COALESCE(jsonb_typeof(result::jsonb -> 'metrics') <> 'null', false) AS has_metrics,
-    (SELECT string_agg(p.value ->> 'index', ',' ORDER BY p.n)
-       FROM jsonb_array_elements(result::jsonb -> 'products') WITH ORDINALITY AS p(value, n))
-        AS product_indexes";
-
-fn summary_from_row(row: &PgRow) -> Result<JobSummary, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let has_metrics: bool = row.try_get("has_metrics")?;
-    let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = products
-        .iter()
-        .flat_map(|p| p.split(','))
-        .map(|i| {
-            i.trim()
-                .parse::<usize>()
-                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    Ok(JobSummary {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
-        kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
-        stage: row.try_get("stage")?,
-        created_us: row.try_get("created_us")?,
-        started_us: row.try_get("started_us")?,
-        finished_us: row.try_get("finished_us")?,
-        has_metrics,
-        product_indexes,
-    })
-}
-
 impl PgDb {
     /// Connect to the database at `url` (`postgres://…`) and apply the migrations (concurrent starts are
     /// serialised by sqlx's advisory lock). Fails within `connect_timeout` when the server cannot be
     /// reached.
     pub async fn open(url: &str, connect_timeout: Duration) -> Result<Self, DbError> {
+        // One connection first, to say why the server cannot be reached (the pool only times out).
+        let unreachable = |reason: String| DbError::Unreachable {
+            target: redacted(url),
+            reason,
+        };
+        match tokio::time::timeout(connect_timeout, PgConnection::connect(url)).await {
+            Ok(Ok(c)) => {
+                let _ = c.close().await;
+            }
+            Ok(Err(e)) => return Err(unreachable(e.to_string())),
+            Err(_) => {
+                return Err(unreachable(format!(
+                    "no answer within {} s",
+                    connect_timeout.as_secs()
+                )));
+            }
+        }
         let pool = PgPoolOptions::new()
             .max_connections(MAX_CONNECTIONS)
             .acquire_timeout(connect_timeout)
@@ -489,105 +399,6 @@ impl PgDb {
         Ok(done.rows_affected() == 1)
     }
 
-    /// Delete the rows that `sql` (a `DELETE … WHERE … < ? … RETURNING id`) selects with `before_us`, and
-    /// the Idempotency-Key records that name them, in one transaction; returns the ids deleted.
-    async fn delete_returning(
-        &self,
-        sql: &'static str,
-        before_us: i64,
-    ) -> Result<Vec<String>, DbError> {
-        let mut tx = self.pool.begin().await?;
-        let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
-        let ids = rows
-            .iter()
-            .map(|r| r.try_get::<String, _>("id"))
-            .collect::<Result<Vec<_>, _>>()?;
-        for id in &ids {
-            sqlx::query("DELETE FROM idempotency_keys WHERE resource_id = $1")
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
-        }
-        tx.commit().await?;
-        Ok(ids)
-    }
-
-    /// Retention: delete the jobs that finished before `before_us`, except those a queued or running job
-    /// takes as input; returns their ids (their result files are the caller's to remove).
-    pub async fn delete_jobs_finished_before(&self, before_us: i64) -> Result<Vec<JobId>, DbError> {
-        let ids = self
-            .delete_returning(
-                concat!(
-                    "DELETE FROM jobs WHERE status IN ('succeeded', 'failed', 'canceled') AND finished_us < $1
-                     AND id NOT IN (",
-                    active_inputs!(),
-                    ") RETURNING id"
-                ),
-                before_us,
-            )
-            .await?;
-        ids.iter()
-            .map(|id| JobId::parse(id).map_err(|e| corrupt("jobs", e)))
-            .collect()
-    }
-
-    /// Retention: delete the datasets created before `before_us` that no queued or running job uses.
-    pub async fn delete_datasets_created_before(
-        &self,
-        before_us: i64,
-    ) -> Result<Vec<DatasetId>, DbError> {
-        let ids = self
-            .delete_returning(
-                concat!(
-                    "DELETE FROM datasets WHERE created_us < $1 AND id NOT IN (",
-                    active_inputs!(),
-                    ") RETURNING id"
-                ),
-                before_us,
-            )
-            .await?;
-        ids.iter()
-            .map(|id| DatasetId::parse(id).map_err(|e| corrupt("datasets", e)))
-            .collect()
-    }
-
-    /// Retention: delete the series created before `before_us` that no queued or running job uses.
-    pub async fn delete_series_created_before(
-        &self,
-        before_us: i64,
-    ) -> Result<Vec<SeriesId>, DbError> {
-        let ids = self
-            .delete_returning(
-                concat!(
-                    "DELETE FROM series WHERE created_us < $1 AND id NOT IN (",
-                    active_inputs!(),
-                    ") RETURNING id"
-                ),
-                before_us,
-            )
-            .await?;
-        ids.iter()
-            .map(|id| SeriesId::parse(id).map_err(|e| corrupt("series", e)))
-            .collect()
-    }
-
-    /// Retention: delete the uploads completed before `before_us` that no series comes from any more.
-    pub async fn delete_uploads_without_series(
-        &self,
-        before_us: i64,
-    ) -> Result<Vec<UploadId>, DbError> {
-        let ids = self
-            .delete_returning(
-                "DELETE FROM uploads WHERE status = 'completed' AND completed_us < $1
-                 AND id NOT IN (SELECT upload_id FROM series) RETURNING id",
-                before_us,
-            )
-            .await?;
-        ids.iter()
-            .map(|id| UploadId::parse(id).map_err(|e| corrupt("uploads", e)))
-            .collect()
-    }
-
     /// Number of jobs in each status.
     pub async fn counts(&self) -> Result<Vec<(JobStatus, i64)>, DbError> {
         let rows = sqlx::query("SELECT status, COUNT(*) AS n FROM jobs GROUP BY status")
@@ -605,6 +416,25 @@ impl PgDb {
     }
 }
 
+/// `url` without its password, for messages.
+fn redacted(url: &str) -> String {
+    let Some(scheme_end) = url.find("://").map(|i| i + 3) else {
+        return "the configured database_url".into();
+    };
+    let rest = &url[scheme_end..];
+    match (rest.find('@'), rest.find(':')) {
+        (Some(at), Some(colon)) if colon < at => {
+            format!(
+                "{}{}:***{}",
+                &url[..scheme_end],
+                &rest[..colon],
+                &rest[at..]
+            )
+        }
+        _ => url.to_string(),
+    }
+}
+
 /// Announce `id` on `channel` when `tx` commits (a notification is delivered only if its transaction
 /// commits, and only once).
 async fn notify(tx: &mut sqlx::PgConnection, channel: &str, id: JobId) -> Result<(), DbError> {
@@ -614,4 +444,19 @@ async fn notify(tx: &mut sqlx::PgConnection, channel: &str, id: JobId) -> Result
         .execute(&mut *tx)
         .await?;
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn a_password_never_reaches_a_message() {
+        assert_eq!(
+            super::redacted("postgres://ctrecon:s3cret@db:5432/ctrecon"),
+            "postgres://ctrecon:***@db:5432/ctrecon"
+        );
+        assert_eq!(
+            super::redacted("postgres://ctrecon@db/ctrecon"),
+            "postgres://ctrecon@db/ctrecon"
+        );
+    }
 }

@@ -35,6 +35,9 @@ pub enum DbError {
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("corrupt row in {table}: {reason}")]
     Corrupt { table: &'static str, reason: String },
+    /// The database server could not be reached at start (`target`: the URL without its password).
+    #[error("cannot connect to {target}: {reason}")]
+    Unreachable { target: String, reason: String },
 }
 
 /// Outcome of appending an instance to an open upload.

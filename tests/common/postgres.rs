@@ -117,7 +117,11 @@ fn start() -> Result<Cluster, String> {
     run(ctl, "pg_ctl start")?;
     // Stop the server and remove its directory when this test process is gone (the watchdog runs as this
     // user, who may signal this process; the server is stopped as its own user).
-    let as_user = if is_root() { "runuser -u postgres -- " } else { "" };
+    let as_user = if is_root() {
+        "runuser -u postgres -- "
+    } else {
+        ""
+    };
     let stop = format!(
         "while kill -0 {pid} 2>/dev/null; do sleep 0.5; done; {as_user}{ctl} -D {data} -m immediate stop >/dev/null 2>&1",
         pid = std::process::id(),
