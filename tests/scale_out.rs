@@ -1,8 +1,9 @@
 //! Several ctrecon processes on one job database, and leases that expire: the service end to end on
 //! PostgreSQL (two API processes sharing Idempotency-Keys), a job whose worker was lost finished by another
 //! after its lease (on SQLite and PostgreSQL, in-process; and on PostgreSQL with `kill -9` of a real
-//! `ctrecon serve` process), a cancel posted to one process stopping the job another runs, and a database
-//! that cannot be reached refusing the start.
+//! `ctrecon serve` process), a job queued on a busy process started at once by an idle one (`NOTIFY`), a
+//! cancel posted to one process stopping the job another runs, and a database that cannot be reached
+//! refusing the start.
 //!
 //! PostgreSQL is a throwaway cluster (`common/postgres.rs`); without it those tests print one skip line,
 //! unless `CTRECON_REQUIRE_PEERS=1`.
@@ -301,7 +302,8 @@ async fn postgres_a_job_of_a_killed_process_is_finished_by_another_after_its_lea
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn postgres_a_cancel_posted_to_one_process_stops_the_job_another_runs() {
+async fn postgres_an_idle_process_is_woken_at_once_and_a_cancel_posted_to_one_process_stops_the_job_another_runs()
+ {
     let Some(url) = cluster::database_url("postgres_a_cancel_posted_to_one_process") else {
         return;
     };
@@ -318,6 +320,24 @@ async fn postgres_a_cancel_posted_to_one_process_stops_the_job_another_runs() {
         .await;
     let b = serve(dir.path(), &url, &[]);
     let api_b = client_of(&b);
+    // A is busy (one job at a time): a job submitted to A starts at once on idle B, woken by a notification
+    // (B's own look at the queue comes only every 2 s).
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let small = api_a.submit(&fdk_job(&input, 16)).await;
+    let small = small["id"].as_str().expect("id").to_string();
+    let small = api_b.finish(&small).await;
+    assert_eq!(small["status"], "succeeded", "{small}");
+    let waited_us = ctrecon::jobs::model::parse_rfc3339(small["started_at"].as_str().unwrap())
+        .zip(ctrecon::jobs::model::parse_rfc3339(
+            small["created_at"].as_str().unwrap(),
+        ))
+        .map(|(s, c)| s - c)
+        .expect("timestamps");
+    eprintln!(
+        "queued on busy A, started on idle B after {} ms",
+        waited_us / 1000
+    );
+    assert!(waited_us < 500_000, "{waited_us} µs");
     let posted = Instant::now();
     let r = api_b
         .post_json(&format!("/v1/jobs/{id}/cancel"), &json!({}))
