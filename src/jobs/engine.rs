@@ -207,7 +207,8 @@ impl Engine {
     }
 
     /// Wait until no job runs, or until `deadline`; returns the number still running then (they stay
-    /// `running` in the database and are recovered at the next start, as after a crash).
+    /// `running` in the database and are recovered at the next start, as after a crash; on a shared database,
+    /// by another process once their lease expires).
     pub async fn stopped(&self, deadline: tokio::time::Instant) -> usize {
         loop {
             let released = self.inner.released.notified();
