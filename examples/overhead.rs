@@ -1,6 +1,10 @@
 //! Job overhead over compute: how long the service takes around a job whose computation is negligible.
 //!
-//! `cargo run --example overhead -- [--jobs 40]`
+//! `cargo run --example overhead -- [--jobs 40] [--postgres]`
+//!
+//! With `--postgres` the same measurement follows on a PostgreSQL job database in the same run: a
+//! throwaway cluster (as the tests make it, `tests/common/postgres.rs`) or the database `CTRECON_DATABASE_URL`
+//! names.
 //!
 //! A real server on loopback (default settings but the data directory and port, on its own runtime) gets a
 //! tiny simulated sinogram, then `--jobs` tiny FBP jobs one after the other (8 × 8 pixels from 16 views ×
@@ -15,10 +19,14 @@ use ctrecon::config::Settings;
 use ctrecon::http::Application;
 use serde_json::{Value, json};
 
-fn start_server(dir: &std::path::Path) -> String {
+#[path = "../tests/common/postgres.rs"]
+mod cluster;
+
+fn start_server(dir: &std::path::Path, database_url: Option<String>) -> String {
     let settings = Settings {
         bind: "127.0.0.1:0".parse().expect("address"),
         data_dir: dir.to_path_buf(),
+        database_url,
         ..Settings::default()
     };
     let (tx, rx) = std::sync::mpsc::channel();
@@ -51,6 +59,7 @@ fn micros(job: &Value, field: &str) -> i64 {
 #[tokio::main]
 async fn main() {
     let mut jobs = 40usize;
+    let mut postgres = false;
     let mut args = std::env::args().skip(1);
     while let Some(flag) = args.next() {
         if flag == "--jobs" {
@@ -59,10 +68,29 @@ async fn main() {
                 .and_then(|v| v.parse().ok())
                 .unwrap_or(jobs)
                 .max(2);
+        } else if flag == "--postgres" {
+            postgres = true;
         }
     }
+    println!("SQLite (the data directory):");
+    measure(jobs, None).await;
+    if postgres {
+        let url = std::env::var("CTRECON_DATABASE_URL")
+            .ok()
+            .or_else(|| cluster::database_url("overhead"));
+        match url {
+            Some(url) => {
+                println!("PostgreSQL ({}):", url.split('@').next_back().unwrap_or(""));
+                measure(jobs, Some(url)).await;
+            }
+            None => println!("PostgreSQL: not installed"),
+        }
+    }
+}
+
+async fn measure(jobs: usize, database_url: Option<String>) {
     let dir = tempfile::tempdir().expect("temp dir");
-    let base = start_server(dir.path());
+    let base = start_server(dir.path(), database_url);
     let client = reqwest::Client::new();
     let sim: Value = client
         .post(format!("{base}/v1/simulations"))

@@ -50,4 +50,6 @@ pub mod names {
     pub const STORAGE_BYTES: &str = "ctrecon_storage_bytes";
     /// Resources removed by retention, by `kind` (jobs, datasets, series, uploads).
     pub const RETENTION_REMOVED: &str = "ctrecon_retention_removed_total";
+    /// Running jobs whose lease expired (their worker was lost), by `outcome` (requeued, failed).
+    pub const LEASES_EXPIRED: &str = "ctrecon_lease_expiries_total";
 }

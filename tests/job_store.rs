@@ -1,13 +1,13 @@
-//! The `JobStore` conformance suite, run against every adapter: SQLite (the service's own) and an in-memory
-//! store written here, which proves the port can be implemented beside the others. A PostgreSQL adapter
-//! adds one line.
+//! The `JobStore` conformance suite, run against every adapter: SQLite (the default), PostgreSQL (on a
+//! throwaway cluster; skipped with one line where PostgreSQL is not installed, unless
+//! `CTRECON_REQUIRE_PEERS=1`) and an in-memory store written here.
 
 use std::collections::HashMap;
 use std::sync::Mutex;
 
 use ctrecon::jobs::lifecycle::{IllegalTransition, transition};
 use ctrecon::jobs::model::now_us;
-use ctrecon::jobs::store::{Expired, StoreResult};
+use ctrecon::jobs::store::{Expired, Renewed, StoreResult};
 use ctrecon::jobs::{
     Db, IdempotencyKey, Inserted, Job, JobFilter, JobState, JobStatus, JobStore, Lease, Outcome,
     StoreError, Transition,
@@ -28,6 +28,26 @@ mod sqlite {
     }
 
     ctrecon::job_store_conformance!(fresh());
+}
+
+#[path = "common/postgres.rs"]
+mod cluster;
+
+mod postgres {
+    use super::*;
+    use ctrecon::jobs::PgDb;
+
+    /// A fresh database on the throwaway cluster, or `None` (one skip line) without PostgreSQL.
+    async fn fresh() -> Option<PgDb> {
+        let url = cluster::database_url("job_store::postgres")?;
+        Some(
+            PgDb::open(&url, std::time::Duration::from_secs(10))
+                .await
+                .expect("database"),
+        )
+    }
+
+    ctrecon::job_store_conformance!(optional fresh());
 }
 
 mod memory {
@@ -171,12 +191,19 @@ impl JobStore for MemoryStore {
         async move { r }.boxed()
     }
 
-    fn heartbeat(&self, id: JobId, attempt: u32, lease: Lease) -> BoxFuture<'_, StoreResult<()>> {
+    fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        lease: Lease,
+    ) -> BoxFuture<'_, StoreResult<Renewed>> {
         let mut inner = self.inner.lock().expect("lock");
         let r = match inner.jobs.get_mut(&id) {
             Some((j, l)) if j.status == JobStatus::Running && j.attempts == attempt => {
                 *l = Some(lease);
-                Ok(())
+                Ok(Renewed {
+                    cancel_requested: j.cancel_requested,
+                })
             }
             _ => Err(StoreError::LeaseLost),
         };
@@ -186,12 +213,14 @@ impl JobStore for MemoryStore {
     fn set_progress<'a>(
         &'a self,
         id: JobId,
+        attempt: u32,
         progress: u8,
         stage: &'a str,
     ) -> BoxFuture<'a, StoreResult<()>> {
         let mut inner = self.inner.lock().expect("lock");
         if let Some((j, _)) = inner.jobs.get_mut(&id)
             && j.status == JobStatus::Running
+            && j.attempts == attempt
         {
             j.progress = progress;
             j.stage = stage.to_string();
@@ -199,15 +228,22 @@ impl JobStore for MemoryStore {
         async move { Ok(()) }.boxed()
     }
 
-    fn hand_back(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>> {
-        let asked_to_cancel = self
-            .inner
-            .lock()
-            .expect("lock")
-            .jobs
-            .get(&id)
-            .is_some_and(|(j, _)| j.cancel_requested);
-        let r = if asked_to_cancel {
+    fn hand_back(&self, id: JobId, attempt: u32) -> BoxFuture<'_, StoreResult<()>> {
+        let (asked_to_cancel, stale) =
+            self.inner
+                .lock()
+                .expect("lock")
+                .jobs
+                .get(&id)
+                .map_or((false, false), |(j, _)| {
+                    (
+                        j.cancel_requested,
+                        j.status == JobStatus::Running && j.attempts != attempt,
+                    )
+                });
+        let r = if stale {
+            Err(StoreError::LeaseLost)
+        } else if asked_to_cancel {
             Err(IllegalTransition {
                 from: Some(JobStatus::Running),
                 event: Transition::HandBack,
@@ -253,7 +289,22 @@ impl JobStore for MemoryStore {
         async move { Ok(e) }.boxed()
     }
 
-    fn finish<'a>(&'a self, id: JobId, outcome: &'a Outcome) -> BoxFuture<'a, StoreResult<()>> {
+    fn finish<'a>(
+        &'a self,
+        id: JobId,
+        attempt: u32,
+        outcome: &'a Outcome,
+    ) -> BoxFuture<'a, StoreResult<()>> {
+        let stale = self
+            .inner
+            .lock()
+            .expect("lock")
+            .jobs
+            .get(&id)
+            .is_some_and(|(j, _)| j.status == JobStatus::Running && j.attempts != attempt);
+        if stale {
+            return async { Err(StoreError::LeaseLost) }.boxed();
+        }
         let r = self.apply(id, outcome.transition(), |j, l| {
             *l = None;
             j.stage = j.status.as_str().into();

@@ -200,9 +200,10 @@ impl App {
                 ),
             ));
         }
-        let run = self.db.run_of_job(job).await?;
+        let run = self.db.node_tables()?.run_of_job(job).await?;
         let id = self
             .db
+            .node_tables()?
             .insert_delivery(job, run.as_ref(), destination)
             .await?;
         self.outbound.wake.notify_one();
@@ -211,19 +212,20 @@ impl App {
 
     pub async fn get_delivery(&self, id: &str) -> AppResult<Delivery> {
         self.db
+            .node_tables()?
             .get_delivery(id)
             .await?
             .ok_or_else(|| delivery_not_found(id))
     }
 
     pub async fn list_deliveries(&self, f: &DeliveryFilter) -> AppResult<Vec<Delivery>> {
-        Ok(self.db.list_deliveries(f).await?)
+        Ok(self.db.node_tables()?.list_deliveries(f).await?)
     }
 
     /// Queue a failed delivery again: its failed instances are sent again, now.
     pub async fn retry_delivery(&self, id: &str) -> AppResult<Delivery> {
         let d = self.get_delivery(id).await?;
-        if !self.db.retry_delivery(id).await? {
+        if !self.db.node_tables()?.retry_delivery(id).await? {
             return Err(refused(
                 ErrorCode::DeliveryNotRetryable,
                 format!(
@@ -237,7 +239,13 @@ impl App {
     }
 
     async fn delivery_loop(self) {
-        match self.db.requeue_sending_deliveries().await {
+        let Ok(db) = self.db.node_tables() else {
+            tracing::warn!(
+                "deliveries are kept in the SQLite database only; none are sent with a PostgreSQL job database"
+            );
+            return;
+        };
+        match db.requeue_sending_deliveries().await {
             Ok(0) => {}
             Ok(n) => tracing::info!(
                 deliveries = n,
@@ -249,7 +257,7 @@ impl App {
             if let Err(e) = self.delivery_round().await {
                 tracing::error!(error = %e, "delivery round failed");
             }
-            let wait = match self.db.next_delivery_due().await {
+            let wait = match db.next_delivery_due().await {
                 Ok(Some(t)) => Duration::from_micros((t - now_us()).clamp(10_000, 500_000) as u64),
                 _ => Duration::from_millis(500),
             };
@@ -262,10 +270,10 @@ impl App {
 
     /// Make the deliveries of finished rule jobs, then send every due delivery.
     async fn delivery_round(&self) -> AppResult<()> {
-        for (run, status) in self.db.runs_with_finished_jobs().await? {
+        for (run, status) in self.db.node_tables()?.runs_with_finished_jobs().await? {
             self.settle_run(&run, status).await?;
         }
-        while let Some(d) = self.db.claim_due_delivery(now_us()).await? {
+        while let Some(d) = self.db.node_tables()?.claim_due_delivery(now_us()).await? {
             let span = tracing::info_span!("delivery", delivery_id = %d.id, job_id = %d.job_id, destination = %d.destination);
             if let Err(e) = tracing::Instrument::instrument(self.attempt(d), span).await {
                 tracing::error!(error = %e, "recording a delivery attempt failed");
@@ -281,19 +289,25 @@ impl App {
         if status != JobStatus::Succeeded {
             let error = self.db.get_job(job).await?.and_then(|j| j.error);
             self.db
+                .node_tables()?
                 .set_run_state(&run.id, RunState::Done, error.as_ref())
                 .await?;
             return Ok(());
         }
-        let destinations = match self.db.get_rule(&run.rule_name).await? {
+        let destinations = match self.db.node_tables()?.get_rule(&run.rule_name).await? {
             Some(r) => r.spec.destinations,
             None => Vec::new(),
         };
         for d in &destinations {
-            let id = self.db.insert_delivery(job, Some(run), d).await?;
+            let id = self
+                .db
+                .node_tables()?
+                .insert_delivery(job, Some(run), d)
+                .await?;
             tracing::info!(delivery_id = %id, rule = %run.rule_name, %job, destination = %d, "delivery queued");
         }
         self.db
+            .node_tables()?
             .set_run_state(&run.id, RunState::Done, None)
             .await
             .map_err(AppError::from)
@@ -312,6 +326,7 @@ impl App {
             tracing::info!(instances = d.instances.len(), "delivery succeeded");
         }
         self.db
+            .node_tables()?
             .finish_delivery_attempt(&d, state, next, error.as_deref())
             .await?;
         Ok(())
@@ -338,7 +353,10 @@ impl App {
             ));
         };
         let rule = match &d.rule_name {
-            Some(name) => self.db.get_rule(name).await.ok().flatten(),
+            Some(name) => match self.db.node_tables() {
+                Ok(db) => db.get_rule(name).await.ok().flatten(),
+                Err(_) => None,
+            },
             None => None,
         };
         let source = match result.source_series {
@@ -369,6 +387,8 @@ impl App {
             })
             .collect();
         self.db
+            .node_tables()
+            .map_err(|e| AppError::from(e).into_problem())?
             .set_delivery_instances(&d.id, &d.instances)
             .await
             .map_err(|e| AppError::from(e).into_problem())?;

@@ -105,7 +105,10 @@ impl App {
                 instance: i.clone(),
             })
             .collect();
-        self.db.insert_instances(owner, &rows).await?;
+        self.db
+            .node_tables()?
+            .insert_instances(owner, &rows)
+            .await?;
         let store = self.store.clone();
         let moves: Vec<(PathBuf, PathBuf)> = read
             .into_iter()
@@ -137,7 +140,7 @@ impl App {
 
     /// Answer a query over the index (grouped and matched off the async threads).
     pub async fn find_instances(&self, q: &Query) -> AppResult<Vec<Found>> {
-        let rows = self.db.indexed_instances(&q.scope()).await?;
+        let rows = self.db.node_tables()?.indexed_instances(&q.scope()).await?;
         let q = q.clone();
         tokio::task::spawn_blocking(move || query::run(rows, &q))
             .await
@@ -148,7 +151,7 @@ impl App {
     /// study and frame of reference of its source series. A job without a source series (no patient) is
     /// marked indexed with no instance. A job indexed before is left as it is. Returns the instances indexed.
     pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
-        if self.db.job_indexed(id).await? {
+        if self.db.node_tables()?.job_indexed(id).await? {
             return Ok(0);
         }
         let Some(job) = self.db.get_job(id).await? else {
@@ -158,7 +161,7 @@ impl App {
             return Ok(0);
         }
         let Some(result) = job.result.filter(|r| r.source_series.is_some()) else {
-            self.db.mark_job_indexed(id).await?;
+            self.db.node_tables()?.mark_job_indexed(id).await?;
             return Ok(0);
         };
         let source = match result.source_series {
@@ -230,7 +233,10 @@ impl App {
             .await?;
         let owner = InstanceOwner::Job(id);
         let rows: Vec<NewInstance> = written.iter().map(|(r, _)| r.clone()).collect();
-        self.db.insert_instances(owner, &rows).await?;
+        self.db
+            .node_tables()?
+            .insert_instances(owner, &rows)
+            .await?;
         for (row, temp) in written {
             self.store
                 .commit_async(temp, self.store.instance_path(owner, row.id))
@@ -244,7 +250,7 @@ impl App {
     /// Index the results of every succeeded volume job not indexed yet (after a restart).
     pub async fn index_pending_jobs(&self) -> AppResult<usize> {
         let mut n = 0;
-        for id in self.db.jobs_to_index().await? {
+        for id in self.db.node_tables()?.jobs_to_index().await? {
             n += self.index_job(id).await?;
         }
         Ok(n)
@@ -289,6 +295,7 @@ impl App {
     pub async fn sweep_instances(&self) -> AppResult<usize> {
         let keep: HashSet<String> = self
             .db
+            .node_tables()?
             .uploads_with_instances()
             .await?
             .into_iter()

@@ -21,12 +21,15 @@ use tokio::sync::watch;
 
 use crate::config::{ConfigError, Settings};
 use crate::jobs::retention::{self, Retention};
-use crate::jobs::{Db, DbError, Engine, EngineConfig, StartError};
+use crate::jobs::{Database, DbError, Engine, EngineConfig, StartError};
 use crate::storage::BlobStore;
 
 pub use error::{AppError, AppResult};
 pub use idempotency::{Fingerprinted, Replay};
 pub use jobs::{Page, Submitted};
+
+/// How long opening waits for a PostgreSQL server before it gives up with an error.
+const DATABASE_CONNECT_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// Why the application could not open.
 #[derive(Debug, thiserror::Error)]
@@ -45,7 +48,7 @@ pub enum OpenError {
 /// clone (every part is a handle).
 #[derive(Clone)]
 pub struct App {
-    pub db: Db,
+    pub db: Database,
     pub store: BlobStore,
     pub engine: Engine,
     pub settings: Settings,
@@ -66,7 +69,12 @@ impl App {
         .await
         .map_err(|e| OpenError::DataDir(std::io::Error::other(e)))?
         .map_err(OpenError::DataDir)?;
-        let db = Db::open(&settings.data_dir.join("ctrecon.sqlite")).await?;
+        let db = Database::open(
+            settings.database_url.as_deref(),
+            &settings.data_dir.join("ctrecon.sqlite"),
+            DATABASE_CONNECT_TIMEOUT,
+        )
+        .await?;
         let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
         tracing::info!(?swept, "blob files paired with their rows");
         let retention = Retention::from_secs(
@@ -93,6 +101,7 @@ impl App {
                 memory_budget_bytes: settings.memory_budget_bytes,
                 max_attempts: settings.max_attempts,
                 progress_interval: Duration::from_millis(settings.progress_interval_ms.max(10)),
+                lease: Duration::from_secs(settings.lease_secs),
             },
         )
         .await?;

@@ -100,7 +100,7 @@ impl App {
             })?;
             specs.push(spec);
         }
-        self.db.sync_config_rules(&specs).await?;
+        self.db.node_tables()?.sync_config_rules(&specs).await?;
         if !specs.is_empty() {
             tracing::info!(
                 rules = specs.len(),
@@ -113,7 +113,12 @@ impl App {
     /// Create a rule (`POST /v1/rules`).
     pub async fn create_rule(&self, body: Value) -> AppResult<StoredRule> {
         let spec = self.parse_rule(body)?;
-        if !self.db.insert_rule(&spec, RuleSource::Api).await? {
+        if !self
+            .db
+            .node_tables()?
+            .insert_rule(&spec, RuleSource::Api)
+            .await?
+        {
             return Err(refused(
                 ErrorCode::RuleExists,
                 format!("a rule named {:?} exists", spec.name),
@@ -133,7 +138,7 @@ impl App {
             ));
         }
         self.writable(name).await?;
-        if !self.db.replace_rule(&spec).await? {
+        if !self.db.node_tables()?.replace_rule(&spec).await? {
             return Err(not_found(name));
         }
         self.get_rule(name).await
@@ -142,7 +147,7 @@ impl App {
     /// Delete an API rule and its runs (its deliveries stay).
     pub async fn delete_rule(&self, name: &str) -> AppResult<()> {
         self.writable(name).await?;
-        if !self.db.delete_rule(name).await? {
+        if !self.db.node_tables()?.delete_rule(name).await? {
             return Err(not_found(name));
         }
         tracing::info!(rule = %name, "rule deleted");
@@ -150,7 +155,7 @@ impl App {
     }
 
     async fn writable(&self, name: &str) -> AppResult<()> {
-        match self.db.get_rule(name).await? {
+        match self.db.node_tables()?.get_rule(name).await? {
             None => Err(not_found(name)),
             Some(r) if r.source == RuleSource::Config => Err(refused(
                 ErrorCode::RuleReadOnly,
@@ -163,11 +168,15 @@ impl App {
     }
 
     pub async fn get_rule(&self, name: &str) -> AppResult<StoredRule> {
-        self.db.get_rule(name).await?.ok_or_else(|| not_found(name))
+        self.db
+            .node_tables()?
+            .get_rule(name)
+            .await?
+            .ok_or_else(|| not_found(name))
     }
 
     pub async fn list_rules(&self) -> AppResult<Vec<StoredRule>> {
-        Ok(self.db.list_rules().await?)
+        Ok(self.db.node_tables()?.list_rules().await?)
     }
 
     /// The newest runs of a rule, each with its delivery ids.
@@ -177,8 +186,8 @@ impl App {
         limit: u32,
     ) -> AppResult<Vec<(RuleRun, Vec<String>)>> {
         let mut out = Vec::new();
-        for run in self.db.list_runs(Some(name), limit).await? {
-            let d = self.db.delivery_ids_of_run(&run.id).await?;
+        for run in self.db.node_tables()?.list_runs(Some(name), limit).await? {
+            let d = self.db.node_tables()?.delivery_ids_of_run(&run.id).await?;
             out.push((run, d));
         }
         Ok(out)
@@ -200,6 +209,7 @@ impl App {
     ) -> AppResult<()> {
         let rules: Vec<RuleSpec> = self
             .db
+            .node_tables()?
             .list_rules()
             .await?
             .into_iter()
@@ -232,7 +242,7 @@ impl App {
                     series_uid: &series.series_uid,
                     facts: &facts,
                 };
-                let Some(run_id) = self.db.insert_run(&run).await? else {
+                let Some(run_id) = self.db.node_tables()?.insert_run(&run).await? else {
                     tracing::info!(rule = %rule.name, series_uid = %series.series_uid, "rule already ran on this series content");
                     continue;
                 };
@@ -241,17 +251,22 @@ impl App {
                                   "products": t.products});
                 match self.submit_job(body, None).await {
                     Ok(s) => {
-                        self.db.set_run_job(&run_id, s.job.id).await?;
+                        self.db
+                            .node_tables()?
+                            .set_run_job(&run_id, s.job.id)
+                            .await?;
                         tracing::info!(rule = %rule.name, series_uid = %series.series_uid, job_id = %s.job.id, "rule fired");
                     }
                     Err(AppError::Refused(p)) => {
                         tracing::warn!(rule = %rule.name, code = p.code.code(), detail = %p.detail, "rule's job refused");
                         self.db
+                            .node_tables()?
                             .set_run_state(&run_id, RunState::Refused, Some(&p))
                             .await?;
                     }
                     Err(e) => {
                         self.db
+                            .node_tables()?
                             .set_run_state(&run_id, RunState::Refused, Some(&Problem::internal()))
                             .await?;
                         return Err(e);

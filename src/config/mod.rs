@@ -34,6 +34,8 @@
 //! | `dicom.delivery_retry_base_ms` | — | 5000: first wait before a delivery to an unreachable peer is tried again, doubled each time |
 //! | `dicom.delivery_retry_max_ms` | — | 600000: longest wait between attempts of a delivery |
 //! | `dicom.delivery_max_attempts` | — | 10: attempts before a delivery to an unreachable peer is `failed` |
+//! | `database_url` | `CTRECON_DATABASE_URL` | none: SQLite in the data directory; `postgres://user@host:port/db` for a PostgreSQL job database shared by several processes |
+//! | `lease_secs` | `CTRECON_LEASE_SECS` | 30: a running job whose worker sent no heartbeat for this long goes back to the queue |
 //! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
@@ -95,6 +97,10 @@ pub struct Settings {
     /// The DICOM node (off unless `dicom.port` is set).
     pub dicom: dicom::NodeSettings,
     pub render_max_side: usize,
+    /// The job database: `None` is SQLite in the data directory; a `postgres://` URL selects PostgreSQL.
+    pub database_url: Option<String>,
+    /// Seconds a claim holds a running job without a heartbeat.
+    pub lease_secs: u64,
 }
 
 impl Default for Settings {
@@ -126,6 +132,8 @@ impl Default for Settings {
             retention_sweep_secs: 3600,
             dicom: dicom::NodeSettings::default(),
             render_max_side: 2048,
+            database_url: None,
+            lease_secs: 30,
         }
     }
 }
@@ -226,6 +234,10 @@ impl Settings {
             "CTRECON_DICOM_HOST" => self.dicom.host = parsed(name, v)?,
             "CTRECON_DICOM_STABLE_AGE_SECS" => self.dicom.stable_age_secs = parsed(name, v)?,
             "CTRECON_RENDER_MAX_SIDE" => self.render_max_side = parsed(name, v)?,
+            "CTRECON_DATABASE_URL" => {
+                self.database_url = Some(v.trim().to_string()).filter(|u| !u.is_empty())
+            }
+            "CTRECON_LEASE_SECS" => self.lease_secs = parsed(name, v)?,
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -270,6 +282,17 @@ impl Settings {
         }
         if self.retention_sweep_secs == 0 {
             return invalid("retention_sweep_secs", "must be at least 1");
+        }
+        if self.lease_secs == 0 {
+            return invalid("lease_secs", "must be at least 1");
+        }
+        if let Some(url) = &self.database_url
+            && !(url.starts_with("postgres://") || url.starts_with("postgresql://"))
+        {
+            return invalid(
+                "database_url",
+                "must be a postgres:// URL (leave it out for SQLite in the data directory)",
+            );
         }
         if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
             return invalid("timeouts", "must be positive");

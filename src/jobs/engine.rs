@@ -10,6 +10,13 @@
 //! that stops is handed back to the queue (`running → queued`) without spending an attempt, so rolling
 //! restarts never exhaust a job. Only a crash (the process killed) counts as an attempt.
 
+mod cancel;
+mod leases;
+mod progress;
+mod wakeups;
+
+pub use leases::{LEASE, expiry_interval, heartbeat_interval};
+
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -17,17 +24,20 @@ use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
+
+use progress::{Latest, Sink};
 use tokio::sync::{Notify, broadcast, oneshot};
 use tracing::Instrument;
 
+use super::database::Database;
 use super::imaging::{VolumeInput, VolumeJobRequest, execute_volume, resolve_input};
-use super::lifecycle::{Lease, Outcome};
-use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus, now_us};
-use super::repo::{Db, DbError};
+use super::lifecycle::Outcome;
+use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus};
+use super::repo::DbError;
 use super::run::{RunError, execute};
 use super::store::{JobStore, StoreError};
 use crate::error_code::{ErrorCode, Problem};
-use crate::recon::control::{Cancel, Control, Progress};
+use crate::recon::control::{Cancel, Control};
 use crate::recon::grid::Limits;
 use crate::storage::{BlobStore, JobId};
 use crate::telemetry::names;
@@ -71,6 +81,9 @@ pub struct EngineConfig {
     pub memory_budget_bytes: u64,
     pub max_attempts: u32,
     pub progress_interval: Duration,
+    /// How long a claim holds a job without a heartbeat ([`LEASE`] by default); heartbeats come every
+    /// [`heartbeat_interval`], expired leases are looked for every [`expiry_interval`].
+    pub lease: Duration,
 }
 
 struct Running {
@@ -78,17 +91,8 @@ struct Running {
     estimate: u64,
 }
 
-/// How long a claim holds a job without a heartbeat; running jobs renew it every third of that.
-pub const LEASE: Duration = Duration::from_secs(30);
-
-fn lease_from_now() -> Lease {
-    Lease {
-        expires_us: now_us() + LEASE.as_micros() as i64,
-    }
-}
-
 struct Inner {
-    db: Db,
+    db: Database,
     store: BlobStore,
     pool: rayon::ThreadPool,
     config: EngineConfig,
@@ -114,57 +118,14 @@ pub struct Engine {
     inner: Arc<Inner>,
 }
 
-/// Latest progress of a running job, written by the pool, read by the persisting task.
-#[derive(Default)]
-struct Latest {
-    progress: u8,
-    stage: String,
-    iteration: Option<usize>,
-    dirty: bool,
-}
-
-/// The progress sink handed to a running job: publishes each change of whole percent or stage.
-struct Sink {
-    id: JobId,
-    latest: Arc<Mutex<Latest>>,
-    events: broadcast::Sender<JobEvent>,
-}
-
-impl Progress for Sink {
-    fn report(&self, stage: &str, fraction: f64, iteration: Option<usize>, residual: Option<f64>) {
-        // Never 100 while running: 100 means succeeded.
-        let pct = (fraction.clamp(0.0, 1.0) * 100.0).floor().min(99.0) as u8;
-        let Ok(mut l) = self.latest.lock() else {
-            return;
-        };
-        let new_residual = residual.is_some() && iteration != l.iteration;
-        if l.progress == pct && l.stage == stage && !new_residual {
-            return;
-        }
-        l.iteration = iteration;
-        if let Some(r) = residual {
-            metrics::gauge!(names::JOB_RESIDUAL).set(r);
-        }
-        l.progress = pct;
-        if l.stage != stage {
-            l.stage = stage.to_string();
-        }
-        l.dirty = true;
-        let _ = self.events.send(JobEvent {
-            id: self.id,
-            status: JobStatus::Running,
-            progress: pct,
-            stage: l.stage.clone(),
-            iteration,
-            residual,
-        });
-    }
-}
-
 impl Engine {
     /// Build the pool, recover from a crash (re-queue or fail jobs left running, remove partial results)
     /// and start the scheduler on the current runtime.
-    pub async fn start(db: Db, store: BlobStore, config: EngineConfig) -> Result<Self, StartError> {
+    pub async fn start(
+        db: Database,
+        store: BlobStore,
+        config: EngineConfig,
+    ) -> Result<Self, StartError> {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(config.worker_threads)
             .thread_name(|i| format!("ctrecon-worker-{i}"))
@@ -199,6 +160,12 @@ impl Engine {
         };
         let scheduler = engine.clone();
         tokio::spawn(async move { scheduler.schedule().await });
+        let expiry = engine.clone();
+        tokio::spawn(async move { expiry.expire_leases_periodically().await });
+        if engine.inner.db.is_shared() {
+            let listener = engine.clone();
+            tokio::spawn(async move { listener.listen_for_wakeups().await });
+        }
         Ok(engine)
     }
 
@@ -226,12 +193,22 @@ impl Engine {
         self.inner.wake.notify_one();
     }
 
+    /// The cancel flag of a job this engine runs.
+    fn cancel_flag(&self, id: JobId) -> Option<Cancel> {
+        self.inner
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()))
+    }
+
     fn is_stopping(&self) -> bool {
         self.inner.stopping.load(Ordering::SeqCst)
     }
 
     /// Wait until no job runs, or until `deadline`; returns the number still running then (they stay
-    /// `running` in the database and are recovered at the next start, as after a crash).
+    /// `running` in the database and are recovered at the next start, as after a crash; on a shared database,
+    /// by another process once their lease expires).
     pub async fn stopped(&self, deadline: tokio::time::Instant) -> usize {
         loop {
             let released = self.inner.released.notified();
@@ -271,47 +248,6 @@ impl Engine {
             _ => {
                 tracing::error!("a computation panicked");
                 Err(Problem::internal())
-            }
-        }
-    }
-
-    /// Cancel a job: a queued job is canceled at once; a running one is flagged and stops at its next
-    /// check (within a second). Terminal jobs answer `job_already_finished`.
-    pub async fn cancel(&self, id: JobId) -> Result<(), CancelError> {
-        let db = &self.inner.db;
-        if db.cancel_queued(id).await? {
-            if let Some(job) = db.get_job(id).await? {
-                self.publish(&job);
-            }
-            return Ok(());
-        }
-        let flag = self
-            .inner
-            .running
-            .lock()
-            .ok()
-            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
-        if let Some(flag) = flag {
-            db.request_cancel(id).await?;
-            flag.cancel();
-            return Ok(());
-        }
-        match db.get_job(id).await? {
-            None => Err(CancelError::NotFound),
-            Some(j) if j.status.is_terminal() => Err(CancelError::Finished(j.status)),
-            // Claimed between the two checks: the flag is registered before the claim, look again.
-            Some(_) => {
-                let flag = self
-                    .inner
-                    .running
-                    .lock()
-                    .ok()
-                    .and_then(|r| r.get(&id).map(|x| x.cancel.clone()));
-                if let Some(flag) = flag {
-                    db.request_cancel(id).await?;
-                    flag.cancel();
-                }
-                Ok(())
             }
         }
     }
@@ -359,7 +295,7 @@ impl Engine {
                     },
                 );
             }
-            match JobStore::claim(&self.inner.db, id, lease_from_now()).await {
+            match JobStore::claim(&self.inner.db, id, self.lease_from_now()).await {
                 Ok(attempt) => {
                     let engine = self.clone();
                     let span = tracing::info_span!("job", job_id = %id, attempt);
@@ -393,7 +329,7 @@ impl Engine {
         let db = &self.inner.db;
         if outcome == Outcome::Canceled && self.is_stopping() {
             // Stopped by a graceful stop, unless a client asked to cancel it (that ends canceled).
-            match JobStore::hand_back(db, id).await {
+            match JobStore::hand_back(db, id, attempt).await {
                 Ok(()) => {
                     tracing::info!("job handed back to the queue");
                     self.release(id);
@@ -412,9 +348,16 @@ impl Engine {
             }
         }
         let status = outcome.status();
-        let recorded = JobStore::finish(db, id, &outcome)
-            .await
-            .inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"));
+        let recorded = match JobStore::finish(db, id, attempt, &outcome).await {
+            Err(StoreError::LeaseLost) => {
+                // This worker's lease expired and another attempt holds the job: its outcome is not ours.
+                tracing::warn!("the job's lease was lost: its outcome is not recorded");
+                Err(StoreError::LeaseLost)
+            }
+            r => {
+                r.inspect_err(|e| tracing::error!(error = %e, "recording the end of a job failed"))
+            }
+        };
         self.release(id);
         if recorded.is_ok() {
             tracing::info!(status = status.as_str(), "job finished");
@@ -506,11 +449,11 @@ impl Engine {
             let _ = tx.send(r);
         });
         let mut tick = tokio::time::interval(self.inner.config.progress_interval);
-        let mut heartbeat = tokio::time::interval(LEASE / 3);
+        let mut heartbeat = tokio::time::interval(heartbeat_interval(self.inner.config.lease));
         let outcome = loop {
             tokio::select! {
                 r = &mut rx => break r,
-                _ = tick.tick() => self.persist_progress(id, &latest).await,
+                _ = tick.tick() => self.persist_progress(id, attempt, &latest).await,
                 _ = heartbeat.tick() => self.renew(id, attempt, &cancel_flag).await,
             }
         };
@@ -522,33 +465,6 @@ impl Engine {
                 tracing::error!("a job panicked");
                 failed(Problem::internal())
             }
-        }
-    }
-
-    /// Renew the lease of a running job; a job whose lease was lost (another worker took it over) stops.
-    async fn renew(&self, id: JobId, attempt: u32, cancel: &Cancel) {
-        match JobStore::heartbeat(&self.inner.db, id, attempt, lease_from_now()).await {
-            Ok(()) => {}
-            Err(StoreError::LeaseLost | StoreError::Illegal(_)) => {
-                tracing::warn!("the job's lease was lost: stopping it");
-                cancel.cancel();
-            }
-            Err(StoreError::Backend(e)) => tracing::warn!(error = %e, "renewing a lease failed"),
-        }
-    }
-
-    async fn persist_progress(&self, id: JobId, latest: &Mutex<Latest>) {
-        let snapshot = match latest.lock() {
-            Ok(mut l) if l.dirty => {
-                l.dirty = false;
-                Some((l.progress, l.stage.clone()))
-            }
-            _ => None,
-        };
-        if let Some((p, stage)) = snapshot
-            && let Err(e) = self.inner.db.set_progress(id, p, &stage).await
-        {
-            tracing::warn!(error = %e, "persisting progress failed");
         }
     }
 }

@@ -12,11 +12,12 @@
 use ndarray::{Array3, Axis as NdAxis, Ix3};
 use sha2::{Digest, Sha256};
 
+use super::database::Database;
 use super::model::{
     FileInfo, Job, JobResult, JobStatus, Notice, ProductResult, VolumeUnits, fill_value,
 };
 use super::render_products::{RenderSpec, make_render_product, plan_render};
-use super::repo::{Db, DbError};
+use super::repo::DbError;
 use super::run::RunError;
 use super::views::volume_problem;
 pub use super::volume_spec::*;
@@ -399,7 +400,11 @@ pub struct VolumeInput {
 }
 
 /// Find the volume a job reads: a stored series, or the volume of a succeeded job.
-pub async fn resolve_input(db: &Db, store: &BlobStore, id: AnyId) -> Result<VolumeInput, Problem> {
+pub async fn resolve_input(
+    db: &Database,
+    store: &BlobStore,
+    id: AnyId,
+) -> Result<VolumeInput, Problem> {
     let db_failure = |e: DbError| {
         tracing::error!(error = %e, "resolving a volume input failed");
         Problem::internal()

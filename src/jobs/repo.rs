@@ -38,6 +38,14 @@ pub enum DbError {
     Migrate(#[from] sqlx::migrate::MigrateError),
     #[error("corrupt row in {table}: {reason}")]
     Corrupt { table: &'static str, reason: String },
+    /// The database server could not be reached at start (`target`: the URL without its password).
+    #[error("cannot connect to {target}: {reason}")]
+    Unreachable { target: String, reason: String },
+    /// Tables of the DICOM node (rules, deliveries, the instance index) have no PostgreSQL twin yet.
+    #[error(
+        "{what} are kept in the SQLite database only; with a PostgreSQL job database they are not available yet"
+    )]
+    SqliteOnly { what: &'static str },
 }
 
 /// Outcome of appending an instance to an open upload.
@@ -77,7 +85,7 @@ pub struct Db {
     cache: std::sync::Arc<JobCache>,
 }
 
-fn corrupt(table: &'static str, reason: impl ToString) -> DbError {
+pub(crate) fn corrupt(table: &'static str, reason: impl ToString) -> DbError {
     DbError::Corrupt {
         table,
         reason: reason.to_string(),
@@ -103,7 +111,7 @@ fn opt_json_col<T: serde::de::DeserializeOwned>(
         .transpose()
 }
 
-fn to_json<T: serde::Serialize>(v: &T) -> String {
+pub(crate) fn to_json<T: serde::Serialize>(v: &T) -> String {
     serde_json::to_string(v).unwrap_or_else(|_| "null".into())
 }
 
@@ -456,25 +464,35 @@ impl Db {
     /// `running → queued` by a graceful hand-back (the server is stopping): the run is given back, not
     /// spent, so the attempt its claim counted is returned. False when the job was not running, or was asked
     /// to cancel (it then ends canceled).
-    pub async fn hand_back(&self, id: JobId) -> Result<bool, DbError> {
+    pub async fn hand_back(&self, id: JobId, attempt: u32) -> Result<bool, DbError> {
         let done = sqlx::query(
             "UPDATE jobs SET status = 'queued', stage = 'requeued', progress = 0, started_us = NULL,
                     attempts = MAX(attempts - 1, 0), lease_expires_us = NULL
-             WHERE id = ? AND status = 'running' AND cancel_requested = 0",
+             WHERE id = ? AND status = 'running' AND cancel_requested = 0 AND attempts = ?",
         )
         .bind(id.to_string())
+        .bind(attempt as i64)
         .execute(&self.pool)
         .await?;
         self.cache.invalidate(id);
         Ok(done.rows_affected() == 1)
     }
 
-    /// Persist the progress of a running job.
-    pub async fn set_progress(&self, id: JobId, progress: u8, stage: &str) -> Result<(), DbError> {
-        sqlx::query("UPDATE jobs SET progress = ?, stage = ? WHERE id = ? AND status = 'running'")
-            .bind(progress as i64)
-            .bind(stage)
-            .bind(id.to_string())
+    /// Persist the progress of a job running its `attempt` (a stale worker's progress is ignored).
+    pub async fn set_progress(
+        &self,
+        id: JobId,
+        attempt: u32,
+        progress: u8,
+        stage: &str,
+    ) -> Result<(), DbError> {
+        sqlx::query(
+            "UPDATE jobs SET progress = ?, stage = ? WHERE id = ? AND status = 'running' AND attempts = ?",
+        )
+        .bind(progress as i64)
+        .bind(stage)
+        .bind(id.to_string())
+        .bind(attempt as i64)
             .execute(&self.pool)
             .await?;
         self.cache.invalidate(id);

@@ -13,8 +13,9 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
+use super::database::Database;
 use super::model::now_us;
-use super::repo::{Db, DbError};
+use super::repo::DbError;
 use crate::storage::BlobStore;
 use crate::telemetry::names;
 
@@ -62,7 +63,11 @@ fn remove_file(path: &Path) -> io::Result<()> {
 }
 
 /// Remove what has aged out under `retention`, now.
-pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<Swept, DbError> {
+pub async fn sweep(
+    db: &Database,
+    store: &BlobStore,
+    retention: &Retention,
+) -> Result<Swept, DbError> {
     let now = now_us();
     let before =
         |age: Duration| now.saturating_sub(i64::try_from(age.as_micros()).unwrap_or(i64::MAX));
@@ -127,7 +132,7 @@ pub async fn sweep(db: &Db, store: &BlobStore, retention: &Retention) -> Result<
 
 /// Sweep every `every` until `shutdown` turns true (the sweep at start is the caller's).
 pub fn spawn(
-    db: Db,
+    db: Database,
     store: BlobStore,
     retention: Retention,
     every: Duration,

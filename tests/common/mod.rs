@@ -14,6 +14,9 @@ pub struct TestApp {
     pub dir: tempfile::TempDir,
     /// The DICOM node's address, when the settings gave it a port.
     pub dicom: Option<std::net::SocketAddr>,
+    /// The server's application (database, blob store, engine), for tests that act beside the API; `None`
+    /// for a client of a server in another process ([`attach`]).
+    pub core: Option<ctrecon::app::App>,
     stop: Option<tokio::sync::oneshot::Sender<()>>,
 }
 
@@ -52,6 +55,7 @@ pub async fn spawn_app_with(configure: impl FnOnce(&mut Settings)) -> TestApp {
         .await
         .expect("the service builds");
     let base = format!("http://{}", app.local_addr());
+    let core = Some(app.app().clone());
     let dicom = ctrecon::dimse::serve_node(app.app().clone())
         .await
         .expect("the DICOM node starts");
@@ -64,7 +68,21 @@ pub async fn spawn_app_with(configure: impl FnOnce(&mut Settings)) -> TestApp {
         client: reqwest::Client::new(),
         dir,
         dicom,
+        core,
         stop: Some(stop),
+    }
+}
+
+/// A client of the server at `base` (another process): `dir` is an empty directory of its own, not the
+/// server's data directory.
+pub fn attach(base: &str) -> TestApp {
+    TestApp {
+        base: base.trim_end_matches('/').to_string(),
+        client: reqwest::Client::new(),
+        dir: tempfile::tempdir().expect("temp dir"),
+        dicom: None,
+        core: None,
+        stop: None,
     }
 }
 

@@ -7,6 +7,7 @@ use std::collections::HashSet;
 use sqlx::Row;
 
 use super::{Db, DbError};
+use crate::jobs::database::Database;
 use crate::jobs::model::now_us;
 use crate::storage::sweep::{BlobEntry, BlobKind};
 use crate::storage::{BlobStore, DatasetId, SeriesId};
@@ -37,7 +38,7 @@ const ACTIVE_INPUT: &str =
 
 impl Db {
     /// The ids of the rows that own a file of `kind` (for uploads: the open ones).
-    async fn owner_ids(&self, kind: BlobKind) -> Result<HashSet<String>, DbError> {
+    pub(crate) async fn owner_ids(&self, kind: BlobKind) -> Result<HashSet<String>, DbError> {
         let sql = match kind {
             BlobKind::Series => "SELECT id FROM series",
             BlobKind::Dataset => "SELECT id FROM datasets",
@@ -50,7 +51,7 @@ impl Db {
     }
 
     /// Record that the file of row `id` is gone.
-    async fn mark_missing(&self, kind: BlobKind, id: &str) -> Result<(), DbError> {
+    pub(crate) async fn mark_missing(&self, kind: BlobKind, id: &str) -> Result<(), DbError> {
         sqlx::query(
             "INSERT INTO missing_blobs (kind, id, detected_us) VALUES (?, ?, ?)
              ON CONFLICT (kind, id) DO NOTHING",
@@ -123,7 +124,7 @@ impl Db {
 
 /// Pair blob files with rows: remove every entry of `series/`, `datasets/` and `uploads/` without a row (or
 /// not named by an id), and mark series and dataset rows whose file is missing. Logged and counted by kind.
-pub async fn sweep_blobs(db: &Db, store: &BlobStore) -> Result<SweepReport, DbError> {
+pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport, DbError> {
     let mut report = SweepReport::default();
     for kind in BlobKind::ALL {
         // Files first, rows second: a file renamed into place meanwhile already has its row.

@@ -12,7 +12,7 @@ use crate::jobs::lifecycle::{
     IllegalTransition, JobState, Lease, Outcome, Transition, sources, transition,
 };
 use crate::jobs::model::{Job, JobStatus, now_us};
-use crate::jobs::store::{Expired, JobStore, StoreError, StoreResult};
+use crate::jobs::store::{Expired, JobStore, Renewed, StoreError, StoreResult};
 use crate::storage::JobId;
 
 impl From<DbError> for StoreError {
@@ -105,20 +105,40 @@ impl Db {
         }))
     }
 
-    async fn heartbeat_row(&self, id: JobId, attempt: u32, lease: Lease) -> StoreResult<()> {
-        let done = sqlx::query(
-            "UPDATE jobs SET lease_expires_us = ? WHERE id = ? AND status = 'running' AND attempts = ?",
+    async fn heartbeat_row(&self, id: JobId, attempt: u32, lease: Lease) -> StoreResult<Renewed> {
+        let row = sqlx::query(
+            "UPDATE jobs SET lease_expires_us = ? WHERE id = ? AND status = 'running' AND attempts = ?
+             RETURNING cancel_requested",
         )
         .bind(lease.expires_us)
         .bind(id.to_string())
         .bind(attempt as i64)
-        .execute(&self.pool)
+        .fetch_optional(&self.pool)
         .await
         .map_err(DbError::from)?;
-        if done.rows_affected() == 1 {
-            Ok(())
-        } else {
-            Err(StoreError::LeaseLost)
+        match row {
+            Some(r) => {
+                let cancel: i64 = r.try_get("cancel_requested").map_err(DbError::from)?;
+                Ok(Renewed {
+                    cancel_requested: cancel != 0,
+                })
+            }
+            None => Err(StoreError::LeaseLost),
+        }
+    }
+
+    /// Why a guarded update of `attempt` matched nothing: the job runs another attempt (this worker's
+    /// lease was lost), or its status forbids `event`.
+    async fn refused(&self, id: JobId, attempt: u32, event: Transition) -> StoreError {
+        match self.get_job(id).await {
+            Ok(Some(j)) if j.status == JobStatus::Running && j.attempts != attempt => {
+                StoreError::LeaseLost
+            }
+            Ok(j) => StoreError::Illegal(IllegalTransition {
+                from: j.map(|j| j.status),
+                event,
+            }),
+            Err(e) => e.into(),
         }
     }
 
@@ -166,8 +186,8 @@ impl Db {
         Ok(e)
     }
 
-    /// `running → succeeded | failed | canceled`.
-    async fn finish_row(&self, id: JobId, outcome: &Outcome) -> StoreResult<()> {
+    /// `running → succeeded | failed | canceled` for the run of `attempt`.
+    async fn finish_row(&self, id: JobId, attempt: u32, outcome: &Outcome) -> StoreResult<()> {
         let event = outcome.transition();
         // The outcome's own status must be where the lifecycle takes a running job by its event.
         transition(JobStatus::Running, event)?;
@@ -180,7 +200,7 @@ impl Db {
         let done = sqlx::query(
             "UPDATE jobs SET status = ?, stage = ?, error = ?, result = ?, finished_us = ?,
                     progress = CASE WHEN ? THEN 100 ELSE progress END, lease_expires_us = NULL
-             WHERE id = ? AND status = 'running'",
+             WHERE id = ? AND status = 'running' AND attempts = ?",
         )
         .bind(status.as_str())
         .bind(status.as_str())
@@ -189,6 +209,7 @@ impl Db {
         .bind(now_us())
         .bind(status == JobStatus::Succeeded)
         .bind(id.to_string())
+        .bind(attempt as i64)
         .execute(&self.pool)
         .await
         .map_err(DbError::from)?;
@@ -196,7 +217,7 @@ impl Db {
         if done.rows_affected() == 1 {
             Ok(())
         } else {
-            Err(self.illegal(id, event).await)
+            Err(self.refused(id, attempt, event).await)
         }
     }
 
@@ -244,23 +265,32 @@ impl JobStore for Db {
         self.claim_leased(id, Some(lease)).boxed()
     }
 
-    fn heartbeat(&self, id: JobId, attempt: u32, lease: Lease) -> BoxFuture<'_, StoreResult<()>> {
+    fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        lease: Lease,
+    ) -> BoxFuture<'_, StoreResult<Renewed>> {
         self.heartbeat_row(id, attempt, lease).boxed()
     }
 
     fn set_progress<'a>(
         &'a self,
         id: JobId,
+        attempt: u32,
         progress: u8,
         stage: &'a str,
     ) -> BoxFuture<'a, StoreResult<()>> {
-        async move { Ok(Db::set_progress(self, id, progress, stage).await?) }.boxed()
+        async move { Ok(Db::set_progress(self, id, attempt, progress, stage).await?) }.boxed()
     }
 
-    fn hand_back(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>> {
+    fn hand_back(&self, id: JobId, attempt: u32) -> BoxFuture<'_, StoreResult<()>> {
         async move {
-            let done = Db::hand_back(self, id).await;
-            self.applied(id, Transition::HandBack, done).await
+            if Db::hand_back(self, id, attempt).await? {
+                Ok(())
+            } else {
+                Err(self.refused(id, attempt, Transition::HandBack).await)
+            }
         }
         .boxed()
     }
@@ -269,8 +299,13 @@ impl JobStore for Db {
         async move { Ok(self.expire(now_us, max_attempts).await?) }.boxed()
     }
 
-    fn finish<'a>(&'a self, id: JobId, outcome: &'a Outcome) -> BoxFuture<'a, StoreResult<()>> {
-        self.finish_row(id, outcome).boxed()
+    fn finish<'a>(
+        &'a self,
+        id: JobId,
+        attempt: u32,
+        outcome: &'a Outcome,
+    ) -> BoxFuture<'a, StoreResult<()>> {
+        self.finish_row(id, attempt, outcome).boxed()
     }
 
     fn cancel_queued(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>> {

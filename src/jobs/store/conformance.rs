@@ -6,7 +6,7 @@
 //! ```
 //! (the expression makes a fresh, empty store for each check).
 
-use super::{JobStore, StoreError};
+use super::{JobStore, Renewed, StoreError};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::lifecycle::{JobState, Lease, Outcome, Transition};
 use crate::jobs::model::{
@@ -185,16 +185,16 @@ pub async fn outcomes_are_recorded_once_and_terminal_states_never_change(s: &dyn
     let result = sample_result();
     let problem = Problem::new(ErrorCode::ReconstructionFailed, "refused");
     assert!(
-        s.finish(ok, &Outcome::Succeeded(Box::new(result.clone())))
+        s.finish(ok, 1, &Outcome::Succeeded(Box::new(result.clone())))
             .await
             .is_ok()
     );
     assert!(
-        s.finish(bad, &Outcome::Failed(problem.clone()))
+        s.finish(bad, 1, &Outcome::Failed(problem.clone()))
             .await
             .is_ok()
     );
-    assert!(s.finish(stop, &Outcome::Canceled).await.is_ok());
+    assert!(s.finish(stop, 1, &Outcome::Canceled).await.is_ok());
     let job = s.get(ok).await.ok().flatten().expect("job");
     assert_eq!((job.status, job.progress), (JobStatus::Succeeded, 100));
     assert_eq!(job.result.as_ref(), Some(&result));
@@ -210,7 +210,7 @@ pub async fn outcomes_are_recorded_once_and_terminal_states_never_change(s: &dyn
     assert_eq!(s.state(stop).await.ok().flatten(), Some(JobState::Canceled));
     // A bug that tries to move a finished job is refused, and changes nothing.
     assert_illegal(
-        s.finish(ok, &Outcome::Canceled).await,
+        s.finish(ok, 1, &Outcome::Canceled).await,
         Some(JobStatus::Succeeded),
         Transition::Cancel,
     );
@@ -220,7 +220,7 @@ pub async fn outcomes_are_recorded_once_and_terminal_states_never_change(s: &dyn
         Transition::Claim,
     );
     assert_illegal(
-        s.hand_back(stop).await,
+        s.hand_back(stop, 1).await,
         Some(JobStatus::Canceled),
         Transition::HandBack,
     );
@@ -233,7 +233,7 @@ pub async fn outcomes_are_recorded_once_and_terminal_states_never_change(s: &dyn
     // A queued job cannot finish without running.
     let q = queued_job(s, now_us()).await;
     assert_illegal(
-        s.finish(q, &Outcome::Failed(Problem::internal())).await,
+        s.finish(q, 1, &Outcome::Failed(Problem::internal())).await,
         Some(JobStatus::Queued),
         Transition::Fail,
     );
@@ -252,15 +252,28 @@ pub async fn cancel_ends_queued_jobs_and_flags_running_ones(s: &dyn JobStore) {
         Some(JobStatus::Running),
         Transition::Cancel,
     );
+    assert_eq!(
+        s.heartbeat(r, 1, lease_in(30)).await.ok(),
+        Some(Renewed {
+            cancel_requested: false
+        })
+    );
     assert!(s.request_cancel(r).await.is_ok());
     let job = s.get(r).await.ok().flatten().expect("job");
     assert!(job.cancel_requested);
+    // The worker running it learns of the request at its next heartbeat (it may be another process).
+    assert_eq!(
+        s.heartbeat(r, 1, lease_in(30)).await.ok(),
+        Some(Renewed {
+            cancel_requested: true
+        })
+    );
     assert_illegal(
-        s.hand_back(r).await,
+        s.hand_back(r, 1).await,
         Some(JobStatus::Running),
         Transition::HandBack,
     );
-    assert!(s.finish(r, &Outcome::Canceled).await.is_ok());
+    assert!(s.finish(r, 1, &Outcome::Canceled).await.is_ok());
     assert_eq!(status(s, r).await, JobStatus::Canceled);
 }
 
@@ -268,8 +281,12 @@ pub async fn cancel_ends_queued_jobs_and_flags_running_ones(s: &dyn JobStore) {
 pub async fn a_hand_back_requeues_without_spending_the_attempt(s: &dyn JobStore) {
     let id = queued_job(s, now_us()).await;
     assert_eq!(s.claim(id, lease_in(30)).await.ok(), Some(1));
-    assert!(s.set_progress(id, 40, "filtering").await.is_ok());
-    assert!(s.hand_back(id).await.is_ok());
+    assert!(s.set_progress(id, 1, 40, "filtering").await.is_ok());
+    assert!(matches!(
+        s.hand_back(id, 2).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert!(s.hand_back(id, 1).await.is_ok());
     let job = s.get(id).await.ok().flatten().expect("job");
     assert_eq!(
         (job.status, job.attempts, job.progress),
@@ -306,13 +323,61 @@ pub async fn an_expired_lease_requeues_then_fails_after_max_attempts(s: &dyn Job
     }
 }
 
+/// A worker whose lease expired and whose job was claimed again can neither finish it nor report its
+/// progress: its outcome is refused and leaves nothing behind, and the current attempt finishes it.
+pub async fn a_stale_worker_can_neither_finish_nor_report_progress(s: &dyn JobStore) {
+    let id = queued_job(s, now_us()).await;
+    let past = Lease {
+        expires_us: now_us() - 1,
+    };
+    assert_eq!(s.claim(id, past).await.ok(), Some(1));
+    let e = s.expire_leases(now_us(), 3).await.expect("expire");
+    assert_eq!(e.requeued, vec![id]);
+    // Re-queued and not yet claimed again: the stale outcome is illegal (the job is queued).
+    assert_illegal(
+        s.finish(id, 1, &Outcome::Succeeded(Box::new(sample_result())))
+            .await,
+        Some(JobStatus::Queued),
+        Transition::Succeed,
+    );
+    assert_eq!(s.claim(id, lease_in(30)).await.ok(), Some(2));
+    assert!(s.set_progress(id, 2, 30, "filtering").await.is_ok());
+    let mut stale = sample_result();
+    stale.mean = -1.0;
+    assert!(matches!(
+        s.finish(id, 1, &Outcome::Succeeded(Box::new(stale))).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert!(matches!(
+        s.finish(id, 1, &Outcome::Failed(Problem::internal())).await,
+        Err(StoreError::LeaseLost)
+    ));
+    assert!(s.set_progress(id, 1, 77, "stale").await.is_ok());
+    let job = s.get(id).await.ok().flatten().expect("job");
+    assert_eq!(
+        (job.status, job.attempts, job.progress, job.stage.as_str()),
+        (JobStatus::Running, 2, 30, "filtering")
+    );
+    assert!(job.result.is_none() && job.error.is_none());
+    let result = sample_result();
+    assert!(
+        s.finish(id, 2, &Outcome::Succeeded(Box::new(result.clone())))
+            .await
+            .is_ok()
+    );
+    assert_eq!(
+        s.state(id).await.ok().flatten(),
+        Some(JobState::Succeeded(Box::new(result)))
+    );
+}
+
 /// Progress is kept while running only.
 pub async fn progress_is_persisted_while_running_only(s: &dyn JobStore) {
     let id = queued_job(s, now_us()).await;
-    assert!(s.set_progress(id, 50, "early").await.is_ok());
+    assert!(s.set_progress(id, 1, 50, "early").await.is_ok());
     assert_eq!(s.get(id).await.ok().flatten().map(|j| j.progress), Some(0));
     assert_eq!(s.claim(id, lease_in(30)).await.ok(), Some(1));
-    assert!(s.set_progress(id, 42, "backprojecting").await.is_ok());
+    assert!(s.set_progress(id, 1, 42, "backprojecting").await.is_ok());
     let job = s.get(id).await.ok().flatten().expect("job");
     assert_eq!((job.progress, job.stage.as_str()), (42, "backprojecting"));
 }
@@ -389,10 +454,16 @@ pub async fn only_finished_jobs_are_deleted(s: &dyn JobStore) {
 
 /// Instantiate every conformance check as a `#[tokio::test]` for the store that `$make` (an expression
 /// evaluating to a future of a fresh store) builds. One line per adapter.
+///
+/// `job_store_conformance!(optional $make)` takes a future of an `Option` of a store instead: `None` (a
+/// store whose server is missing, after the caller printed why) makes each check return at once.
 #[macro_export]
 macro_rules! job_store_conformance {
-    ($make:expr) => {
-        $crate::job_store_conformance!(@cases $make;
+    (optional $make:expr) => {
+        $crate::job_store_conformance!(@all optional $make);
+    };
+    (@all $mode:ident $make:expr) => {
+        $crate::job_store_conformance!(@each $mode $make;
             inserted_jobs_read_back_and_queue_oldest_first,
             an_idempotency_key_inserts_once,
             a_claim_counts_an_attempt_and_cannot_be_repeated,
@@ -401,18 +472,32 @@ macro_rules! job_store_conformance {
             cancel_ends_queued_jobs_and_flags_running_ones,
             a_hand_back_requeues_without_spending_the_attempt,
             an_expired_lease_requeues_then_fails_after_max_attempts,
+            a_stale_worker_can_neither_finish_nor_report_progress,
             progress_is_persisted_while_running_only,
             lists_filter_and_paginate_newest_first,
             only_finished_jobs_are_deleted,
         );
     };
-    (@cases $make:expr; $($case:ident),* $(,)?) => {
-        $(
-            #[tokio::test]
-            async fn $case() {
-                let store = $make.await;
-                $crate::jobs::store::conformance::$case(&store).await;
-            }
-        )*
+    (@each $mode:ident $make:expr; $($case:ident),* $(,)?) => {
+        $( $crate::job_store_conformance!(@one $mode $make; $case); )*
+    };
+    (@one plain $make:expr; $case:ident) => {
+        #[tokio::test]
+        async fn $case() {
+            let store = $make.await;
+            $crate::jobs::store::conformance::$case(&store).await;
+        }
+    };
+    (@one optional $make:expr; $case:ident) => {
+        #[tokio::test]
+        async fn $case() {
+            let Some(store) = $make.await else {
+                return;
+            };
+            $crate::jobs::store::conformance::$case(&store).await;
+        }
+    };
+    ($make:expr) => {
+        $crate::job_store_conformance!(@all plain $make);
     };
 }

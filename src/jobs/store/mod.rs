@@ -1,6 +1,7 @@
 //! The `JobStore` port: where jobs live, how they are queued, claimed under a lease, moved through their
-//! lifecycle and listed. Adapters: SQLite ([`super::Db`], the default); tests hold an in-memory one; a
-//! PostgreSQL one comes with scale-out. [`conformance`] is the suite every adapter must pass.
+//! lifecycle and listed. Adapters: SQLite ([`super::Db`], the default), PostgreSQL ([`super::PgDb`]) and
+//! [`super::Database`], which holds one of them; tests hold an in-memory one. [`conformance`] is the suite
+//! every adapter must pass.
 //!
 //! Every transition is checked against [`lifecycle::transition`](super::lifecycle::transition) and applied by
 //! the adapter as one guarded update, so two racing transitions cannot both win; an illegal one is an
@@ -21,8 +22,9 @@ pub enum StoreError {
     /// The lifecycle forbids the transition from the job's current status (nothing was changed).
     #[error(transparent)]
     Illegal(#[from] IllegalTransition),
-    /// A heartbeat for an attempt that no longer holds the job (its lease expired and it was re-queued or
-    /// claimed again, or it finished): the worker must stop.
+    /// A heartbeat, progress or finish for an attempt that no longer holds the job (its lease expired and
+    /// it was re-queued or claimed again, or it finished): the worker must stop, and its outcome is not
+    /// recorded.
     #[error("the job's lease was lost")]
     LeaseLost,
     /// The backend failed (logged; answered as an internal error).
@@ -39,6 +41,13 @@ pub struct Expired {
     pub requeued: Vec<JobId>,
     /// `failed` (`attempts_exhausted`): they had been claimed `max_attempts` times.
     pub failed: Vec<JobId>,
+}
+
+/// The answer to a heartbeat.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Renewed {
+    /// A client asked to cancel the job: the worker should stop it.
+    pub cancel_requested: bool,
 }
 
 /// The job store port.
@@ -65,28 +74,45 @@ pub trait JobStore: Send + Sync {
     /// `queued → running`: counts an attempt and takes `lease`. Returns the attempt number (1-based).
     fn claim(&self, id: JobId, lease: Lease) -> BoxFuture<'_, StoreResult<u32>>;
 
-    /// Renew the lease of a running job's `attempt` (a worker proving it is alive). Illegal when the job is
-    /// no longer running that attempt (its lease expired and another worker claimed it, or it finished).
-    fn heartbeat(&self, id: JobId, attempt: u32, lease: Lease) -> BoxFuture<'_, StoreResult<()>>;
+    /// Renew the lease of a running job's `attempt` (a worker proving it is alive); the answer says whether
+    /// a client asked to cancel the job (possibly through another process). [`StoreError::LeaseLost`] when
+    /// the job is no longer running that attempt (its lease expired and another worker claimed it, or it
+    /// finished).
+    fn heartbeat(
+        &self,
+        id: JobId,
+        attempt: u32,
+        lease: Lease,
+    ) -> BoxFuture<'_, StoreResult<Renewed>>;
 
-    /// Persist the progress of a running job (0–99) and its stage; ignored when it is not running.
+    /// Persist the progress (0–99) and stage of a job running its `attempt`; ignored otherwise (a stale
+    /// worker's progress never overwrites the current run's).
     fn set_progress<'a>(
         &'a self,
         id: JobId,
+        attempt: u32,
         progress: u8,
         stage: &'a str,
     ) -> BoxFuture<'a, StoreResult<()>>;
 
-    /// `running → queued` for a graceful stop: the attempt is returned. Illegal when the job is not running
-    /// or a client asked to cancel it (it then ends `canceled`).
-    fn hand_back(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>>;
+    /// `running → queued` for a graceful stop of the run of `attempt`: the attempt is returned. Illegal when
+    /// the job is not running or a client asked to cancel it (it then ends `canceled`);
+    /// [`StoreError::LeaseLost`] when it runs another attempt.
+    fn hand_back(&self, id: JobId, attempt: u32) -> BoxFuture<'_, StoreResult<()>>;
 
     /// `running → queued` for every job whose lease expired before `now_us` (its attempt kept), or
     /// `running → failed` for those already claimed `max_attempts` times.
     fn expire_leases(&self, now_us: i64, max_attempts: u32) -> BoxFuture<'_, StoreResult<Expired>>;
 
-    /// `running → succeeded | failed | canceled`, recording the outcome.
-    fn finish<'a>(&'a self, id: JobId, outcome: &'a Outcome) -> BoxFuture<'a, StoreResult<()>>;
+    /// `running → succeeded | failed | canceled` for the run of `attempt`, recording the outcome. Illegal
+    /// when the job is not running; [`StoreError::LeaseLost`] when it runs another attempt (this worker's
+    /// lease expired and the job was claimed again): nothing is recorded.
+    fn finish<'a>(
+        &'a self,
+        id: JobId,
+        attempt: u32,
+        outcome: &'a Outcome,
+    ) -> BoxFuture<'a, StoreResult<()>>;
 
     /// `queued → canceled`.
     fn cancel_queued(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>>;

@@ -1,0 +1,47 @@
+//! Wake-ups from other processes on a shared (PostgreSQL) database: a job queued anywhere starts an idle
+//! worker here at once, and a cancel posted to any process stops the job here at once (the heartbeat also
+//! carries it, within a second, should a notification be lost).
+
+use std::time::Duration;
+
+use super::Engine;
+use crate::jobs::database::Database;
+use crate::jobs::pg::listen::{Listener, Wakeup};
+
+impl Engine {
+    /// On a shared database: listen for wake-ups until the engine stops, reconnecting after a failure.
+    pub(super) async fn listen_for_wakeups(self) {
+        let Database::Postgres(db) = &self.inner.db else {
+            return;
+        };
+        let db = db.clone();
+        while !self.is_stopping() {
+            let mut listener = match Listener::connect(&db).await {
+                Ok(l) => l,
+                Err(e) => {
+                    tracing::warn!(error = %e, "listening for job notifications failed; retrying");
+                    tokio::time::sleep(Duration::from_secs(1)).await;
+                    continue;
+                }
+            };
+            // Anything queued while nobody listened.
+            self.wake();
+            while !self.is_stopping() {
+                match listener.next().await {
+                    Ok(Wakeup::Queued(_)) => self.wake(),
+                    Ok(Wakeup::Cancel(id)) => {
+                        if let Some(flag) = self.cancel_flag(id) {
+                            tracing::info!(job_id = %id, "cancel requested through another process");
+                            flag.cancel();
+                        }
+                    }
+                    Err(e) => {
+                        tracing::warn!(error = %e, "job notifications interrupted; reconnecting");
+                        tokio::time::sleep(Duration::from_millis(200)).await;
+                        break;
+                    }
+                }
+            }
+        }
+    }
+}
