@@ -251,8 +251,9 @@ async fn postgres_a_job_of_a_killed_process_is_finished_by_another_after_its_lea
     let lease = [("CTRECON_LEASE_SECS", "1")];
     let a = serve(dir.path(), &url, &lease);
     let api_a = client_of(&a);
-    let input = api_a.simulate(cone_geometry(240, 128), 40.0).await;
-    let job = api_a.submit(&fdk_job(&input, 128)).await;
+    // Large enough to be still running seconds after a second process joined, on an idle machine too.
+    let input = api_a.simulate(cone_geometry(360, 128), 40.0).await;
+    let job = api_a.submit(&fdk_job(&input, 224)).await;
     let id = job["id"].as_str().expect("id").to_string();
     api_a
         .wait_until(&id, 120, |j| {
