@@ -85,6 +85,18 @@ pub struct Db {
     cache: std::sync::Arc<JobCache>,
 }
 
+/// A job summary's product indexes, as both backends aggregate them: comma-separated, in product order.
+pub(crate) fn product_indexes(list: Option<&str>) -> Result<Vec<usize>, DbError> {
+    list.iter()
+        .flat_map(|p| p.split(','))
+        .map(|i| {
+            i.trim()
+                .parse::<usize>()
+                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
+        })
+        .collect()
+}
+
 pub(crate) fn corrupt(table: &'static str, reason: impl ToString) -> DbError {
     DbError::Corrupt {
         table,
@@ -177,15 +189,7 @@ fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
     let progress: i64 = row.try_get("progress")?;
     let has_metrics: i64 = row.try_get("has_metrics")?;
     let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = products
-        .iter()
-        .flat_map(|p| p.split(','))
-        .map(|i| {
-            i.trim()
-                .parse::<usize>()
-                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let product_indexes = product_indexes(products.as_deref())?;
     Ok(JobSummary {
         id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
         kind: row.try_get("kind")?,

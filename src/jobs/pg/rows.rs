@@ -6,7 +6,7 @@ use sqlx::postgres::PgRow;
 use super::DbError;
 use crate::error_code::Problem;
 use crate::jobs::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary};
-use crate::jobs::repo::corrupt;
+use crate::jobs::repo::{corrupt, product_indexes};
 use crate::storage::{DatasetId, JobId};
 
 pub(super) fn json_col<T: serde::de::DeserializeOwned>(
@@ -91,15 +91,7 @@ pub(super) fn summary_from_row(row: &PgRow) -> Result<JobSummary, DbError> {
     let progress: i64 = row.try_get("progress")?;
     let has_metrics: bool = row.try_get("has_metrics")?;
     let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = products
-        .iter()
-        .flat_map(|p| p.split(','))
-        .map(|i| {
-            i.trim()
-                .parse::<usize>()
-                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
+    let product_indexes = product_indexes(products.as_deref())?;
     Ok(JobSummary {
         id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
         kind: row.try_get("kind")?,
