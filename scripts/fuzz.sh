@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # Fuzz the parsers for a bounded time (cargo-fuzz, nightly toolchain; `cargo install cargo-fuzz --locked`).
-#   scripts/fuzz.sh TARGET SECONDS     one target (dicom_read, npy_read)
+#   scripts/fuzz.sh TARGET SECONDS     one target (dicom_read, npy_read, series_assembly, zip_ingest,
+#                                      geometry_json, upload)
 #   scripts/fuzz.sh --ci [SECONDS]     every target for SECONDS each (default 60); exits non-zero on any crash,
 #                                      leak, timeout or out-of-memory input, after printing it
 # Seeds come from tests/fuzz-regressions/TARGET (and, for dicom_read, the synthetic files of .testdata/pydicom
@@ -9,7 +10,7 @@
 # forever. The first build of the targets takes about 20 minutes on 2 cores; later ones are incremental.
 set -euo pipefail
 root=$(cd "$(dirname "$0")/.." && pwd)
-targets=(dicom_read npy_read)
+targets=(dicom_read npy_read series_assembly zip_ingest geometry_json upload)
 
 run() {
     local target=$1 seconds=$2
@@ -24,9 +25,12 @@ run() {
         # teardown) on a valid GDCM file, which stops every run at once; tests/fuzz-regressions keeps that file.
         grep -l "1.2.840.10008.1.2.4.9" "$corpus"/* 2>/dev/null | xargs -r rm -f
     fi
+    # The upload target talks to a real server per input: a hang is a finding after 20 s, not 20 minutes.
+    local extra=()
+    [ "$target" = upload ] && extra=(-timeout=20)
     # 2 GB RSS and 256 MB per allocation: a declared length that allocates beyond them is a finding.
     (cd "$root/fuzz" && cargo +nightly fuzz run "$target" "$corpus" -- \
-        -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=65536 -print_final_stats=1)
+        -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=65536 -print_final_stats=1 "${extra[@]}")
 }
 
 if [ "${1:-}" = --ci ]; then

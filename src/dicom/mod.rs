@@ -18,6 +18,7 @@
 
 mod error;
 mod framing;
+mod fuzz;
 mod header;
 mod identifier;
 mod jpeg;
@@ -29,6 +30,8 @@ mod upload;
 mod write;
 
 pub use error::DicomError;
+#[doc(hidden)]
+pub use fuzz::fuzz_zip_entry;
 pub use header::{
     IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
     decodable_transfer_syntaxes, header_of, is_valid_uid, part10_prefix, read_header, read_part10,

@@ -180,3 +180,22 @@ impl UploadSink {
         })
     }
 }
+
+/// Boundary of the multipart bodies the upload fuzz target sends.
+#[doc(hidden)]
+pub const FUZZ_BOUNDARY: &str = "ctrecon-fuzz-boundary";
+
+/// How the upload fuzz target (and its regression replay) frames an input as a `POST /v1/series`: the first
+/// byte picks the media type — mostly a multipart form with [`FUZZ_BOUNDARY`], sometimes one without a
+/// boundary, a ZIP body or a single instance — and the rest is the body.
+#[doc(hidden)]
+pub fn fuzz_upload_request(data: &[u8]) -> (&'static str, &[u8]) {
+    let (first, body) = data.split_first().map_or((0, data), |(f, b)| (*f, b));
+    let media_type = match first % 8 {
+        5 => "multipart/form-data",
+        6 => "application/zip",
+        7 => "application/dicom",
+        _ => "multipart/form-data; boundary=ctrecon-fuzz-boundary",
+    };
+    (media_type, body)
+}

@@ -653,5 +653,9 @@ pub fn assemble(
     })
 }
 
+mod fuzz;
+#[doc(hidden)]
+pub use fuzz::{fuzz_entry, fuzz_slices};
+
 #[cfg(test)]
 mod tests;

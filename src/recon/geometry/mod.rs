@@ -308,5 +308,19 @@ impl Geometry {
     }
 }
 
+/// The geometry fuzz target's entry point (and its regression replay's): JSON as a client sends it, parsed,
+/// validated and turned into views as a sinogram upload or a job does. Every outcome but a panic or an
+/// allocation sized by the input is fine.
+#[doc(hidden)]
+pub fn fuzz_entry(data: &[u8]) {
+    let Ok(geometry) = serde_json::from_slice::<Geometry>(data) else {
+        return;
+    };
+    let _ = geometry.check_fov(100.0);
+    if let Ok(views) = geometry.to_views() {
+        let _ = views.data_shape();
+    }
+}
+
 #[cfg(test)]
 mod tests;
