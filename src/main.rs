@@ -8,6 +8,7 @@ fn main() -> std::process::ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Serve(args) => ctrecon::cli::serve::run(args),
+        Command::Worker(args) => ctrecon::cli::serve::run_worker(args),
         Command::Phantom(args) => ctrecon::cli::phantom::run(args),
         Command::Recon(args) => ctrecon::cli::recon::run(args),
     };

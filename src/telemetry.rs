@@ -52,4 +52,7 @@ pub mod names {
     pub const RETENTION_REMOVED: &str = "ctrecon_retention_removed_total";
     /// Running jobs whose lease expired (their worker was lost), by `outcome` (requeued, failed).
     pub const LEASES_EXPIRED: &str = "ctrecon_lease_expiries_total";
+    /// Jobs this process runs now (`ctrecon_jobs{status="running"}` counts those of every process);
+    /// with `ctrecon_jobs_finished_total`, the per-worker figures of a scaled-out site.
+    pub const RUNNING_HERE: &str = "ctrecon_jobs_running_here";
 }

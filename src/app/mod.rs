@@ -62,19 +62,25 @@ impl App {
     pub async fn open(settings: Settings) -> Result<Self, OpenError> {
         settings.validate()?;
         let dir = settings.data_dir.clone();
-        let store = tokio::task::spawn_blocking(move || {
-            std::fs::create_dir_all(&dir)?;
-            BlobStore::open(&dir)
-        })
-        .await
-        .map_err(|e| OpenError::DataDir(std::io::Error::other(e)))?
-        .map_err(OpenError::DataDir)?;
+        tokio::fs::create_dir_all(&dir)
+            .await
+            .map_err(OpenError::DataDir)?;
         let db = Database::open(
             settings.database_url.as_deref(),
             &settings.data_dir.join("ctrecon.sqlite"),
             DATABASE_CONNECT_TIMEOUT,
         )
         .await?;
+        // On a shared job database other processes may be writing into the same data directory.
+        let idle = if db.is_shared() {
+            crate::storage::SHARED_IDLE
+        } else {
+            Duration::ZERO
+        };
+        let store = tokio::task::spawn_blocking(move || BlobStore::open_shared(&dir, idle))
+            .await
+            .map_err(|e| OpenError::DataDir(std::io::Error::other(e)))?
+            .map_err(OpenError::DataDir)?;
         let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
         tracing::info!(?swept, "blob files paired with their rows");
         let retention = Retention::from_secs(

@@ -1,4 +1,4 @@
-//! The `ctrecon` command line: `serve` runs the HTTP service, `phantom` and `recon` work on local files.
+//! The `ctrecon` command line: `serve` runs the HTTP service, `worker` runs jobs beside it, `phantom` and `recon` work on local files.
 
 use clap::{Parser, Subcommand};
 
@@ -14,6 +14,8 @@ pub struct Cli {
 pub enum Command {
     /// Run the HTTP service (SQLite and a local data directory by default).
     Serve(serve::ServeArgs),
+    /// Run jobs from a shared PostgreSQL job database, without the API (health and metrics on a small port).
+    Worker(serve::WorkerArgs),
     /// Write an analytic phantom, or its exact projections for a geometry, as float32 `.npy`.
     Phantom(phantom::PhantomArgs),
     /// Reconstruct a `.npy` sinogram or projection stack (FBP, FDK or an iterative method).

@@ -6,7 +6,7 @@
 //! | `bind` | `CTRECON_BIND` | `127.0.0.1:8080` |
 //! | `data_dir` | `CTRECON_DATA_DIR` | `./data` |
 //! | `worker_threads` | `CTRECON_WORKER_THREADS` | 0 = one per CPU |
-//! | `max_concurrent_jobs` | `CTRECON_MAX_CONCURRENT_JOBS` | 2 |
+//! | `max_concurrent_jobs` | `CTRECON_MAX_CONCURRENT_JOBS` | 2; 0 = API only (PostgreSQL and `ctrecon worker` processes) |
 //! | `memory_budget_bytes` | `CTRECON_MEMORY_BUDGET_BYTES` | 4 GiB, shared by all running jobs |
 //! | `max_upload_bytes` | `CTRECON_MAX_UPLOAD_BYTES` | 2 GiB per uploaded `.npy` |
 //! | `max_json_bytes` | `CTRECON_MAX_JSON_BYTES` | 1 MiB per JSON body |
@@ -259,8 +259,12 @@ impl Settings {
                 reason: reason.to_string(),
             })
         };
-        if self.max_concurrent_jobs == 0 {
-            return invalid("max_concurrent_jobs", "must be at least 1");
+        if self.max_concurrent_jobs == 0 && self.database_url.is_none() {
+            return invalid(
+                "max_concurrent_jobs",
+                "0 (an API process that runs no jobs) needs a shared job database (database_url = \
+                 postgres://…) and `ctrecon worker` processes on it; with SQLite at least 1",
+            );
         }
         if self.memory_budget_bytes == 0 || self.max_upload_bytes == 0 || self.max_json_bytes == 0 {
             return invalid("limits", "memory and size limits must be positive");

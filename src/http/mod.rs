@@ -161,6 +161,30 @@ fn cors(origins: &[String]) -> Option<CorsLayer> {
     )
 }
 
+/// What a process serves on its HTTP port.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Role {
+    /// The API (and, unless `max_concurrent_jobs` is 0, the jobs): `ctrecon serve`.
+    Api,
+    /// Jobs only: `/healthz`, `/readyz` and `/metrics` on a small port, no API (`ctrecon worker`).
+    Worker,
+}
+
+/// The routes of a `ctrecon worker`'s port: liveness, readiness and metrics, under the same tokens.
+pub fn worker_router(state: AppState, tokens: auth::Tokens) -> Router {
+    Router::new()
+        .route("/healthz", get(health::healthz))
+        .route("/readyz", get(health::readyz))
+        .route("/metrics", get(health::metrics))
+        .fallback(not_found)
+        .with_state(state)
+        .layer(middleware::from_fn(track))
+        .layer(middleware::from_fn_with_state(tokens, auth::require_token))
+        .layer(TraceLayer::new_for_http().make_span_with(|req: &Request| {
+            tracing::info_span!("request", method = %req.method(), path = %req.uri().path())
+        }))
+}
+
 /// The router with every route and layer.
 pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
     let s = &state.settings;
@@ -263,6 +287,12 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
 impl Application {
     /// Open the application (settings, storage, database, recovery, engine), then bind.
     pub async fn build(settings: Settings) -> Result<Self, BuildError> {
+        Self::build_as(settings, Role::Api).await
+    }
+
+    /// [`Application::build`] for `role`: a worker binds `settings.bind` for its health routes only and
+    /// leaves retention to the API processes.
+    pub async fn build_as(settings: Settings, role: Role) -> Result<Self, BuildError> {
         let app = App::open(settings).await?;
         let metrics = metrics_handle();
         let settings = &app.settings;
@@ -277,7 +307,9 @@ impl Application {
             source,
         })?;
         let (shutdown, shutdown_rx) = watch::channel(false);
-        app.spawn_retention(shutdown_rx.clone());
+        if role == Role::Api {
+            app.spawn_retention(shutdown_rx.clone());
+        }
         let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
         let tokens = auth::Tokens::from_settings(settings);
         let engine = app.engine.clone();
@@ -290,7 +322,10 @@ impl Application {
         Ok(Self {
             app: state.app.clone(),
             listener,
-            router: router(state, tokens),
+            router: match role {
+                Role::Api => router(state, tokens),
+                Role::Worker => worker_router(state, tokens),
+            },
             shutdown,
             addr,
             drain_timeout,

@@ -324,6 +324,15 @@ impl Engine {
     }
 
     async fn supervise(self, id: JobId, attempt: u32) {
+        /// Counts the job in [`names::RUNNING_HERE`] until supervision ends, whichever way it ends.
+        struct Here;
+        impl Drop for Here {
+            fn drop(&mut self) {
+                metrics::gauge!(names::RUNNING_HERE).decrement(1.0);
+            }
+        }
+        metrics::gauge!(names::RUNNING_HERE).increment(1.0);
+        let _here = Here;
         let started = Instant::now();
         let outcome = self.run(id, attempt).await;
         let db = &self.inner.db;

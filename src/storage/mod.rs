@@ -11,7 +11,7 @@
 //! - `tmp/`: uploads, unpacked archives and results being written. Every write goes to a temporary file, is
 //!   flushed to disk and then renamed into place, so a file under `datasets/` or `results/` is always
 //!   complete. A blob that has a database row is renamed into place only after its row is committed.
-//!   `tmp/` is emptied at start.
+//!   `tmp/` is emptied at start (in a directory shared by several processes, of what lay idle for an hour).
 
 pub mod ids;
 pub mod npy;
@@ -23,6 +23,7 @@ pub mod sweep;
 use std::fs;
 use std::io::{self, Write};
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
 pub use ids::{AnyId, BadId, DatasetId, InstanceId, JobId, SeriesId, UploadId};
 
@@ -115,6 +116,28 @@ impl Drop for ScratchDir {
     }
 }
 
+/// How long a file in a data directory shared by several processes must lie untouched before a start-up sweep
+/// may take it for abandoned (an upload in progress in another process is written to all the time).
+pub const SHARED_IDLE: Duration = Duration::from_secs(3600);
+
+/// Whether nothing under `path` was modified within `idle` (a directory counts its entries, one level down:
+/// the members of an archive being unpacked). Unreadable metadata counts as recent.
+pub fn idle_for(path: &Path, idle: Duration) -> bool {
+    let recent = |p: &Path| {
+        fs::symlink_metadata(p)
+            .and_then(|m| m.modified())
+            .map(|t| t.elapsed().map_or(true, |age| age < idle))
+            .unwrap_or(true)
+    };
+    if recent(path) {
+        return false;
+    }
+    match fs::read_dir(path) {
+        Ok(entries) => !entries.flatten().any(|e| recent(&e.path())),
+        Err(_) => true,
+    }
+}
+
 fn sync_dir(dir: &Path) {
     // Best effort: makes the rename durable on file systems that support syncing directories.
     if let Ok(d) = fs::File::open(dir) {
@@ -123,8 +146,15 @@ fn sync_dir(dir: &Path) {
 }
 
 impl BlobStore {
-    /// Create the layout under `root` and empty `tmp/`.
+    /// Create the layout under `root` and empty `tmp/`: the data directory of one process.
     pub fn open(root: &Path) -> io::Result<Self> {
+        Self::open_shared(root, Duration::ZERO)
+    }
+
+    /// Create the layout under `root` and remove what `tmp/` holds untouched for at least `idle`. Several
+    /// processes may share the directory (API processes and workers on one job database): another one's
+    /// upload in progress is written to all the time, so only what was abandoned goes.
+    pub fn open_shared(root: &Path, idle: Duration) -> io::Result<Self> {
         for sub in [
             "datasets",
             "results",
@@ -137,10 +167,18 @@ impl BlobStore {
         }
         for entry in fs::read_dir(root.join("tmp"))? {
             let entry = entry?;
-            if entry.file_type()?.is_dir() {
-                fs::remove_dir_all(entry.path())?;
+            if !idle.is_zero() && !idle_for(&entry.path(), idle) {
+                continue;
+            }
+            let gone = if entry.file_type()?.is_dir() {
+                fs::remove_dir_all(entry.path())
             } else {
-                fs::remove_file(entry.path())?;
+                fs::remove_file(entry.path())
+            };
+            match gone {
+                // Another process sharing the directory may have removed it first.
+                Err(e) if e.kind() != io::ErrorKind::NotFound => return Err(e),
+                _ => {}
             }
         }
         Ok(Self {
@@ -293,6 +331,39 @@ impl BlobStore {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_shared_directory_keeps_scratch_in_use_and_removes_what_was_abandoned() {
+        let dir = tempfile::tempdir().unwrap();
+        let tmp = dir.path().join("tmp");
+        fs::create_dir_all(tmp.join("unpacking")).unwrap();
+        fs::write(tmp.join("live.part"), b"x").unwrap();
+        fs::write(tmp.join("unpacking").join("member"), b"x").unwrap();
+        fs::write(tmp.join("old.part"), b"x").unwrap();
+        fs::create_dir_all(tmp.join("old-dir")).unwrap();
+        fs::write(tmp.join("old-dir").join("member"), b"x").unwrap();
+        let two_hours_ago = std::time::SystemTime::now() - Duration::from_secs(7200);
+        let age = |p: &Path| {
+            let f = fs::File::options()
+                .write(true)
+                .open(p)
+                .or_else(|_| fs::File::open(p));
+            f.unwrap().set_modified(two_hours_ago).unwrap();
+        };
+        age(&tmp.join("old.part"));
+        age(&tmp.join("old-dir").join("member"));
+        age(&tmp.join("old-dir"));
+        BlobStore::open_shared(dir.path(), SHARED_IDLE).unwrap();
+        let mut left: Vec<String> = fs::read_dir(&tmp)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        left.sort();
+        assert_eq!(left, ["live.part", "unpacking"]);
+        // One process alone empties it.
+        BlobStore::open(dir.path()).unwrap();
+        assert_eq!(fs::read_dir(&tmp).unwrap().count(), 0);
+    }
 
     #[test]
     fn atomic_writes_leave_no_temporary_files_and_paths_come_from_ids() {

@@ -124,8 +124,16 @@ impl Db {
 
 /// Pair blob files with rows: remove every entry of `series/`, `datasets/` and `uploads/` without a row (or
 /// not named by an id), and mark series and dataset rows whose file is missing. Logged and counted by kind.
+/// On a shared job database only entries untouched for [`SHARED_IDLE`](crate::storage::SHARED_IDLE) go,
+/// and no row is marked (another process may be between its row and its rename).
 pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport, DbError> {
     let mut report = SweepReport::default();
+    // Processes sharing the job database may share the directory: leave what another one may be writing.
+    let idle = if db.is_shared() {
+        crate::storage::SHARED_IDLE
+    } else {
+        std::time::Duration::ZERO
+    };
     for kind in BlobKind::ALL {
         // Files first, rows second: a file renamed into place meanwhile already has its row.
         let listing = {
@@ -151,6 +159,7 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
                 Some(id) => {
                     on_disk.insert(id);
                 }
+                None if !idle.is_zero() && !crate::storage::idle_for(&entry.path, idle) => {}
                 None => {
                     let path = entry.path.clone();
                     let store = store.clone();
@@ -167,7 +176,8 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
             }
         }
         let mut missing = 0u64;
-        if kind != BlobKind::Upload {
+        // A shared directory: another process may be between inserting a row and renaming its file into place.
+        if kind != BlobKind::Upload && idle.is_zero() {
             for id in owners.difference(&on_disk) {
                 let path = match kind {
                     BlobKind::Series => SeriesId::parse(id).map(|i| store.series_path(i)),
