@@ -1,0 +1,145 @@
+//! Deletions of the SQLite repository: finished jobs, and what retention removes once it aged out (jobs,
+//! datasets, series and uploads, each unless still in use).
+
+use sqlx::Row;
+
+use super::{Db, DbError, corrupt};
+use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
+
+/// The inputs (datasets, series, jobs) of queued and running jobs: never removed.
+macro_rules! active_inputs {
+    () => {
+        "SELECT dataset_id FROM jobs WHERE status IN ('queued', 'running')"
+    };
+}
+
+impl Db {
+    /// Delete a finished job. False when it does not exist or is still queued or running.
+    pub async fn delete_finished(&self, id: JobId) -> Result<bool, DbError> {
+        let done = sqlx::query(
+            "DELETE FROM jobs WHERE id = ? AND status IN ('succeeded', 'failed', 'canceled')",
+        )
+        .bind(id.to_string())
+        .execute(&self.pool)
+        .await?;
+        self.cache.invalidate(id);
+        Ok(done.rows_affected() == 1)
+    }
+
+    /// Delete the rows that `sql` (a `DELETE … WHERE … < ? … RETURNING id`) selects with `before_us`, and
+    /// the Idempotency-Key records that name them, in one transaction; returns the ids deleted.
+    async fn delete_returning(
+        &self,
+        sql: &'static str,
+        before_us: i64,
+    ) -> Result<Vec<String>, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
+        let ids = rows
+            .iter()
+            .map(|r| r.try_get::<String, _>("id"))
+            .collect::<Result<Vec<_>, _>>()?;
+        for id in &ids {
+            sqlx::query("DELETE FROM idempotency_keys WHERE resource_id = ?")
+                .bind(id)
+                .execute(&mut *tx)
+                .await?;
+        }
+        tx.commit().await?;
+        Ok(ids)
+    }
+
+    /// Retention: delete the jobs that finished before `before_us`, except those a queued or running job
+    /// takes as input; returns their ids (their result files are the caller's to remove).
+    pub async fn delete_jobs_finished_before(&self, before_us: i64) -> Result<Vec<JobId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM jobs WHERE status IN ('succeeded', 'failed', 'canceled') AND finished_us < ?
+                     AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        let ids = ids
+            .iter()
+            .map(|id| JobId::parse(id).map_err(|e| corrupt("jobs", e)))
+            .collect::<Result<Vec<_>, _>>()?;
+        for id in &ids {
+            self.cache.invalidate(*id);
+        }
+        Ok(ids)
+    }
+
+    /// Retention: delete the datasets created before `before_us` that no queued or running job uses.
+    pub async fn delete_datasets_created_before(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<DatasetId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM datasets WHERE created_us < ? AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| DatasetId::parse(id).map_err(|e| corrupt("datasets", e)))
+            .collect()
+    }
+
+    /// Retention: delete the series created before `before_us` that no queued or running job uses.
+    pub async fn delete_series_created_before(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<SeriesId>, DbError> {
+        let ids = self
+            .delete_returning(
+                concat!(
+                    "DELETE FROM series WHERE created_us < ? AND id NOT IN (",
+                    active_inputs!(),
+                    ") RETURNING id"
+                ),
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| SeriesId::parse(id).map_err(|e| corrupt("series", e)))
+            .collect()
+    }
+
+    /// Retention: delete the uploads completed before `before_us` that no series comes from any more.
+    pub async fn delete_uploads_without_series(
+        &self,
+        before_us: i64,
+    ) -> Result<Vec<UploadId>, DbError> {
+        let ids = self
+            .delete_returning(
+                "DELETE FROM uploads WHERE status = 'completed' AND completed_us < ?
+                 AND id NOT IN (SELECT upload_id FROM series) RETURNING id",
+                before_us,
+            )
+            .await?;
+        ids.iter()
+            .map(|id| UploadId::parse(id).map_err(|e| corrupt("uploads", e)))
+            .collect()
+    }
+
+    /// Ids of jobs that are not `succeeded` (their result directories may hold partial files).
+    pub async fn unfinished_ids(&self) -> Result<Vec<JobId>, DbError> {
+        let rows = sqlx::query("SELECT id FROM jobs WHERE status != 'succeeded'")
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| {
+                let id: String = r.try_get("id")?;
+                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,219 @@
+//! Series and uploads in the SQLite repository: an upload completed in one request with its series, an open
+//! upload that instances are appended to and that is completed later, and the series records.
+
+use sqlx::Row;
+
+use super::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted};
+use super::{json_col, opt_json_col, to_json};
+use crate::jobs::model::{SeriesRecord, UploadRecord, now_us};
+use crate::storage::{SeriesId, UploadId};
+
+impl Db {
+    async fn insert_series(
+        tx: &mut sqlx::SqliteConnection,
+        series: &[SeriesRecord],
+    ) -> Result<(), DbError> {
+        for r in series {
+            sqlx::query(
+                "INSERT INTO series (id, upload_id, series_uid, record, created_us) VALUES (?, ?, ?, ?, ?)",
+            )
+            .bind(r.id.to_string())
+            .bind(r.upload_id.to_string())
+            .bind(&r.series_uid)
+            .bind(to_json(r))
+            .bind(r.created_us)
+            .execute(&mut *tx)
+            .await?;
+        }
+        Ok(())
+    }
+
+    /// Record an upload completed in one request, with its series, under an optional Idempotency-Key.
+    pub async fn insert_completed_upload(
+        &self,
+        id: UploadId,
+        instances: u32,
+        bytes: u64,
+        outcome: &serde_json::Value,
+        series: &[SeriesRecord],
+        key: Option<&IdempotencyKey>,
+    ) -> Result<Inserted, DbError> {
+        let mut tx = match self.begin_claimed(key, &id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
+        let now = now_us();
+        sqlx::query(
+            "INSERT INTO uploads (id, status, instances, bytes, outcome, created_us, completed_us)
+             VALUES (?, 'completed', ?, ?, ?, ?, ?)",
+        )
+        .bind(id.to_string())
+        .bind(instances as i64)
+        .bind(bytes as i64)
+        .bind(outcome.to_string())
+        .bind(now)
+        .bind(now)
+        .execute(&mut *tx)
+        .await?;
+        Self::insert_series(&mut tx, series).await?;
+        tx.commit().await?;
+        Ok(Inserted::New)
+    }
+
+    /// Open a new upload, under an optional Idempotency-Key.
+    pub async fn insert_open_upload(
+        &self,
+        id: UploadId,
+        key: Option<&IdempotencyKey>,
+    ) -> Result<Inserted, DbError> {
+        let mut tx = match self.begin_claimed(key, &id.to_string()).await? {
+            Ok(tx) => tx,
+            Err(existing) => return Ok(existing),
+        };
+        sqlx::query("INSERT INTO uploads (id, status, created_us) VALUES (?, 'open', ?)")
+            .bind(id.to_string())
+            .bind(now_us())
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(Inserted::New)
+    }
+
+    pub async fn get_upload(&self, id: UploadId) -> Result<Option<UploadRecord>, DbError> {
+        let row = sqlx::query("SELECT * FROM uploads WHERE id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|row| {
+            let status: String = row.try_get("status")?;
+            let instances: i64 = row.try_get("instances")?;
+            let bytes: i64 = row.try_get("bytes")?;
+            Ok(UploadRecord {
+                id,
+                open: status == "open",
+                instances: instances.max(0) as u32,
+                bytes: bytes.max(0) as u64,
+                outcome: opt_json_col(&row, "outcome", "uploads")?,
+                created_us: row.try_get("created_us")?,
+            })
+        })
+        .transpose()
+    }
+
+    /// Append an instance (already stored under its SHA-256) to an open upload of at most `max_bytes`.
+    pub async fn append_upload_file(
+        &self,
+        id: UploadId,
+        sha256: &str,
+        label: &str,
+        bytes: u64,
+        series_uid: &str,
+        max_bytes: u64,
+    ) -> Result<Appended, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let Some(row) = sqlx::query("SELECT status, instances, bytes FROM uploads WHERE id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&mut *tx)
+            .await?
+        else {
+            return Ok(Appended::NotFound);
+        };
+        let status: String = row.try_get("status")?;
+        let instances: i64 = row.try_get("instances")?;
+        let total: i64 = row.try_get("bytes")?;
+        if status != "open" {
+            return Ok(Appended::Closed);
+        }
+        let known = sqlx::query("SELECT 1 FROM upload_files WHERE upload_id = ? AND sha256 = ?")
+            .bind(id.to_string())
+            .bind(sha256)
+            .fetch_optional(&mut *tx)
+            .await?;
+        if known.is_some() {
+            return Ok(Appended::Duplicate(instances.max(0) as u32));
+        }
+        if (total.max(0) as u64).saturating_add(bytes) > max_bytes {
+            return Ok(Appended::TooLarge(max_bytes));
+        }
+        sqlx::query(
+            "INSERT INTO upload_files (upload_id, sha256, label, bytes, series_uid, created_us)
+             VALUES (?, ?, ?, ?, ?, ?)",
+        )
+        .bind(id.to_string())
+        .bind(sha256)
+        .bind(label)
+        .bind(bytes as i64)
+        .bind(series_uid)
+        .bind(now_us())
+        .execute(&mut *tx)
+        .await?;
+        sqlx::query("UPDATE uploads SET instances = instances + 1, bytes = bytes + ? WHERE id = ?")
+            .bind(bytes as i64)
+            .bind(id.to_string())
+            .execute(&mut *tx)
+            .await?;
+        tx.commit().await?;
+        Ok(Appended::Added(instances.max(0) as u32 + 1))
+    }
+
+    /// The instances of an upload: `(sha256, label)` in order of arrival.
+    pub async fn upload_files(&self, id: UploadId) -> Result<Vec<(String, String)>, DbError> {
+        let rows = sqlx::query(
+            "SELECT sha256, label FROM upload_files WHERE upload_id = ? ORDER BY created_us, rowid",
+        )
+        .bind(id.to_string())
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("sha256")?, r.try_get("label")?)))
+            .collect()
+    }
+
+    /// Complete an open upload that still holds `instances` instances, recording its outcome and series.
+    pub async fn complete_upload(
+        &self,
+        id: UploadId,
+        instances: u32,
+        outcome: &serde_json::Value,
+        series: &[SeriesRecord],
+    ) -> Result<Completed, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let done = sqlx::query(
+            "UPDATE uploads SET status = 'completed', outcome = ?, completed_us = ?
+             WHERE id = ? AND status = 'open' AND instances = ?",
+        )
+        .bind(outcome.to_string())
+        .bind(now_us())
+        .bind(id.to_string())
+        .bind(instances as i64)
+        .execute(&mut *tx)
+        .await?;
+        if done.rows_affected() == 0 {
+            let open = sqlx::query("SELECT 1 FROM uploads WHERE id = ? AND status = 'open'")
+                .bind(id.to_string())
+                .fetch_optional(&mut *tx)
+                .await?;
+            return Ok(if open.is_some() {
+                Completed::Changed
+            } else {
+                Completed::Closed
+            });
+        }
+        Self::insert_series(&mut tx, series).await?;
+        tx.commit().await?;
+        Ok(Completed::Done)
+    }
+
+    pub async fn get_series(&self, id: SeriesId) -> Result<Option<SeriesRecord>, DbError> {
+        let row = sqlx::query("SELECT record, created_us FROM series WHERE id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        row.map(|row| {
+            let mut r: SeriesRecord = json_col(&row, "record", "series")?;
+            r.created_us = row.try_get("created_us")?;
+            Ok(r)
+        })
+        .transpose()
+    }
+}
