@@ -23,6 +23,7 @@ mod header;
 mod identifier;
 mod jpeg;
 mod jpeg_ls;
+mod pixels;
 mod read;
 mod scan;
 mod unzip;
