@@ -106,11 +106,11 @@ impl<'a> Sampler<'a> {
     fn index_gradient_inside(&self, idx: [f32; 3]) -> Option<[f32; 3]> {
         let [nz, ny, nx] = self.n;
         let base = |x: f32, n: usize| -> Option<(usize, f32)> {
-            if !(x >= 1.0) {
+            if x.is_nan() || x < 1.0 {
                 return None;
             }
             let b = x as usize;
-            (b + 2 < n).then(|| (b, x - b as f32))
+            (b + 2 < n).then_some((b, x - b as f32))
         };
         let (k, fk) = base(idx[0], nz)?;
         let (j, fj) = base(idx[1], ny)?;
