@@ -293,3 +293,121 @@ async fn bad_render_requests_are_refused_at_submission_with_problem_json() {
          "camera": {"projection": "perspective", "distance_mm": 10}}]}))
         .await;
 }
+
+/// The triangles of a binary STL (84-byte header and count, 50 bytes a triangle).
+fn stl_triangles(b: &[u8]) -> Vec<[[f32; 3]; 3]> {
+    let n = u32::from_le_bytes(b[80..84].try_into().unwrap()) as usize;
+    assert_eq!(b.len(), 84 + 50 * n);
+    (0..n)
+        .map(|t| {
+            let f = |k: usize| {
+                let o = 84 + 50 * t + 12 + 4 * k;
+                f32::from_le_bytes(b[o..o + 4].try_into().unwrap())
+            };
+            std::array::from_fn(|v| std::array::from_fn(|c| f(3 * v + c)))
+        })
+        .collect()
+}
+
+/// Whether every edge of the triangles is used once in each direction (a closed, consistently oriented
+/// surface), with vertices matched by their exact coordinates; and the volume it encloses (mm³).
+fn closed_and_volume(tris: &[[[f32; 3]; 3]]) -> (bool, f64) {
+    use std::collections::HashMap;
+    let key = |p: [f32; 3]| p.map(f32::to_bits);
+    let mut edges: HashMap<([u32; 3], [u32; 3]), i32> = HashMap::new();
+    let mut volume = 0.0;
+    for t in tris {
+        for e in 0..3 {
+            *edges.entry((key(t[e]), key(t[(e + 1) % 3]))).or_default() += 1;
+        }
+        let [a, b, c] = t.map(|p| p.map(|x| x as f64));
+        volume += (a[0] * (b[1] * c[2] - b[2] * c[1]) - a[1] * (b[0] * c[2] - b[2] * c[0])
+            + a[2] * (b[0] * c[1] - b[1] * c[0]))
+            / 6.0;
+    }
+    let closed = edges
+        .iter()
+        .all(|(&(a, b), &n)| n == 1 && edges.get(&(b, a)) == Some(&1));
+    (closed, volume)
+}
+
+#[tokio::test]
+async fn the_mesh_view_takes_the_clip_of_the_mesh_product_and_caps_the_cut() {
+    let app = spawn_app().await;
+    let sid = upload(&app).await;
+    let clip = json!({"planes": [{"point_mm": [0, 0, 0], "normal": [0, 1, 0]}]});
+    let job = app
+        .submit(&json!({"kind": "volume", "input": sid, "products": [
+            {"type": "mesh", "iso": 0, "largest_component": false, "clip": clip}]}))
+        .await;
+    let id = job["id"].as_str().unwrap().to_string();
+    let done = app.finish(&id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let mesh_url = |clip: Option<String>| {
+        let clip = clip.map_or(String::new(), |c| format!("&clip={}", url_encode(&c)));
+        format!("/v1/jobs/{id}/result/mesh.stl?iso=0{clip}")
+    };
+    let whole = stl_triangles(&get(&app, &mesh_url(None), "model/stl").await);
+    let cut_bytes = get(&app, &mesh_url(Some(clip.to_string())), "model/stl").await;
+    let cut = stl_triangles(&cut_bytes);
+    let (whole_closed, whole_volume) = closed_and_volume(&whole);
+    let (cut_closed, cut_volume) = closed_and_volume(&cut);
+    assert!(
+        whole_closed && cut_closed,
+        "closed: {whole_closed} {cut_closed}"
+    );
+    // The ball and the marker are symmetric about y = 0, as is the grid: the cut keeps half of each.
+    let exact = 4.0 / 3.0 * std::f64::consts::PI * (BALL_MM.powi(3) + MARKER_MM.powi(3));
+    assert!(
+        (whole_volume - exact).abs() / exact < 0.02,
+        "whole {whole_volume:.0} mm³ vs {exact:.0}"
+    );
+    assert!(
+        (cut_volume - whole_volume / 2.0).abs() / (whole_volume / 2.0) < 0.01,
+        "cut {cut_volume:.0} mm³ vs half of {whole_volume:.0}"
+    );
+    let min_y = cut
+        .iter()
+        .flatten()
+        .map(|p| p[1])
+        .fold(f32::INFINITY, f32::min);
+    assert!(
+        min_y > -1e-3,
+        "the cut keeps y ≥ 0, lowest vertex at {min_y}"
+    );
+    // The view and the product with the same clip are the same mesh.
+    let product = stl_triangles(
+        &get(
+            &app,
+            &format!("/v1/jobs/{id}/result/products/0"),
+            "model/stl",
+        )
+        .await,
+    );
+    assert!(
+        product == cut,
+        "the product has {} triangles, the view {}",
+        product.len(),
+        cut.len()
+    );
+
+    // Refused as in a job: a zero normal (422 invalid_clip), text that is no clip (400 invalid_query).
+    let zero = json!({"planes": [{"point_mm": [0, 0, 0], "normal": [0, 0, 0]}]});
+    let r = app.get(&mesh_url(Some(zero.to_string()))).await;
+    assert_problem(r, 422, "invalid_clip").await;
+    let r = app.get(&mesh_url(Some("planes".into()))).await;
+    assert_problem(r, 400, "invalid_query").await;
+}
+
+/// `s` percent-encoded for a query string.
+fn url_encode(s: &str) -> String {
+    s.bytes()
+        .map(|b| {
+            if b.is_ascii_alphanumeric() || b"-._~".contains(&b) {
+                (b as char).to_string()
+            } else {
+                format!("%{b:02X}")
+            }
+        })
+        .collect()
+}

@@ -108,6 +108,7 @@ impl App {
                 max_attempts: settings.max_attempts,
                 progress_interval: Duration::from_millis(settings.progress_interval_ms.max(10)),
                 lease: Duration::from_secs(settings.lease_secs),
+                mu_water_per_mm: settings.mu_water_per_mm,
             },
         )
         .await?;

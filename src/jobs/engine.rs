@@ -84,6 +84,8 @@ pub struct EngineConfig {
     /// How long a claim holds a job without a heartbeat ([`LEASE`] by default); heartbeats come every
     /// [`heartbeat_interval`], expired leases are looked for every [`expiry_interval`].
     pub lease: Duration,
+    /// μ of water (/mm): HU values of rendering requests on μ volumes convert through it (`mu_water_per_mm`).
+    pub mu_water_per_mm: f64,
 }
 
 struct Running {
@@ -433,6 +435,7 @@ impl Engine {
         let limits = Limits {
             max_bytes: self.inner.config.memory_budget_bytes,
         };
+        let mu_water = self.inner.config.mu_water_per_mm;
         let (tx, mut rx) = oneshot::channel();
         let span = tracing::Span::current();
         self.inner.pool.spawn(move || {
@@ -452,6 +455,7 @@ impl Engine {
                     req,
                     input,
                     limits.max_bytes,
+                    mu_water,
                     Control::new(&cancel, &sink),
                 ),
             }));

@@ -492,12 +492,14 @@ fn grid_of(shape: &VolumeShape) -> VolumeGrid {
 }
 
 /// Run a planned volume job: load the input, apply the steps, write the volume and every product atomically.
+/// Renderings of a μ volume take their HU values through `mu_water` (/mm).
 pub fn execute_volume(
     store: &BlobStore,
     job: &Job,
     req: &VolumeJobRequest,
     input: &VolumeInput,
     budget_bytes: u64,
+    mu_water: f64,
     ctl: Control<'_>,
 ) -> Result<JobResult, RunError> {
     ctl.step("loading", 0.0);
@@ -556,6 +558,7 @@ pub fn execute_volume(
                 fill,
                 patient: input.source_series.is_some(),
                 units: input.units,
+                mu_water,
             },
         )?);
     }
@@ -627,6 +630,8 @@ struct Looks {
     fill: f32,
     patient: bool,
     units: VolumeUnits,
+    /// μ of water (/mm) for requests in HU on a μ volume (`mu_water_per_mm`).
+    mu_water: f64,
 }
 
 fn make_product(
@@ -642,6 +647,7 @@ fn make_product(
         fill,
         patient,
         units,
+        mu_water,
     } = looks;
     let fail = |e: crate::volume::VolumeError| RunError::Failed(volume_problem(&e));
     // The plane of the first frame and the step between frames, for planar products.
@@ -650,7 +656,7 @@ fn make_product(
     let mut sides: Option<ScreenSides> = None;
     let (images, pixel_mm) = match planned {
         Planned::Render(spec) => {
-            return make_render_product(store, job.id, vol, index, spec, units, patient);
+            return make_render_product(store, job.id, vol, index, spec, units, mu_water, patient);
         }
         Planned::Mesh(opts) => {
             let (mesh, stats) = extract(vol, opts).map_err(|e| {

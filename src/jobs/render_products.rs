@@ -16,13 +16,14 @@ use crate::render::{
     Surface, TransferFunction, VrOptions, surface_render, volume_render,
 };
 use crate::storage::{BlobStore, JobId, ResultName};
-use crate::volume::{MU_WATER_PER_MM, Volume};
+use crate::volume::Volume;
 
 /// Units of transfer-function values and iso-values in a request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum ValueUnits {
-    /// Hounsfield units (μ volumes convert through μ_water = 0.0192 /mm).
+    /// Hounsfield units (μ volumes convert through the configured μ_water, `mu_water_per_mm`: μ = μ_water (1 +
+    /// HU/1000)).
     #[default]
     Hu,
     /// The volume's own units.
@@ -138,8 +139,12 @@ impl RenderSpec {
         c
     }
 
-    /// VR options with values in the volume's units.
-    fn vr(s: &VolumeRenderSpec, units: VolumeUnits) -> Result<VrOptions, RenderError> {
+    /// VR options with values in the volume's units (HU → μ through `mu_water`, /mm).
+    fn vr(
+        s: &VolumeRenderSpec,
+        units: VolumeUnits,
+        mu_water: f64,
+    ) -> Result<VrOptions, RenderError> {
         let (tf, tf_units) = match (&s.transfer_function, s.preset) {
             (Some(_), Some(_)) => {
                 return Err(RenderError::InvalidParameter {
@@ -155,7 +160,7 @@ impl RenderSpec {
         };
         tf.validate()?;
         Ok(VrOptions {
-            transfer_function: tf.map_values(|v| to_volume_units(v, tf_units, units)),
+            transfer_function: tf.map_values(|v| to_volume_units(v, tf_units, units, mu_water)),
             shading: s.shading,
             clip: s.clip.clone(),
             background: s.background,
@@ -163,13 +168,14 @@ impl RenderSpec {
         })
     }
 
-    fn ssd(s: &SurfaceRenderSpec, units: VolumeUnits) -> SsdOptions {
+    /// SSD options with iso-values in the volume's units (HU → μ through `mu_water`, /mm).
+    fn ssd(s: &SurfaceRenderSpec, units: VolumeUnits, mu_water: f64) -> SsdOptions {
         SsdOptions {
             surfaces: s
                 .surfaces
                 .iter()
                 .map(|sf| Surface {
-                    iso: to_volume_units(sf.iso, s.units, units),
+                    iso: to_volume_units(sf.iso, s.units, units, mu_water),
                     ..*sf
                 })
                 .collect(),
@@ -220,9 +226,10 @@ impl RenderSpec {
     }
 }
 
-fn to_volume_units(v: f64, given: ValueUnits, volume: VolumeUnits) -> f64 {
+/// A value given in `given` units in the units of a `volume` (HU → μ = μ_water (1 + HU/1000)).
+fn to_volume_units(v: f64, given: ValueUnits, volume: VolumeUnits, mu_water: f64) -> f64 {
     match (given, volume) {
-        (ValueUnits::Hu, VolumeUnits::MuPerMm) => MU_WATER_PER_MM * (1.0 + v / 1000.0),
+        (ValueUnits::Hu, VolumeUnits::MuPerMm) => mu_water * (1.0 + v / 1000.0),
         _ => v,
     }
 }
@@ -251,10 +258,10 @@ pub fn plan_render(
         ));
     }
     match spec {
-        RenderSpec::Volume(s) => RenderSpec::vr(s, VolumeUnits::Hu)
+        RenderSpec::Volume(s) => RenderSpec::vr(s, VolumeUnits::Hu, 1.0)
             .and_then(|o| o.validate())
             .map_err(|e| problem(i, &e))?,
-        RenderSpec::Surface(s) => RenderSpec::ssd(s, VolumeUnits::Hu)
+        RenderSpec::Surface(s) => RenderSpec::ssd(s, VolumeUnits::Hu, 1.0)
             .validate()
             .map_err(|e| problem(i, &e))?,
     }
@@ -304,7 +311,9 @@ pub fn check_render_sizes(
     Ok(())
 }
 
-/// Render every frame of `spec` from `vol` and store them as `product-{index}.npy` (uint8 RGB).
+/// Render every frame of `spec` from `vol` (in `units`; HU values of the request convert to μ through
+/// `mu_water`, /mm) and store them as `product-{index}.npy` (uint8 RGB).
+#[allow(clippy::too_many_arguments)]
 pub fn make_render_product(
     store: &BlobStore,
     job: JobId,
@@ -312,6 +321,7 @@ pub fn make_render_product(
     index: usize,
     spec: &RenderSpec,
     units: VolumeUnits,
+    mu_water: f64,
     patient: bool,
 ) -> Result<ProductResult, RunError> {
     let fail = |e: RenderError| RunError::Failed(problem(index, &e));
@@ -327,10 +337,14 @@ pub fn make_render_product(
         first.get_or_insert(rays);
         frames.push(
             match spec {
-                RenderSpec::Volume(s) => {
-                    volume_render(&scene, &rays, &RenderSpec::vr(s, units).map_err(fail)?)
+                RenderSpec::Volume(s) => volume_render(
+                    &scene,
+                    &rays,
+                    &RenderSpec::vr(s, units, mu_water).map_err(fail)?,
+                ),
+                RenderSpec::Surface(s) => {
+                    surface_render(&scene, &rays, &RenderSpec::ssd(s, units, mu_water))
                 }
-                RenderSpec::Surface(s) => surface_render(&scene, &rays, &RenderSpec::ssd(s, units)),
             }
             .map_err(fail)?,
         );
@@ -361,4 +375,50 @@ pub fn make_render_product(
         description: Some(spec.describe()),
         file,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn hu_values_of_a_request_convert_to_mu_through_the_configured_mu_water() {
+        let ssd: SurfaceRenderSpec =
+            serde_json::from_value(serde_json::json!({"surfaces": [{"iso": 500}, {"iso": -1000}]}))
+                .unwrap();
+        let vr: VolumeRenderSpec =
+            serde_json::from_value(serde_json::json!({"preset": "bone"})).unwrap();
+        let bone = Preset::Bone.transfer_function();
+        for mu_water in [0.0192, 0.02, 0.0251] {
+            // On a μ volume: μ = μ_water (1 + HU/1000), so 500 HU is 1.5 μ_water and −1000 HU is 0.
+            let o = RenderSpec::ssd(&ssd, VolumeUnits::MuPerMm, mu_water);
+            assert!((o.surfaces[0].iso - 1.5 * mu_water).abs() < 1e-15, "{o:?}");
+            assert!(o.surfaces[1].iso.abs() < 1e-15, "{o:?}");
+            let o = RenderSpec::vr(&vr, VolumeUnits::MuPerMm, mu_water).unwrap();
+            for (got, hu) in o.transfer_function.points.iter().zip(&bone.points) {
+                let want = mu_water * (1.0 + hu.value / 1000.0);
+                assert!(
+                    (got.value - want).abs() < 1e-15,
+                    "{} HU: {}",
+                    hu.value,
+                    got.value
+                );
+                assert_eq!((got.color, got.opacity), (hu.color, hu.opacity));
+            }
+            // On a HU volume the values stay as given.
+            let o = RenderSpec::ssd(&ssd, VolumeUnits::Hu, mu_water);
+            assert_eq!(o.surfaces[0].iso, 500.0);
+            let o = RenderSpec::vr(&vr, VolumeUnits::Hu, mu_water).unwrap();
+            assert_eq!(o.transfer_function, bone);
+        }
+        // Values in the volume's own units are never converted.
+        let native: SurfaceRenderSpec = serde_json::from_value(
+            serde_json::json!({"surfaces": [{"iso": 0.03}], "units": "native"}),
+        )
+        .unwrap();
+        assert_eq!(
+            RenderSpec::ssd(&native, VolumeUnits::MuPerMm, 0.02).surfaces[0].iso,
+            0.03
+        );
+    }
 }

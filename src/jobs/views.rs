@@ -24,6 +24,7 @@ use crate::dicom::{
 };
 use crate::error_code::{ErrorCode, Problem};
 use crate::mesh::{MeshOptions, extract};
+use crate::render::Clip;
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::volume::{
     Axis, BitDepth, DisplayGrid, Frame, ProjectionKind, Volume, VolumeError, Window, WindowPreset,
@@ -127,6 +128,33 @@ pub struct MeshQuery {
     pub target_triangles: Option<usize>,
     #[serde(default)]
     pub format: MeshFormat,
+    /// Cut-away, as in the mesh product: the clip planes and boxes as JSON text (`{"planes": [{"point_mm":
+    /// [0, 0, 0], "normal": [0, 1, 0]}], "boxes": […]}`); the cut is capped so the mesh stays closed.
+    #[serde(default, deserialize_with = "clip_from_json")]
+    pub clip: Option<Clip>,
+}
+
+/// A `clip` query parameter: the JSON of a [`Clip`].
+fn clip_from_json<'de, D: serde::Deserializer<'de>>(d: D) -> Result<Option<Clip>, D::Error> {
+    let text = String::deserialize(d)?;
+    serde_json::from_str(&text)
+        .map(Some)
+        .map_err(|e| serde::de::Error::custom(format!("`clip` is not a clip object: {e}")))
+}
+
+impl MeshQuery {
+    /// The checks of the mesh product: finite iso, smoothing and triangle target within bounds, and a valid
+    /// clip (non-zero plane normals, positive box sizes, at most 16); the problem carries the same codes.
+    pub fn validate(&self) -> Result<(), Problem> {
+        mesh_options(self, 1.0, VolumeUnits::Hu)
+            .validate()
+            .map_err(|e| {
+                Problem::new(
+                    ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidMeshOptions),
+                    e.to_string(),
+                )
+            })
+    }
 }
 
 /// Layout of a derived CT series download.
@@ -283,7 +311,7 @@ fn mesh_options(q: &MeshQuery, mu_water: f64, units: VolumeUnits) -> MeshOptions
         largest_component: q.largest,
         smoothing: q.smoothing,
         target_triangles: q.target_triangles,
-        clip: Default::default(),
+        clip: q.clip.clone().unwrap_or_default(),
     }
 }
 
@@ -364,6 +392,7 @@ fn encode_view(
 }
 
 fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+    q.validate()?;
     let opts = mesh_options(q, ctx.mu_water, ctx.units);
     let max = vol.data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
     if opts.iso > max {

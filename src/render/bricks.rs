@@ -16,11 +16,15 @@ pub struct BrickGrid {
     pub range: Vec<(f32, f32)>,
 }
 
-/// Which bricks hold something to see.
+/// Which bricks hold something to see, and how far each empty brick is from the nearest busy one.
 pub(crate) struct BrickMask {
     nb: [usize; 3],
-    busy: Vec<bool>,
+    /// Chessboard distance (bricks) to the nearest busy brick: 0 for a busy brick, at most [`FAR`].
+    dist: Vec<u8>,
 }
+
+/// The distance given to a brick with no busy brick within 255 bricks.
+const FAR: u8 = u8::MAX;
 
 impl BrickGrid {
     /// Build the grid of a volume (in parallel over brick slabs).
@@ -56,45 +60,147 @@ impl BrickGrid {
 
     /// The mask of bricks for which `busy(min, max)` holds.
     pub(crate) fn mask(&self, busy: impl Fn(f32, f32) -> bool + Sync) -> BrickMask {
+        let busy: Vec<bool> = self
+            .range
+            .par_iter()
+            .map(|&(lo, hi)| busy(lo, hi))
+            .collect();
         BrickMask {
             nb: self.nb,
-            busy: self
-                .range
-                .par_iter()
-                .map(|&(lo, hi)| busy(lo, hi))
-                .collect(),
+            dist: chessboard_distance(self.nb, &busy),
         }
     }
 }
 
+/// The chessboard (L∞) distance, in bricks, from every brick to the nearest busy one (exact: two raster passes
+/// over the 26-neighbourhood with unit steps), saturated at [`FAR`].
+fn chessboard_distance(nb: [usize; 3], busy: &[bool]) -> Vec<u8> {
+    let [nz, ny, nx] = nb;
+    let at = |z: usize, y: usize, x: usize| (z * ny + y) * nx + x;
+    let mut d: Vec<u8> = busy.iter().map(|&b| if b { 0 } else { FAR }).collect();
+    let mut pass = |forward: bool| {
+        for zz in 0..nz {
+            let z = if forward { zz } else { nz - 1 - zz };
+            for yy in 0..ny {
+                let y = if forward { yy } else { ny - 1 - yy };
+                for xx in 0..nx {
+                    let x = if forward { xx } else { nx - 1 - xx };
+                    let mut m = d[at(z, y, x)];
+                    if m == 0 {
+                        continue;
+                    }
+                    // The 13 neighbours already visited in this pass's raster order.
+                    for (dz, dy, dx) in HALF_NEIGHBOURS {
+                        let (dz, dy, dx) = if forward {
+                            (-dz, -dy, -dx)
+                        } else {
+                            (dz, dy, dx)
+                        };
+                        let (Some(z2), Some(y2), Some(x2)) = (
+                            z.checked_add_signed(dz).filter(|&v| v < nz),
+                            y.checked_add_signed(dy).filter(|&v| v < ny),
+                            x.checked_add_signed(dx).filter(|&v| v < nx),
+                        ) else {
+                            continue;
+                        };
+                        m = m.min(d[at(z2, y2, x2)].saturating_add(1));
+                    }
+                    d[at(z, y, x)] = m;
+                }
+            }
+        }
+    };
+    pass(true);
+    pass(false);
+    d
+}
+
+/// The 13 neighbour offsets `(dz, dy, dx)` that come after a cell in raster order.
+const HALF_NEIGHBOURS: [(isize, isize, isize); 13] = [
+    (0, 0, 1),
+    (0, 1, -1),
+    (0, 1, 0),
+    (0, 1, 1),
+    (1, -1, -1),
+    (1, -1, 0),
+    (1, -1, 1),
+    (1, 0, -1),
+    (1, 0, 0),
+    (1, 0, 1),
+    (1, 1, -1),
+    (1, 1, 0),
+    (1, 1, 1),
+];
+
 impl BrickMask {
+    /// The brick holding fractional index `idx` (clamped to the grid), per axis.
+    #[inline]
+    fn brick(&self, idx: [f32; 3]) -> [usize; 3] {
+        std::array::from_fn(|a| (idx[a].max(0.0) as usize / BRICK).min(self.nb[a] - 1))
+    }
+
     /// Whether the brick holding fractional index `idx` is busy (outside the grid: not busy).
     #[inline]
     pub(crate) fn busy_at(&self, idx: [f32; 3]) -> bool {
-        let mut b = [0usize; 3];
-        for a in 0..3 {
-            if idx[a] < 0.0 {
-                return false;
-            }
-            b[a] = (idx[a] as usize / BRICK).min(self.nb[a] - 1);
+        if idx.iter().any(|&x| x < 0.0) {
+            return false;
         }
-        self.busy[(b[0] * self.nb[1] + b[1]) * self.nb[2] + b[2]]
+        let b = self.brick(idx);
+        self.dist[(b[0] * self.nb[1] + b[1]) * self.nb[2] + b[2]] == 0
     }
 
     /// The ray parameter (mm) where a ray at fractional index `idx`, moving `dir` index units per mm, leaves
-    /// the brick that holds `idx`; measured from `idx`.
+    /// the block of empty bricks about the brick that holds `idx` (the bricks closer to it than its distance to
+    /// the nearest busy brick; just that brick when it is busy); measured from `idx`.
     #[inline]
     pub(crate) fn exit(&self, idx: [f32; 3], dir: V3) -> f64 {
+        let b = self.brick(idx);
+        let d = self.dist[(b[0] * self.nb[1] + b[1]) * self.nb[2] + b[2]];
+        let reach = d.saturating_sub(1) as f64;
         let mut t = f64::INFINITY;
         for a in 0..3 {
-            let b = (idx[a].max(0.0) as usize / BRICK).min(self.nb[a] - 1) as f64;
+            let b = b[a] as f64;
             let x = idx[a] as f64;
             if dir[a] > 1e-12 {
-                t = t.min(((b + 1.0) * BRICK as f64 - x) / dir[a]);
+                t = t.min(((b + 1.0 + reach) * BRICK as f64 - x) / dir[a]);
             } else if dir[a] < -1e-12 {
-                t = t.min((x - b * BRICK as f64) / -dir[a]);
+                t = t.min((x - (b - reach) * BRICK as f64) / -dir[a]);
             }
         }
         t.max(0.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_chessboard_distance_is_the_largest_axis_offset_to_the_nearest_busy_brick() {
+        let nb = [5, 7, 9];
+        let busy_cells = [[1usize, 2, 3], [4, 6, 8]];
+        let mut busy = vec![false; nb[0] * nb[1] * nb[2]];
+        for [z, y, x] in busy_cells {
+            busy[(z * nb[1] + y) * nb[2] + x] = true;
+        }
+        let d = chessboard_distance(nb, &busy);
+        for z in 0..nb[0] {
+            for y in 0..nb[1] {
+                for x in 0..nb[2] {
+                    let want = busy_cells
+                        .iter()
+                        .map(|c| z.abs_diff(c[0]).max(y.abs_diff(c[1])).max(x.abs_diff(c[2])))
+                        .min()
+                        .unwrap();
+                    assert_eq!(
+                        d[(z * nb[1] + y) * nb[2] + x] as usize,
+                        want,
+                        "({z}, {y}, {x})"
+                    );
+                }
+            }
+        }
+        let none = chessboard_distance(nb, &vec![false; busy.len()]);
+        assert!(none.iter().all(|&v| v == FAR));
     }
 }

@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 use super::clip::Span;
 use super::image::render_tiles;
 use super::scene::Scene;
+use super::shading::Lighting;
 use super::transfer::Lut;
 use super::{Clip, RenderError, RgbImage, Shading, TransferFunction, ViewRays};
 
@@ -43,6 +44,11 @@ impl VrOptions {
 }
 
 /// Ray-cast `scene` for `rays` with `opts`. The depth of a pixel is where its first visible sample lies.
+///
+/// Samples lie at `t0 + k·step` along each kept span of a ray. Runs of empty bricks (no value with opacity) are
+/// crossed in one jump to the first sample beyond them ([`BrickMask::exit`](super::bricks)); inside a busy brick
+/// the samples go on without looking at the mask again until the ray leaves that brick. The gradient, and with
+/// it the shading, is computed only for samples with opacity.
 pub fn volume_render(
     scene: &Scene<'_>,
     rays: &ViewRays,
@@ -57,54 +63,68 @@ pub fn volume_render(
         .mask(|lo, hi| tf.max_opacity(lo as f64, hi as f64) > 0.0);
     let s = &scene.sampler;
     let bg = opts.background.map(|c| c as f32);
-    let shading = opts.shading;
-    Ok(render_tiles(rays.width, rays.height, |r, c| {
-        let (o, d) = rays.ray(r as f64, c as f64);
-        let Some((b0, b1)) = s.box_interval(o, d) else {
-            return (bg, f32::NAN);
-        };
-        let mut spans: Vec<Span> = Vec::new();
-        opts.clip.spans(o, d, b0.max(0.0), b1, &mut spans);
-        let io = s.index(o);
-        let id = s.index_direction(d);
-        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
-        let view = d.map(|x| -x);
-        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
-        'spans: for sp in &spans {
-            let mut k = 0u64;
-            loop {
-                let t = sp.t0 + k as f64 * step;
-                if t > sp.t1 {
-                    break;
-                }
-                let idx = at(t);
-                if !mask.busy_at(idx) {
-                    let exit = t + mask.exit(idx, id);
-                    k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
-                    continue;
-                }
-                k += 1;
-                let [cr, cg, cb, a] = lut.get(s.at_index(idx));
-                if a <= 0.0 {
-                    continue;
-                }
-                let (lit, spec) = shading.light(s.gradient(idx), view);
-                let w = (1.0 - alpha) * a;
-                acc[0] += w * (cr * lit + spec);
-                acc[1] += w * (cg * lit + spec);
-                acc[2] += w * (cb * lit + spec);
-                if depth.is_nan() {
-                    depth = t as f32;
-                }
-                alpha += w;
-                if alpha >= EARLY_TERMINATION {
-                    break 'spans;
+    let lighting = Lighting::new(&opts.shading);
+    Ok(render_tiles(
+        rays.width,
+        rays.height,
+        Vec::new,
+        |spans: &mut Vec<Span>, r, c| {
+            let (o, d) = rays.ray(r as f64, c as f64);
+            let Some((b0, b1)) = s.box_interval(o, d) else {
+                return (bg, f32::NAN);
+            };
+            opts.clip.spans(o, d, b0.max(0.0), b1, spans);
+            let io = s.index(o);
+            let id = s.index_direction(d);
+            let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
+            let view = d.map(|x| -x as f32);
+            let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
+            'spans: for sp in spans.iter() {
+                let mut k = 0u64;
+                // Samples up to this `t` lie in a busy brick already checked.
+                let mut busy_until = f64::NEG_INFINITY;
+                loop {
+                    let t = sp.t0 + k as f64 * step;
+                    if t > sp.t1 {
+                        break;
+                    }
+                    let idx = at(t);
+                    if t > busy_until {
+                        if !mask.busy_at(idx) {
+                            let exit = t + mask.exit(idx, id);
+                            k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
+                            continue;
+                        }
+                        busy_until = t + mask.exit(idx, id);
+                    }
+                    k += 1;
+                    let v = s.at_index(idx);
+                    if !lut.visible(v) {
+                        continue;
+                    }
+                    let [cr, cg, cb, a] = lut.get(v);
+                    if a <= 0.0 {
+                        continue;
+                    }
+                    let g = s.gradient(idx);
+                    let (lit, spec) = lighting.light(g.map(|x| x as f32), view);
+                    let w = (1.0 - alpha) * a;
+                    acc[0] += w * (cr * lit + spec);
+                    acc[1] += w * (cg * lit + spec);
+                    acc[2] += w * (cb * lit + spec);
+                    if depth.is_nan() {
+                        depth = t as f32;
+                    }
+                    alpha += w;
+                    if alpha >= EARLY_TERMINATION {
+                        break 'spans;
+                    }
                 }
             }
-        }
-        (
-            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
-            depth,
-        )
-    }))
+            (
+                std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
+                depth,
+            )
+        },
+    ))
 }

@@ -29,11 +29,13 @@ impl RgbImage {
     }
 }
 
-/// Render `width × height` pixels with `shade(row, col) → (linear RGB 0–1, depth)`, in parallel over tiles.
-pub(crate) fn render_tiles(
+/// Render `width × height` pixels with `shade(scratch, row, col) → (linear RGB 0–1, depth)`, in parallel over
+/// tiles; each tile gets one `scratch` from `init` for its pixels to reuse.
+pub(crate) fn render_tiles<S>(
     width: usize,
     height: usize,
-    shade: impl Fn(usize, usize) -> ([f32; 3], f32) + Sync,
+    init: impl Fn() -> S + Sync,
+    shade: impl Fn(&mut S, usize, usize) -> ([f32; 3], f32) + Sync,
 ) -> RgbImage {
     let (tw, th) = (width.div_ceil(TILE), height.div_ceil(TILE));
     type Tile = (usize, Vec<([f32; 3], f32)>);
@@ -42,9 +44,10 @@ pub(crate) fn render_tiles(
         .map(|t| {
             let (r0, c0) = ((t / tw) * TILE, (t % tw) * TILE);
             let mut out = Vec::with_capacity(TILE * TILE);
+            let mut scratch = init();
             for r in r0..(r0 + TILE).min(height) {
                 for c in c0..(c0 + TILE).min(width) {
-                    out.push(shade(r, c));
+                    out.push(shade(&mut scratch, r, c));
                 }
             }
             (t, out)

@@ -54,7 +54,7 @@ impl<'a> Sampler<'a> {
     }
 
     /// Trilinear value at fractional index `idx`, clamped to the grid.
-    #[inline]
+    #[inline(always)]
     pub fn at_index(&self, idx: [f32; 3]) -> f32 {
         let [nz, ny, nx] = self.n;
         let base = |x: f32, n: usize| -> (usize, f32) {
@@ -80,16 +80,78 @@ impl<'a> Sampler<'a> {
 
     /// Gradient (value per millimetre, patient axes x, y, z) at fractional index `idx` by central differences of
     /// trilinear samples one index step apart.
+    #[inline]
     pub fn gradient(&self, idx: [f32; 3]) -> V3 {
-        let mut g_idx = [0.0f64; 3];
-        for (a, g) in g_idx.iter_mut().enumerate() {
+        let g_idx = self
+            .index_gradient_inside(idx)
+            .unwrap_or_else(|| self.index_gradient_clamped(idx));
+        // ∂f/∂p_c = Σ_a ∂f/∂idx_a · ∂idx_a/∂p_c.
+        std::array::from_fn(|c| (0..3).map(|a| g_idx[a] as f64 * self.lin[a][c]).sum())
+    }
+
+    /// The index-space gradient `(T(idx + e_a) − T(idx − e_a)) / 2` of the trilinear field `T`, sample by sample
+    /// (clamped to the grid like [`Sampler::at_index`]).
+    fn index_gradient_clamped(&self, idx: [f32; 3]) -> [f32; 3] {
+        std::array::from_fn(|a| {
             let (mut lo, mut hi) = (idx, idx);
             lo[a] -= 1.0;
             hi[a] += 1.0;
-            *g = (self.at_index(hi) - self.at_index(lo)) as f64 / 2.0;
+            (self.at_index(hi) - self.at_index(lo)) / 2.0
+        })
+    }
+
+    /// [`Sampler::index_gradient_clamped`] where none of its six samples is clamped, from the 32 voxels they
+    /// touch (each loaded once); `None` within a voxel of the grid's faces.
+    #[inline]
+    fn index_gradient_inside(&self, idx: [f32; 3]) -> Option<[f32; 3]> {
+        let [nz, ny, nx] = self.n;
+        let base = |x: f32, n: usize| -> Option<(usize, f32)> {
+            if x.is_nan() || x < 1.0 {
+                return None;
+            }
+            let b = x as usize;
+            (b + 2 < n).then_some((b, x - b as f32))
+        };
+        let (k, fk) = base(idx[0], nz)?;
+        let (j, fj) = base(idx[1], ny)?;
+        let (i, fi) = base(idx[2], nx)?;
+        let (row, plane) = (nx, ny * nx);
+        let d = self.data;
+        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
+        // Along x: the rows (k + dk, j + dj) from i − 1 to i + 2.
+        let mut v = [[0.0f32; 2]; 2]; // trilinear-in-x value of the row at i + fi, [dk][dj]
+        let mut gx = [[0.0f32; 2]; 2];
+        for dk in 0..2 {
+            for dj in 0..2 {
+                let o = (k + dk) * plane + (j + dj) * row + i;
+                let x = &d[o - 1..o + 3];
+                v[dk][dj] = lerp(x[1], x[2], fi);
+                gx[dk][dj] = lerp(x[2], x[3], fi) - lerp(x[0], x[1], fi);
+            }
         }
-        // ∂f/∂p_c = Σ_a ∂f/∂idx_a · ∂idx_a/∂p_c.
-        std::array::from_fn(|c| (0..3).map(|a| g_idx[a] * self.lin[a][c]).sum())
+        let at_row = |kk: usize, jj: usize| {
+            let o = kk * plane + jj * row + i;
+            lerp(d[o], d[o + 1], fi)
+        };
+        let gy: [f32; 2] = std::array::from_fn(|dk| {
+            let below = at_row(k + dk, j - 1);
+            let above = at_row(k + dk, j + 2);
+            lerp(v[dk][1], above, fj) - lerp(below, v[dk][0], fj)
+        });
+        let gz: [f32; 2] = std::array::from_fn(|dj| {
+            let below = at_row(k - 1, j + dj);
+            let above = at_row(k + 2, j + dj);
+            lerp(v[1][dj], above, fk) - lerp(below, v[0][dj], fk)
+        });
+        Some([
+            lerp(gz[0], gz[1], fj) / 2.0,
+            lerp(gy[0], gy[1], fk) / 2.0,
+            lerp(
+                lerp(gx[0][0], gx[0][1], fj),
+                lerp(gx[1][0], gx[1][1], fj),
+                fk,
+            ) / 2.0,
+        ])
     }
 
     /// The interval of `t` (mm) where `o + t·d` lies inside the grid of voxel centres; `None` when it misses.
@@ -115,5 +177,60 @@ impl<'a> Sampler<'a> {
 
     pub(crate) fn data(&self) -> &[f32] {
         self.data
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::volume::{Frame, Volume};
+    use ndarray::Array3;
+
+    #[test]
+    fn the_gradient_from_32_voxels_is_the_central_difference_of_six_trilinear_samples() {
+        let vol = Volume {
+            data: Array3::from_shape_fn((9, 10, 11), |(k, j, i)| {
+                ((k * 7 + j * 13 + i * 29) % 17) as f32 - 0.3 * (k * j) as f32
+                    + 0.1 * (i * i) as f32
+            }),
+            frame: Frame {
+                spacing_mm: [0.7, 0.8, 2.5],
+                origin_mm: [1.0, -2.0, 3.0],
+                direction: Frame::AXIS_ALIGNED,
+            },
+        };
+        let s = Sampler::new(&vol).unwrap();
+        let (mut inside, mut total) = (0, 0);
+        for q in 0..2000u32 {
+            let h = |m: u32| (q.wrapping_mul(m) % 1000) as f32 / 1000.0;
+            let idx = [
+                h(7919) * 8.6 - 0.3,
+                h(104729) * 9.6 - 0.3,
+                h(1299709) * 10.6 - 0.3,
+            ];
+            let want = s.index_gradient_clamped(idx);
+            total += 1;
+            if let Some(got) = s.index_gradient_inside(idx) {
+                inside += 1;
+                for a in 0..3 {
+                    assert!(
+                        (got[a] - want[a]).abs() < 1e-3,
+                        "{idx:?} axis {a}: {got:?} vs {want:?}"
+                    );
+                }
+            }
+            let g = s.gradient(idx);
+            let want_mm = [want[2] / 0.7, want[1] / 0.8, want[0] / 2.5];
+            for c in 0..3 {
+                assert!(
+                    (g[c] - want_mm[c] as f64).abs() < 2e-3,
+                    "{idx:?}: {g:?} vs {want_mm:?}"
+                );
+            }
+        }
+        assert!(
+            inside > total / 4,
+            "{inside} of {total} samples took the 32-voxel path"
+        );
     }
 }

@@ -96,103 +96,112 @@ pub fn surface_render(
     let s = &scene.sampler;
     let bg = opts.background.map(|c| c as f32);
     let (centre, radius) = (scene.centre, scene.radius);
-    Ok(render_tiles(rays.width, rays.height, |r, c| {
-        let (o, d) = rays.ray(r as f64, c as f64);
-        let Some((b0, b1)) = s.box_interval(o, d) else {
-            return (bg, f32::NAN);
-        };
-        let mut spans: Vec<Span> = Vec::new();
-        opts.clip.spans(o, d, b0.max(0.0), b1, &mut spans);
-        let io = s.index(o);
-        let id = s.index_direction(d);
-        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
-        let value = |t: f64| s.at_index(at(t));
-        // Depth cue over the bounding sphere as seen along this ray.
-        let mid = dot([centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]], d);
-        let (near, far) = (mid - radius, mid + radius);
-        let view = d.map(|x| -x);
-        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
-        let mut hits: Vec<Hit> = Vec::new();
-        let add = |h: &Hit, acc: &mut [f32; 3], alpha: &mut f32, depth: &mut f32| {
-            let sf = &opts.surfaces[h.surface];
-            let (lit, spec) = opts.shading.light(h.normal, view);
-            let cue = 1.0 - opts.depth_cue * ((h.t - near) / (far - near)).clamp(0.0, 1.0);
-            let w = (1.0 - *alpha) * sf.opacity as f32;
-            for (a, c) in acc.iter_mut().zip(sf.color) {
-                *a += w * ((c as f32 * lit + spec) * cue as f32);
-            }
-            *alpha += w;
-            if depth.is_nan() {
-                *depth = h.t as f32;
-            }
-        };
-        'spans: for sp in &spans {
-            // A span that starts inside a solid shows the cut face.
-            let (mut t_prev, mut v_prev) = (sp.t0, value(sp.t0));
-            hits.clear();
-            for (i, &iso) in isos.iter().enumerate() {
-                if v_prev >= iso {
-                    hits.push(Hit {
-                        t: sp.t0,
-                        surface: i,
-                        normal: sp.face.unwrap_or(d),
-                    });
+    let scratch = || (Vec::<Span>::new(), Vec::<Hit>::new());
+    Ok(render_tiles(
+        rays.width,
+        rays.height,
+        scratch,
+        |(spans, hits), r, c| {
+            let (o, d) = rays.ray(r as f64, c as f64);
+            let Some((b0, b1)) = s.box_interval(o, d) else {
+                return (bg, f32::NAN);
+            };
+            opts.clip.spans(o, d, b0.max(0.0), b1, spans);
+            let io = s.index(o);
+            let id = s.index_direction(d);
+            let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
+            let value = |t: f64| s.at_index(at(t));
+            // Depth cue over the bounding sphere as seen along this ray.
+            let mid = dot([centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]], d);
+            let (near, far) = (mid - radius, mid + radius);
+            let view = d.map(|x| -x);
+            let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
+            let add = |h: &Hit, acc: &mut [f32; 3], alpha: &mut f32, depth: &mut f32| {
+                let sf = &opts.surfaces[h.surface];
+                let (lit, spec) = opts.shading.light(h.normal, view);
+                let cue = 1.0 - opts.depth_cue * ((h.t - near) / (far - near)).clamp(0.0, 1.0);
+                let w = (1.0 - *alpha) * sf.opacity as f32;
+                for (a, c) in acc.iter_mut().zip(sf.color) {
+                    *a += w * ((c as f32 * lit + spec) * cue as f32);
                 }
-            }
-            hits.sort_by(|a, b| {
-                opts.surfaces[a.surface]
-                    .iso
-                    .total_cmp(&opts.surfaces[b.surface].iso)
-            });
-            for h in &hits {
-                add(h, &mut acc, &mut alpha, &mut depth);
-                if alpha >= super::composite::EARLY_TERMINATION {
-                    break 'spans;
+                *alpha += w;
+                if depth.is_nan() {
+                    *depth = h.t as f32;
                 }
-            }
-            let mut k = 1u64;
-            loop {
-                let t = (sp.t0 + k as f64 * step).min(sp.t1);
-                let idx = at(t);
-                if !mask.busy_at(idx) && t < sp.t1 {
-                    let exit = (t + mask.exit(idx, id)).min(sp.t1);
-                    // The field keeps its side of every iso-value through a quiet brick.
-                    t_prev = exit;
-                    v_prev = value(exit);
-                    k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
-                    continue;
-                }
-                let v = s.at_index(idx);
+            };
+            'spans: for sp in spans.iter() {
+                // A span that starts inside a solid shows the cut face.
+                let (mut t_prev, mut v_prev) = (sp.t0, value(sp.t0));
                 hits.clear();
                 for (i, &iso) in isos.iter().enumerate() {
-                    if (v_prev < iso) != (v < iso) {
-                        let th = refine(&value, iso, (t_prev, v_prev), (t, v));
+                    if v_prev >= iso {
                         hits.push(Hit {
-                            t: th,
+                            t: sp.t0,
                             surface: i,
-                            normal: s.gradient(at(th)),
+                            normal: sp.face.unwrap_or(d),
                         });
                     }
                 }
-                hits.sort_by(|a, b| a.t.total_cmp(&b.t));
-                for h in &hits {
+                hits.sort_by(|a, b| {
+                    opts.surfaces[a.surface]
+                        .iso
+                        .total_cmp(&opts.surfaces[b.surface].iso)
+                });
+                for h in hits.iter() {
                     add(h, &mut acc, &mut alpha, &mut depth);
                     if alpha >= super::composite::EARLY_TERMINATION {
                         break 'spans;
                     }
                 }
-                if t >= sp.t1 {
-                    break;
+                let mut k = 1u64;
+                // Samples up to this `t` lie in a busy brick already checked.
+                let mut busy_until = f64::NEG_INFINITY;
+                loop {
+                    let t = (sp.t0 + k as f64 * step).min(sp.t1);
+                    let idx = at(t);
+                    if t > busy_until && t < sp.t1 {
+                        if !mask.busy_at(idx) {
+                            let exit = (t + mask.exit(idx, id)).min(sp.t1);
+                            // The field keeps its side of every iso-value through quiet bricks.
+                            t_prev = exit;
+                            v_prev = value(exit);
+                            k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
+                            continue;
+                        }
+                        busy_until = t + mask.exit(idx, id);
+                    }
+                    let v = s.at_index(idx);
+                    hits.clear();
+                    for (i, &iso) in isos.iter().enumerate() {
+                        if (v_prev < iso) != (v < iso) {
+                            let th = refine(&value, iso, (t_prev, v_prev), (t, v));
+                            hits.push(Hit {
+                                t: th,
+                                surface: i,
+                                normal: s.gradient(at(th)),
+                            });
+                        }
+                    }
+                    hits.sort_by(|a, b| a.t.total_cmp(&b.t));
+                    for h in hits.iter() {
+                        add(h, &mut acc, &mut alpha, &mut depth);
+                        if alpha >= super::composite::EARLY_TERMINATION {
+                            break 'spans;
+                        }
+                    }
+                    if t >= sp.t1 {
+                        break;
+                    }
+                    (t_prev, v_prev) = (t, v);
+                    k += 1;
                 }
-                (t_prev, v_prev) = (t, v);
-                k += 1;
             }
-        }
-        (
-            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
-            depth,
-        )
-    }))
+            (
+                std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
+                depth,
+            )
+        },
+    ))
 }
 
 /// The crossing of `iso` between `(ta, va)` and `(tb, vb)` (values on opposite sides), by four secant steps

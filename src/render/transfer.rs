@@ -185,6 +185,8 @@ pub(crate) struct Lut {
     scale: f32,
     /// `[r, g, b, α_step]`.
     table: Vec<[f32; 4]>,
+    /// Values below the first or above the second are transparent ([`Lut::get`] gives α = 0 there).
+    visible: (f32, f32),
 }
 
 const LUT_SIZE: usize = 4096;
@@ -205,12 +207,38 @@ impl Lut {
                 };
                 [c[0] as f32, c[1] as f32, c[2] as f32, a as f32]
             })
-            .collect();
+            .collect::<Vec<[f32; 4]>>();
+        let scale = ((n - 1) as f64 / (hi - lo)) as f32;
+        // `get` blends entries i and i + 1 at x = (v − lo)·scale: two entries of margin cover the rounding of x.
+        let first = table.iter().position(|e| e[3] > 0.0);
+        let last = table.iter().rposition(|e| e[3] > 0.0);
+        let visible = match (first, last) {
+            (Some(f), Some(l)) => (
+                if f >= 2 {
+                    lo as f32 + (f - 2) as f32 / scale
+                } else {
+                    f32::NEG_INFINITY
+                },
+                if l + 3 < n {
+                    lo as f32 + (l + 2) as f32 / scale
+                } else {
+                    f32::INFINITY
+                },
+            ),
+            _ => (f32::INFINITY, f32::NEG_INFINITY),
+        };
         Self {
             lo: lo as f32,
-            scale: ((n - 1) as f64 / (hi - lo)) as f32,
+            scale,
             table,
+            visible,
         }
+    }
+
+    /// Whether `v` may have opacity: outside this window [`Lut::get`] gives α = 0.
+    #[inline]
+    pub(crate) fn visible(&self, v: f32) -> bool {
+        v >= self.visible.0 && v <= self.visible.1
     }
 
     /// `[r, g, b, α_step]` at `v`, linear between table entries.
@@ -221,5 +249,41 @@ impl Lut {
         let t = x - i as f32;
         let (a, b) = (self.table[i], self.table[i + 1]);
         std::array::from_fn(|c| a[c] + (b[c] - a[c]) * t)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn values_outside_the_visible_window_of_the_table_are_transparent() {
+        for preset in Preset::ALL {
+            let lut = Lut::new(&preset.transfer_function(), 0.35);
+            let (mut seen_hidden, mut seen_visible) = (0, 0);
+            for k in 0..200_000 {
+                let v = -1200.0 + k as f32 * 0.0137;
+                if lut.visible(v) {
+                    seen_visible += 1;
+                } else {
+                    seen_hidden += 1;
+                    assert_eq!(lut.get(v)[3], 0.0, "{} at {v}", preset.name());
+                }
+            }
+            assert!(
+                seen_hidden > 10_000 && seen_visible > 10_000,
+                "{}",
+                preset.name()
+            );
+        }
+        let clear = TransferFunction {
+            points: vec![ControlPoint {
+                value: 0.0,
+                color: [1.0; 3],
+                opacity: 0.0,
+            }],
+        };
+        let lut = Lut::new(&clear, 0.5);
+        assert!(!lut.visible(0.0) && !lut.visible(-1e30) && !lut.visible(1e30));
     }
 }

@@ -296,5 +296,6 @@ pub async fn mesh(
     ApiQuery(q): ApiQuery<MeshQuery>,
     headers: HeaderMap,
 ) -> ApiResult<Response> {
+    q.validate()?;
     view(st, id, ViewRequest::Mesh(q), headers).await
 }
