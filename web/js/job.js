@@ -54,6 +54,14 @@ function downloads(job) {
     if (p.type === 'mesh') {
       items.push([u, `${short}-mesh-${p.index}.stl`, `Product ${p.index}: mesh (STL)`]);
       items.push([`${u}?format=dicom`, `${short}-mesh-${p.index}.dcm`, `Product ${p.index}: Encapsulated STL`]);
+    } else if (p.type === 'volume_render' || p.type === 'surface_render') {
+      const frames = p.shape ? p.shape[0] : 1;
+      items.push([`${u}?format=png`, `${short}-${p.type}-${p.index}.png`, `Product ${p.index}: ${p.type} (PNG, first frame)`]);
+      if (frames > 1) {
+        items.push([`${u}?format=apng`, `${short}-${p.type}-${p.index}.apng`, `Product ${p.index}: ${p.type} (animated PNG, ${frames} frames)`]);
+      }
+      items.push([`${u}?format=npy`, `${short}-${p.type}-${p.index}.npy`, `Product ${p.index}: ${p.type} (uint8 RGB .npy)`]);
+      items.push([`${u}?format=dicom`, `${short}-${p.type}-${p.index}.dcm`, `Product ${p.index}: ${p.type} (RGB Secondary Capture)`]);
     } else {
       items.push([`${u}?format=npy`, `${short}-${p.type}-${p.index}.npy`, `Product ${p.index}: ${p.type} (.npy)`]);
       items.push([`${u}?format=png`, `${short}-${p.type}-${p.index}.png`, `Product ${p.index}: ${p.type} (PNG)`]);
@@ -100,7 +108,15 @@ export async function showJob(main, id, signal) {
   const rest = h('div');
   main.append(head, rest);
   const actions = h('div.row.actions');
+  let shown = null; // the status the page was built for
   const render = () => {
+    if (shown === job.status) {
+      // Progress within the same status: update in place, so the buttons keep focus and the open details stay.
+      clear(head.querySelector('#job-progress')).append(progressBar(job.progress));
+      head.querySelector('#job-stage').textContent = job.stage || '';
+      return;
+    }
+    shown = job.status;
     clear(head).append(...[summary(job), actions, errorPart(job), metricsPart(job), warningsPart(job)].filter(Boolean));
     clear(actions);
     const msg = h('div.msg');
@@ -122,6 +138,7 @@ export async function showJob(main, id, signal) {
       render();
     }, signal);
     job = await api(`/v1/jobs/${id}`, { signal });
+    shown = null;
     render();
   }
   if (job.status !== 'succeeded' || !job.result) return;

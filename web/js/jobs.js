@@ -85,17 +85,21 @@ export async function showJobs(main, signal) {
       msg.append(errorBox(e));
     }
   };
+  let generation = 0; // a newer filter makes the answers of older requests stale
   const load = async (reset) => {
     if (reset) {
+      generation += 1;
       cursor = null;
       clear(body);
       for (const c of live.values()) c.abort();
     }
+    const mine = generation;
     const q = new URLSearchParams({ limit: '50' });
     if (status.value) q.set('status', status.value);
     if (kind.value) q.set('kind', kind.value);
     if (cursor) q.set('cursor', cursor);
     const page = await api(`/v1/jobs?${q}`, { signal });
+    if (mine !== generation) return;
     for (const job of page.jobs) {
       const tr = row(job, actions);
       body.append(tr);

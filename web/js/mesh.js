@@ -6,12 +6,11 @@ import * as THREE from '../vendor/three/three.module.js';
 import { OrbitControls } from '../vendor/three/OrbitControls.js';
 import { bytes } from './api.js';
 import { h } from './dom.js';
+import { directionLabel } from './orient.js';
 
-/** The patient direction (LPS: +x left, +y posterior, +z superior) nearest to a world vector. */
+/** The patient direction (LPS: +x left, +y posterior, +z superior) of a world vector, combined when oblique. */
 function side(v) {
-  const a = [Math.abs(v.x), Math.abs(v.y), Math.abs(v.z)];
-  const i = a.indexOf(Math.max(...a));
-  return [['R', 'L'], ['A', 'P'], ['I', 'S']][i][v.getComponent(i) > 0 ? 1 : 0];
+  return directionLabel([v.x, v.y, v.z]);
 }
 
 /** Positions and normals of a binary STL: {positions, normals, triangles}. */

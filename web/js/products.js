@@ -1,8 +1,9 @@
 // A volume job's products: image stacks (projections, MIP/MinIP, thick slabs, MPR and curved planes,
 // rotating MIPs) fetched once as float32 .npy and windowed in the browser, stepped frame by frame or played
-// as a loop; meshes open in the WebGL view (mesh.js, loaded on demand).
+// as a loop; renderings (volume rendering, shaded surfaces) shown as the server's RGB PNG frames and, for a
+// rotation, its animated PNG, beside their parameters; meshes open in the WebGL view (mesh.js, on demand).
 
-import { bytes } from './api.js';
+import { blobUrl, bytes } from './api.js';
 import { clear, errorBox, fmtNum, h } from './dom.js';
 import { decode } from './npy.js';
 import { PRESETS } from './slices.js';
@@ -89,6 +90,116 @@ class StackView {
   }
 }
 
+const RENDER_NAMES = { volume_render: 'volume rendering', surface_render: 'shaded surface display' };
+
+/** The parameters of a rendering: its request (as the job records it, defaults filled) and the server's facts. */
+function renderFacts(spec, p) {
+  const s = spec || {};
+  const cam = s.camera || {};
+  const camera = [`${cam.view || 'anterior'} view`, `azimuth ${cam.azimuth_deg ?? 0}°`,
+    `elevation ${cam.elevation_deg ?? 0}°`, `roll ${cam.roll_deg ?? 0}°`, `zoom ${cam.zoom ?? 1}`,
+    cam.projection || 'orthographic'].join(', ');
+  const surfaces = (s.surfaces || []).map((x) => `iso ${x.iso}${s.units === 'native' ? '' : ' HU'}`
+    + `${x.opacity !== undefined && x.opacity !== 1 ? ` at opacity ${x.opacity}` : ''}`).join('; ');
+  const clip = s.clip && (s.clip.planes || []).length ? `${s.clip.planes.length} plane(s)` : null;
+  const rows = [
+    ['Description', p.description],
+    ['Preset', p.type === 'volume_render' ? (s.preset || (s.transfer_function ? 'custom transfer function' : 'bone')) : null],
+    ['Surfaces', p.type === 'surface_render' ? surfaces : null],
+    ['Camera', camera],
+    ['Size', p.shape ? `${p.shape[2]} × ${p.shape[1]} px` : null],
+    ['Pixel', p.pixel_mm ? `${fmtNum(p.pixel_mm[0], 3)} mm` : null],
+    ['Frames', p.shape ? String(p.shape[0]) : null],
+    ['Step', s.step_mm ? `${s.step_mm} mm` : null],
+    ['Clip', clip],
+  ].filter(([, v]) => v !== null && v !== undefined && v !== '');
+  return h('dl.facts.render-facts', rows.map(([k, v]) => [h('dt', k), h('dd', { dataset: { fact: k.toLowerCase() } }, v)]));
+}
+
+/**
+ * A volume_render or surface_render product: frame `k` as the server's PNG (`?format=png&frame=k`), a slider
+ * over the frames of a rotation, and Play showing the server's animated PNG (`?format=apng`).
+ */
+class RenderView {
+  constructor(job, p) {
+    this.job = job;
+    this.p = p;
+    this.base = `/v1/jobs/${job.id}/result/products/${p.index}`;
+    this.frames = p.shape ? p.shape[0] : 1;
+    this.urls = new Map(); // frame -> object URL
+    this.frame = 0;
+    const o = p.orientation || {};
+    this.img = h('img.render-still', { alt: `${RENDER_NAMES[p.type]}, frame 1` });
+    this.anim = h('img.render-apng', { alt: `${RENDER_NAMES[p.type]}, rotation`, hidden: true });
+    this.stage = h('div.product-stage', this.img, this.anim,
+      ['top', 'bottom', 'left', 'right'].map((s) => h(`span.orient.orient-${s}`, { dataset: { side: s } }, o[s] || '')));
+    this.slider = h('input.frame', {
+      type: 'range', min: '0', max: String(this.frames - 1), value: '0', 'aria-label': 'frame',
+    });
+    this.play = h('button.play', { type: 'button', 'aria-pressed': 'false' }, 'Play rotation');
+    this.label = h('span.muted.frame-label', `frame 1 / ${this.frames}`);
+    const several = this.frames > 1;
+    const spec = (job.products || [])[p.index];
+    this.el = h('figure.product.render-product', { dataset: { index: String(p.index), type: p.type } },
+      h('figcaption', `${p.index}: ${RENDER_NAMES[p.type] || p.type} · ${p.shape ? p.shape.join(' × ') : ''}`),
+      this.stage, several ? h('div.row', this.play, this.slider, this.label) : null, renderFacts(spec, p));
+    this.slider.addEventListener('input', () => this.show(Number(this.slider.value)).catch(() => {}));
+    this.play.addEventListener('click', () => this.toggle().catch((e) => this.el.append(errorBox(e))));
+  }
+
+  async load(signal) {
+    this.signal = signal;
+    await this.show(0);
+  }
+
+  async show(k) {
+    let url = this.urls.get(k);
+    if (!url) {
+      url = await blobUrl(`${this.base}?format=png&frame=${k}`, this.signal);
+      this.urls.set(k, url);
+    }
+    await new Promise((resolve, reject) => {
+      this.img.onload = resolve;
+      this.img.onerror = () => reject(new Error(`frame ${k} of product ${this.p.index} is not an image`));
+      this.img.src = url;
+    });
+    if (!this.img.style.width) {
+      // Small renderings are shown enlarged (up to 4×, about 384 px wide), both pictures alike.
+      const scale = Math.max(1, Math.min(4, 384 / this.img.naturalWidth));
+      for (const el of [this.img, this.anim]) {
+        el.style.width = `${Math.round(this.img.naturalWidth * scale)}px`;
+        el.style.height = `${Math.round(this.img.naturalHeight * scale)}px`;
+      }
+    }
+    this.frame = k;
+    this.img.alt = `${RENDER_NAMES[this.p.type]}, frame ${k + 1}`;
+    this.el.dataset.frame = String(k);
+    this.slider.value = String(k);
+    this.label.textContent = `frame ${k + 1} / ${this.frames}`;
+  }
+
+  async toggle() {
+    const playing = this.anim.hidden;
+    if (playing && !this.animUrl) {
+      this.animUrl = await blobUrl(`${this.base}?format=apng`, this.signal);
+      this.anim.src = this.animUrl;
+    }
+    this.anim.hidden = !playing;
+    this.img.hidden = playing;
+    this.slider.disabled = playing;
+    this.el.dataset.playing = playing ? 'true' : 'false';
+    this.play.textContent = playing ? 'Stop' : 'Play rotation';
+    this.play.setAttribute('aria-pressed', playing ? 'true' : 'false');
+  }
+
+  stop() {
+    for (const u of this.urls.values()) URL.revokeObjectURL(u);
+    this.urls.clear();
+    if (this.animUrl) URL.revokeObjectURL(this.animUrl);
+    this.animUrl = null;
+  }
+}
+
 function meshCard(job, p, signal) {
   const m = p.mesh || {};
   const box = h('div.mesh-holder');
@@ -126,6 +237,10 @@ export async function showProducts(root, job, signal) {
   for (const p of job.result.products) {
     if (p.type === 'mesh') {
       list.append(meshCard(job, p, signal));
+    } else if (RENDER_NAMES[p.type]) {
+      const v = new RenderView(job, p);
+      list.append(v.el);
+      stacks.push(v);
     } else {
       const v = new StackView(job, p);
       list.append(v.el);

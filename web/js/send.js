@@ -96,13 +96,15 @@ function phantomForm() {
   const form = h('form#phantom-form', { novalidate: true }, h('div.form-grid', fields), h('div.row', submit), formErr);
   const place = (e) => {
     const text = `${e.detail || ''}`.toLowerCase();
-    // The visible field named earliest in the problem's detail gets the message.
+    // The visible field named earliest in the problem's detail gets the message. Names count only between
+    // non-alphanumerics ("nv" is not the one in "invalid"; "dso" is the one in "dso_mm").
     let hit = null;
     let at = Infinity;
     for (const [name, words] of Object.entries(ALIASES)) {
       if (labels[name].hidden) continue;
       for (const w of words) {
-        const k = text.indexOf(w);
+        const found = new RegExp(`(^|[^a-z0-9])${w.replace(/[.*+?^${}()|[\]\\-]/g, '\\$&')}(?![a-z0-9])`).exec(text);
+        const k = found ? found.index + found[1].length : -1;
         if (k >= 0 && k < at) {
           at = k;
           hit = name;

@@ -3,16 +3,21 @@
 // scrolling and window/level by right-drag.
 
 import { h } from './dom.js';
+import { planeSides } from './orient.js';
 
 /**
  * Planes in display orientation (DESIGN §2, radiological): columns and rows of the screen image as voxel
- * axes. `flip` reverses the row axis (superior up).
+ * axes. `flip` reverses the row axis (superior up). With a patient, the side labels come from the volume's
+ * direction vectors (orient.js: "A" for an axis-aligned series, combined such as "AI" for a tilted one);
+ * without one, the array axes.
  */
 export const PLANES = {
-  axial: { fixed: 'k', col: 'i', row: 'j', flip: false, labels: ['A', 'P', 'R', 'L'], plain: ['−y', '+y', '−x', '+x'] },
-  coronal: { fixed: 'j', col: 'i', row: 'k', flip: true, labels: ['S', 'I', 'R', 'L'], plain: ['+z', '−z', '−x', '+x'] },
-  sagittal: { fixed: 'i', col: 'j', row: 'k', flip: true, labels: ['S', 'I', 'A', 'P'], plain: ['+z', '−z', '−y', '+y'] },
+  axial: { fixed: 'k', col: 'i', row: 'j', flip: false, plain: ['−y', '+y', '−x', '+x'] },
+  coronal: { fixed: 'j', col: 'i', row: 'k', flip: true, plain: ['+z', '−z', '−x', '+x'] },
+  sagittal: { fixed: 'i', col: 'j', row: 'k', flip: true, plain: ['+z', '−z', '−y', '+y'] },
 };
+
+const AXIS_ALIGNED = [[1, 0, 0], [0, 1, 0], [0, 0, 1]];
 
 const SCALE_STEPS = [1, 2, 5, 10, 20, 25, 50, 100, 200, 500];
 
@@ -23,7 +28,9 @@ export class PlaneView {
     this.name = name;
     this.p = PLANES[name];
     this.draws = 0;
-    const [top, bottom, left, right] = vol.patient ? this.p.labels : this.p.plain;
+    const [top, bottom, left, right] = vol.patient
+      ? planeSides(name, (vol.opts.frame && vol.opts.frame.direction) || AXIS_ALIGNED)
+      : this.p.plain;
     this.canvas = h('canvas.image', { 'aria-hidden': 'true' });
     this.overlay = h('canvas.overlay', { 'aria-hidden': 'true' });
     this.bar = h('div.scalebar', h('span.scalebar-line'), h('span.scalebar-text'));
