@@ -127,6 +127,10 @@ catalogue! {
     DimseUnavailable = ("dimse_unavailable", 503, "ctrecon cannot call DICOM peers in this process"),
     DeliveryNotFound = ("delivery_not_found", 404, "No such delivery"),
     DeliveryNotRetryable = ("delivery_not_retryable", 409, "Only a failed delivery can be retried"),
+    // DICOMweb.
+    DicomwebNotFound = ("dicomweb_not_found", 404, "No such study, series or instance"),
+    DicomwebUnavailable = ("dicomweb_unavailable", 501, "DICOMweb needs the SQLite job database: the instance index is kept there only"),
+    NotAcceptable = ("not_acceptable", 406, "None of the media types or transfer syntaxes asked for is offered"),
     // Protocol.
     IdempotencyKeyReused = ("idempotency_key_reused", 422, "The Idempotency-Key was used with another request"),
     InvalidIdempotencyKey = ("invalid_idempotency_key", 400, "The Idempotency-Key header is malformed"),

@@ -141,6 +141,71 @@ impl Attr {
         }
     }
 
+    /// The attribute's keyword (PS3.6), as QIDO-RS names it.
+    pub fn keyword(self) -> &'static str {
+        match self {
+            Attr::SopClassUid => "SOPClassUID",
+            Attr::SopInstanceUid => "SOPInstanceUID",
+            Attr::StudyDate => "StudyDate",
+            Attr::StudyTime => "StudyTime",
+            Attr::AccessionNumber => "AccessionNumber",
+            Attr::Modality => "Modality",
+            Attr::ModalitiesInStudy => "ModalitiesInStudy",
+            Attr::ReferringPhysicianName => "ReferringPhysicianName",
+            Attr::StudyDescription => "StudyDescription",
+            Attr::SeriesDescription => "SeriesDescription",
+            Attr::PatientName => "PatientName",
+            Attr::PatientId => "PatientID",
+            Attr::PatientBirthDate => "PatientBirthDate",
+            Attr::PatientSex => "PatientSex",
+            Attr::BodyPartExamined => "BodyPartExamined",
+            Attr::StudyInstanceUid => "StudyInstanceUID",
+            Attr::SeriesInstanceUid => "SeriesInstanceUID",
+            Attr::StudyId => "StudyID",
+            Attr::SeriesNumber => "SeriesNumber",
+            Attr::InstanceNumber => "InstanceNumber",
+            Attr::NumberOfPatientRelatedStudies => "NumberOfPatientRelatedStudies",
+            Attr::NumberOfStudyRelatedSeries => "NumberOfStudyRelatedSeries",
+            Attr::NumberOfStudyRelatedInstances => "NumberOfStudyRelatedInstances",
+            Attr::NumberOfSeriesRelatedInstances => "NumberOfSeriesRelatedInstances",
+        }
+    }
+
+    /// The attribute named by a keyword or by eight hexadecimal digits (`0020000D`).
+    pub fn from_name(name: &str) -> Option<Attr> {
+        if name.len() == 8
+            && let Ok(tag) = u32::from_str_radix(name, 16)
+        {
+            return Attr::from_tag(tag);
+        }
+        ATTRS.iter().copied().find(|a| a.keyword() == name)
+    }
+
+    /// The attribute's value representation (PS3.6), as the DICOM JSON model names it.
+    pub fn vr_name(self) -> &'static str {
+        match self {
+            Attr::SopClassUid
+            | Attr::SopInstanceUid
+            | Attr::StudyInstanceUid
+            | Attr::SeriesInstanceUid => "UI",
+            Attr::StudyDate | Attr::PatientBirthDate => "DA",
+            Attr::StudyTime => "TM",
+            Attr::PatientName | Attr::ReferringPhysicianName => "PN",
+            Attr::AccessionNumber | Attr::StudyId => "SH",
+            Attr::Modality
+            | Attr::ModalitiesInStudy
+            | Attr::PatientSex
+            | Attr::BodyPartExamined => "CS",
+            Attr::PatientId | Attr::StudyDescription | Attr::SeriesDescription => "LO",
+            Attr::SeriesNumber
+            | Attr::InstanceNumber
+            | Attr::NumberOfPatientRelatedStudies
+            | Attr::NumberOfStudyRelatedSeries
+            | Attr::NumberOfStudyRelatedInstances
+            | Attr::NumberOfSeriesRelatedInstances => "IS",
+        }
+    }
+
     pub fn from_tag(tag: u32) -> Option<Attr> {
         ATTRS.iter().copied().find(|a| a.tag() == tag)
     }
@@ -556,6 +621,12 @@ mod tests {
         assert_eq!(Attr::unique_key(Level::Series), Attr::SeriesInstanceUid);
         assert_eq!(Level::parse("SERIES "), Some(Level::Series));
         assert_eq!(Level::parse("FRAME"), None);
+        for a in ATTRS {
+            assert_eq!(Attr::from_name(a.keyword()), Some(*a));
+            assert_eq!(Attr::from_name(&format!("{:08X}", a.tag())), Some(*a));
+        }
+        assert_eq!(Attr::from_name("PatientAge"), None);
+        assert_eq!(Attr::from_name("00101010"), None);
         assert!(
             Key::parse(Attr::NumberOfStudyRelatedInstances, "5")
                 .unwrap()

@@ -6,6 +6,7 @@
 //! to its own wire form (the HTTP layer to problem+json, in one place).
 
 pub mod deliveries;
+pub mod dicomweb;
 pub mod error;
 pub mod idempotency;
 pub mod instances;
@@ -14,6 +15,8 @@ pub mod matching;
 pub mod query;
 pub mod rules;
 pub mod series;
+pub mod stow;
+pub mod wado;
 
 use std::time::Duration;
 

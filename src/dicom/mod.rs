@@ -12,6 +12,8 @@
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
 //!   file), [`write_secondary_capture`] (a 2D image), [`write_secondary_capture_rgb`] (rendered RGB frames), [`write_encapsulated_stl`] and [`write_zip`].
 //!
+//! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model and re-encoded in
+//!   explicit VR little endian (DICOMweb); [`multipart`]: streamed `multipart/related` bodies (pure).
 //! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
 //!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
@@ -23,11 +25,13 @@ mod header;
 mod identifier;
 mod jpeg;
 mod jpeg_ls;
+pub mod multipart;
 mod pixels;
 mod read;
 mod scan;
 mod unzip;
 mod upload;
+mod web;
 mod write;
 
 pub use error::DicomError;
@@ -42,6 +46,10 @@ pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
+};
+pub use web::{
+    EXPLICIT_LE, IMPLICIT_LE, MAX_INLINE_BINARY, explicit_le_bytes, instance_json,
+    transcodable_to_explicit_le,
 };
 pub use write::{
     DerivedSeries, RgbFrames, ScOrientation, SeriesMeta, new_uid, write_ct_series,

@@ -44,7 +44,7 @@ use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
-use routes::{datasets, events, health, jobs, results, rules, series};
+use routes::{datasets, dicomweb, events, health, jobs, results, rules, series, stow};
 
 /// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
 /// and what only the HTTP layer needs.
@@ -185,6 +185,50 @@ pub fn worker_router(state: AppState, tokens: auth::Tokens) -> Router {
         }))
 }
 
+/// The DICOMweb routes but STOW-RS (which is an upload).
+fn dicomweb_routes() -> Router<AppState> {
+    use dicomweb as d;
+    Router::new()
+        .route("/dicom-web/studies", get(d::search_studies))
+        .route("/dicom-web/series", get(d::search_all_series))
+        .route("/dicom-web/instances", get(d::search_all_instances))
+        .route("/dicom-web/studies/{study}", get(d::retrieve_study))
+        .route("/dicom-web/studies/{study}/metadata", get(d::study_metadata))
+        .route("/dicom-web/studies/{study}/series", get(d::search_series))
+        .route(
+            "/dicom-web/studies/{study}/instances",
+            get(d::search_study_instances),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}",
+            get(d::retrieve_series),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/metadata",
+            get(d::series_metadata),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/instances",
+            get(d::search_instances),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/instances/{instance}",
+            get(d::retrieve_instance),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/instances/{instance}/metadata",
+            get(d::instance_metadata),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/instances/{instance}/rendered",
+            get(d::instance_rendered),
+        )
+        .route(
+            "/dicom-web/studies/{study}/series/{series}/instances/{instance}/frames/{frame}/rendered",
+            get(d::frame_rendered),
+        )
+}
+
 /// The router with every route and layer.
 pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
     let s = &state.settings;
@@ -238,6 +282,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .route("/v1/deliveries/{id}/retry", post(rules::retry_delivery))
         .route("/v1/peers", get(rules::list_peers))
         .route("/v1/peers/{ae_title}/echo", post(rules::echo_peer))
+        .merge(dicomweb_routes())
         .layer(DefaultBodyLimit::max(s.max_json_bytes))
         .layer(timeout(request_timeout));
     let simulations = Router::new()
@@ -248,6 +293,11 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .route("/v1/sinograms", post(datasets::post_sinogram))
         .route("/v1/series", post(series::post_series))
         .route("/v1/uploads/{id}/complete", post(series::complete_upload))
+        .route("/dicom-web/studies", post(stow::store_instances))
+        .route(
+            "/dicom-web/studies/{study}",
+            post(stow::store_study_instances),
+        )
         .layer(DefaultBodyLimit::disable())
         .layer(timeout(upload_timeout));
     let streams = Router::new().route("/v1/jobs/{id}/events", get(events::job_events));

@@ -64,6 +64,27 @@ pub struct OrthancOptions {
     pub ctrecon_port: Option<u16>,
     /// A Lua script (e.g. a `ReceivedInstanceFilter`).
     pub lua: Option<String>,
+    /// Load the DICOMweb plugin, with ctrecon's DICOMweb root (`http://…/dicom-web/`) as the server
+    /// `ctrecon` and a bearer token for it.
+    pub dicomweb: Option<(String, Option<String>)>,
+}
+
+pub const DICOMWEB_PLUGIN: &str = "/usr/share/orthanc/plugins/libOrthancDicomWeb.so";
+
+/// Whether Orthanc and its DICOMweb plugin are installed; without them, one skip line (or a failure under
+/// CTRECON_REQUIRE_PEERS=1).
+pub fn orthanc_dicomweb_present() -> bool {
+    let ok = Path::new(ORTHANC).is_file() && Path::new(DICOMWEB_PLUGIN).is_file();
+    if !ok {
+        assert!(
+            std::env::var("CTRECON_REQUIRE_PEERS").as_deref() != Ok("1"),
+            "Orthanc or its DICOMweb plugin is missing and CTRECON_REQUIRE_PEERS=1 (scripts/install-peers.sh)"
+        );
+        eprintln!(
+            "skipped: Orthanc or its DICOMweb plugin is not installed (scripts/install-peers.sh orthanc)"
+        );
+    }
+    ok
 }
 
 impl Orthanc {
@@ -88,6 +109,18 @@ impl Orthanc {
             "DicomCheckModalityHost": false, "DicomModalities": modalities, "StableAge": 1,
             "Plugins": [],
         });
+        if let Some((url, token)) = &opts.dicomweb {
+            let mut server = json!({ "Url": url });
+            if let Some(t) = token {
+                server["HttpHeaders"] = json!({ "Authorization": format!("Bearer {t}") });
+            }
+            config["Plugins"] = json!([DICOMWEB_PLUGIN]);
+            config["DicomWeb"] = json!({
+                "Enable": true, "Root": "/dicom-web/", "Ssl": false,
+                "Host": format!("127.0.0.1:{http_port}"),
+                "Servers": { "ctrecon": server },
+            });
+        }
         if let Some(lua) = &opts.lua {
             let path = t.join("script.lua");
             std::fs::write(&path, lua).expect("lua script");

@@ -1,9 +1,11 @@
 //! Route handlers, one file per resource.
 
 pub mod datasets;
+pub mod dicomweb;
 pub mod events;
 pub mod health;
 pub mod jobs;
 pub mod results;
 pub mod rules;
 pub mod series;
+pub mod stow;

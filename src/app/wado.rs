@@ -1,0 +1,152 @@
+//! What WADO-RS sends of a stored instance beside its file as it is: the file re-encoded in explicit VR little
+//! endian, its attributes in the DICOM JSON model (`/metadata`), and a frame rendered to PNG through a window
+//! (`/rendered`). Decoding and encoding run on the engine's pool, never on the async threads.
+
+use ndarray::Array2;
+use serde_json::Value;
+
+use super::{App, AppResult};
+use crate::dicom::{ReadLimits, explicit_le_bytes, instance_json, read_path};
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::repo::StoredInstance;
+use crate::jobs::views::volume_problem;
+use crate::volume::{BitDepth, Window, encode_png};
+
+/// A window asked for by `window=center,width,function` (PS3.18 §8.3.5.1.3): only `linear` is offered.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RenderWindow {
+    pub center: f64,
+    pub width: f64,
+}
+
+impl RenderWindow {
+    /// Parse `center,width[,linear]`.
+    pub fn parse(s: &str) -> Result<RenderWindow, Problem> {
+        let bad = |d: &str| Problem::new(ErrorCode::InvalidQuery, d.to_string());
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        if !(parts.len() == 2 || parts.len() == 3) {
+            return Err(bad("window is center,width,function"));
+        }
+        if parts.len() == 3 && !parts[2].eq_ignore_ascii_case("linear") {
+            return Err(bad("only the linear window function is offered"));
+        }
+        let num = |v: &str| v.parse::<f64>().ok().filter(|x| x.is_finite());
+        match (num(parts[0]), num(parts[1])) {
+            (Some(center), Some(width)) if width > 0.0 => Ok(RenderWindow { center, width }),
+            _ => Err(bad(
+                "window center and width must be finite numbers, the width positive",
+            )),
+        }
+    }
+}
+
+impl App {
+    fn instance_limit(&self) -> u64 {
+        self.settings
+            .dicom
+            .max_instance_bytes
+            .saturating_add(64 << 10)
+    }
+
+    /// The stored instance `i` as a Part 10 file in explicit VR little endian.
+    pub async fn instance_explicit_le(&self, i: &StoredInstance) -> AppResult<Vec<u8>> {
+        let (path, max) = (self.instance_file(i), self.instance_limit());
+        Ok(self
+            .engine
+            .compute(move || {
+                explicit_le_bytes(&path, max).map_err(|e| {
+                    Problem::new(
+                        ErrorCode::NotAcceptable,
+                        format!("cannot be sent in explicit VR little endian: {e}"),
+                    )
+                })
+            })
+            .await?)
+    }
+
+    /// The DICOM JSON model of the stored instance `i`.
+    pub async fn instance_metadata(&self, i: &StoredInstance) -> AppResult<Value> {
+        let (path, max) = (self.instance_file(i), self.instance_limit());
+        Ok(self
+            .engine
+            .compute(move || {
+                instance_json(&path, max).map_err(|e| {
+                    tracing::error!(error = %e, "a stored instance cannot be read");
+                    Problem::internal()
+                })
+            })
+            .await?)
+    }
+
+    /// Frame `frame` (1-based) of the stored instance `i` as an 8-bit PNG, in Hounsfield units (stored values
+    /// after the rescale) through `window`, or a window spanning the frame's values when none is given.
+    pub async fn render_instance(
+        &self,
+        i: &StoredInstance,
+        frame: usize,
+        window: Option<RenderWindow>,
+    ) -> AppResult<Vec<u8>> {
+        let path = self.instance_file(i);
+        Ok(self
+            .engine
+            .compute(move || {
+                let inst = read_path(&path, &ReadLimits::default())
+                    .map_err(|e| crate::jobs::ingest::dicom_problem(&e))?;
+                let n = inst.slices.len();
+                let slice = frame
+                    .checked_sub(1)
+                    .and_then(|k| inst.slices.get(k))
+                    .ok_or_else(|| {
+                        Problem::new(
+                            ErrorCode::DicomwebNotFound,
+                            format!("frame {frame} is not among the instance's {n} frames"),
+                        )
+                    })?;
+                let samples = slice.stored.len() / (slice.rows * slice.columns).max(1);
+                if samples != 1 {
+                    return Err(Problem::new(
+                        ErrorCode::NotAcceptable,
+                        "only grey images are rendered",
+                    ));
+                }
+                let hu = Array2::from_shape_fn((slice.rows, slice.columns), |(r, c)| {
+                    (slice.stored[r * slice.columns + c] as f64 * slice.rescale_slope
+                        + slice.rescale_intercept) as f32
+                });
+                let w = match window {
+                    Some(w) => Window::new(w.width, w.center).map_err(|e| volume_problem(&e))?,
+                    None => Window::auto(hu.view()),
+                };
+                encode_png(hu.view(), w, BitDepth::Eight).map_err(|e| volume_problem(&e))
+            })
+            .await?)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn windows_are_center_width_and_linear() {
+        assert_eq!(
+            RenderWindow::parse("40,400").unwrap(),
+            RenderWindow {
+                center: 40.0,
+                width: 400.0
+            }
+        );
+        assert!(RenderWindow::parse("-600, 1500, LINEAR").is_ok());
+        for bad in [
+            "40",
+            "40,0",
+            "40,-1",
+            "a,b",
+            "40,400,sigmoid",
+            "1,2,3,4",
+            "NaN,1",
+        ] {
+            assert!(RenderWindow::parse(bad).is_err(), "{bad}");
+        }
+    }
+}
