@@ -81,6 +81,12 @@ pub fn is_valid_uid(uid: &str) -> bool {
 
 /// Read the header of the file at `path`; files over `max_bytes` are refused unread.
 pub fn read_header(path: &Path, max_bytes: u64) -> Result<InstanceHeader, DicomError> {
+    let (label, bytes) = read_bounded(path, max_bytes)?;
+    header_of(&label, &bytes)
+}
+
+/// The file at `path` whole, labelled by its name; files over `max_bytes` are refused unread.
+pub(super) fn read_bounded(path: &Path, max_bytes: u64) -> Result<(String, Vec<u8>), DicomError> {
     let label = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
@@ -98,7 +104,7 @@ pub fn read_header(path: &Path, max_bytes: u64) -> Result<InstanceHeader, DicomE
         });
     }
     let bytes = std::fs::read(path).map_err(io)?;
-    header_of(&label, &bytes)
+    Ok((label, bytes))
 }
 
 /// Read the header of a file held in memory.

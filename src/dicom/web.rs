@@ -30,30 +30,9 @@ pub fn transcodable_to_explicit_le(ts: &str) -> bool {
     ts == EXPLICIT_LE || ts == IMPLICIT_LE
 }
 
-fn read_file(path: &Path, max_bytes: u64) -> Result<(String, Vec<u8>), DicomError> {
-    let label = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "file".into());
-    let io = |e: std::io::Error| DicomError::Parse {
-        label: label.clone(),
-        reason: e.to_string(),
-    };
-    let size = std::fs::metadata(path).map_err(io)?.len();
-    if size > max_bytes {
-        return Err(DicomError::TooLarge {
-            label,
-            detail: format!("{size} bytes"),
-            limit: format!("{max_bytes} bytes"),
-        });
-    }
-    let bytes = std::fs::read(path).map_err(io)?;
-    Ok((label, bytes))
-}
-
 /// The DICOM JSON model of the instance at `path` (files over `max_bytes` are refused unread).
 pub fn instance_json(path: &Path, max_bytes: u64) -> Result<Value, DicomError> {
-    let (label, bytes) = read_file(path, max_bytes)?;
+    let (label, bytes) = super::header::read_bounded(path, max_bytes)?;
     let Opened { obj, .. } = open(
         &label,
         &bytes,
@@ -165,7 +144,7 @@ fn data_set_json(obj: &InMemDicomObject) -> Map<String, Value> {
 /// stored so, re-encoded when it is stored in implicit VR little endian; other syntaxes are refused.
 pub fn explicit_le_bytes(path: &Path, max_bytes: u64) -> Result<Vec<u8>, DicomError> {
     let ts = super::header::read_part10(path)?.transfer_syntax;
-    let (label, bytes) = read_file(path, max_bytes)?;
+    let (label, bytes) = super::header::read_bounded(path, max_bytes)?;
     if ts == EXPLICIT_LE {
         return Ok(bytes);
     }
