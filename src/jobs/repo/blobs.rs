@@ -136,30 +136,39 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
     };
     for kind in BlobKind::ALL {
         // Files first, rows second: a file renamed into place meanwhile already has its row.
+        // Each entry with whether another process may still be writing it (read off the async runtime).
         let listing = {
             let store = store.clone();
-            tokio::task::spawn_blocking(move || store.list_blobs(kind)).await
+            tokio::task::spawn_blocking(move || {
+                store.list_blobs(kind).map(|entries| {
+                    entries
+                        .into_iter()
+                        .map(|e| {
+                            let busy = !idle.is_zero() && !crate::storage::idle_for(&e.path, idle);
+                            (e, busy)
+                        })
+                        .collect::<Vec<_>>()
+                })
+            })
+            .await
         };
-        let entries: Vec<BlobEntry> = match listing {
-            Ok(Ok(e)) => e,
-            Ok(Err(e)) => {
-                tracing::error!(error = %e, kind = kind.as_str(), "listing blob files failed");
-                continue;
-            }
-            Err(e) => {
-                tracing::error!(error = %e, kind = kind.as_str(), "listing blob files failed");
-                continue;
-            }
-        };
+        let entries: Vec<(BlobEntry, bool)> =
+            match listing.map_err(std::io::Error::other).and_then(|r| r) {
+                Ok(e) => e,
+                Err(e) => {
+                    tracing::error!(error = %e, kind = kind.as_str(), "listing blob files failed");
+                    continue;
+                }
+            };
         let owners = db.owner_ids(kind).await?;
         let mut on_disk = HashSet::new();
         let mut removed = 0u64;
-        for entry in entries {
+        for (entry, busy) in entries {
             match entry.id.clone().filter(|id| owners.contains(id)) {
                 Some(id) => {
                     on_disk.insert(id);
                 }
-                None if !idle.is_zero() && !crate::storage::idle_for(&entry.path, idle) => {}
+                None if busy => {}
                 None => {
                     let path = entry.path.clone();
                     let store = store.clone();
