@@ -11,19 +11,21 @@ mod frame;
 mod mpr;
 mod orient;
 mod resample;
+mod rotating;
 mod window;
 
 pub use display::{Axis, ProjectionKind, project, slice};
 pub use error::VolumeError;
 pub use filter::{gaussian, largest_component, median3, threshold};
 pub use frame::{Frame, IndexMap, Volume};
-pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, rotating_projection, slab_series};
+pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, slab_series};
 pub use orient::{
     AXIS_ALIGNED_TOLERANCE, DisplayGrid, ImagePlane, Reorientation, ScreenSides, closest_canonical,
     direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice,
     to_closest_canonical,
 };
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
+pub use rotating::rotating_projection;
 pub use window::{
     BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_apng_annotated,
     encode_png, encode_png_annotated, mu_to_hu,
