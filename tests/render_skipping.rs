@@ -320,6 +320,26 @@ fn timing_with_and_without_cell_skipping_on_lidc() {
         let rays = cam
             .rays(&vol.frame, vol.data.dim(), 512, 512, 4096)
             .unwrap();
+        {
+            // Geometry of the anterior view: rays that enter the volume's box and their samples in it.
+            let scene = Scene::new(&vol).unwrap();
+            let step = scene.default_step();
+            let (mut hit, mut samples) = (0usize, 0.0f64);
+            for r in 0..512 {
+                for c in 0..512 {
+                    let (o, d) = rays.ray(r as f64, c as f64);
+                    if let Some((b0, b1)) = scene.sampler.box_interval(o, d) {
+                        hit += 1;
+                        samples += (b1 - b0.max(0.0)) / step;
+                    }
+                }
+            }
+            println!(
+                "anterior 512 × 512: {hit} rays enter the box, {:.0} samples each on average ({:.1} M in all, step {step:.3} mm)",
+                samples / hit as f64,
+                samples / 1e6
+            );
+        }
         for round in 0..rounds {
             for skipping in [false, true] {
                 let label = if skipping { "cells" } else { "bricks" };
@@ -360,5 +380,60 @@ fn timing_with_and_without_cell_skipping_on_lidc() {
                 );
             }
         }
+        let scene = Scene::new(&vol).unwrap();
+        vtk_raycast(&vol, &scene, &rays);
     });
+}
+
+/// VTK's CPU ray caster (`vtkFixedPointVolumeRayCastMapper`, `benches/render_vtk.py`) on the same volume,
+/// camera, bone transfer function and step, timed over 4 frames turned 90° apart, when `VTK_PYTHON` (or
+/// `.venv-peers/bin/python`, or `python3`) imports vtk.
+fn vtk_raycast(vol: &Volume, scene: &Scene<'_>, rays: &ctrecon::render::ViewRays) {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let candidates = [
+        std::env::var_os("VTK_PYTHON").map(std::path::PathBuf::from),
+        Some(root.join(".venv-peers/bin/python")),
+        Some("python3".into()),
+    ];
+    let Some(python) = candidates.into_iter().flatten().find(|py| {
+        std::process::Command::new(py)
+            .args(["-c", "import vtk, numpy"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    }) else {
+        println!("no Python with VTK: VTK's CPU ray caster not timed");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let raw: Vec<u8> = vol.data.iter().flat_map(|v| v.to_le_bytes()).collect();
+    std::fs::write(dir.path().join("volume.f32"), raw).unwrap();
+    let (nz, ny, nx) = vol.data.dim();
+    let points: Vec<[f64; 5]> = Preset::Bone
+        .transfer_function()
+        .points
+        .iter()
+        .map(|p| [p.value, p.color[0], p.color[1], p.color[2], p.opacity])
+        .collect();
+    let spec = serde_json::json!({
+        "volume": dir.path().join("volume.f32"),
+        "dims": [nx, ny, nz], "spacing": vol.frame.spacing_mm, "origin": vol.frame.origin_mm,
+        "camera": {"eye": rays.eye, "centre": scene.centre, "up": rays.up,
+                   "parallel_scale": rays.height as f64 * rays.pixel / 2.0},
+        "width": rays.width, "height": rays.height, "mode": "raycast", "points": points,
+        "step_mm": scene.default_step(), "frames": 4,
+    });
+    std::fs::write(dir.path().join("spec.json"), spec.to_string()).unwrap();
+    let load0 = load_average();
+    let out = std::process::Command::new(python)
+        .arg(root.join("benches/render_vtk.py"))
+        .arg(dir.path().join("spec.json"))
+        .env("VTK_DEFAULT_OPENGL_WINDOW", "vtkOSOpenGLRenderWindow")
+        .output()
+        .unwrap();
+    println!(
+        "VTK vtkFixedPointVolumeRayCastMapper, same picture: {} {}; load {load0} → {}",
+        String::from_utf8_lossy(&out.stdout).trim(),
+        String::from_utf8_lossy(&out.stderr).trim(),
+        load_average()
+    );
 }
