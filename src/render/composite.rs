@@ -47,8 +47,9 @@ impl VrOptions {
 ///
 /// Samples lie at `t0 + k·step` along each kept span of a ray. Runs of empty bricks (no value with opacity) are
 /// crossed in one jump to the first sample beyond them ([`BrickMask::exit`](super::bricks)); inside a busy brick
-/// the samples go on without looking at the mask again until the ray leaves that brick. The gradient, and with
-/// it the shading, is computed only for samples with opacity.
+/// the samples go on without looking at the mask again until the ray leaves that brick, and a sample whose cell
+/// lies wholly outside the visible window (the scene's occupancy bits) is passed without reading the volume. The
+/// gradient, and with it the shading, is computed only for samples with opacity.
 pub fn volume_render(
     scene: &Scene<'_>,
     rays: &ViewRays,
@@ -58,9 +59,28 @@ pub fn volume_render(
     let step = scene.step(opts.step_mm)?;
     let tf = &opts.transfer_function;
     let lut = Lut::new(tf, step);
-    let mask = scene
-        .bricks
-        .mask(|lo, hi| tf.max_opacity(lo as f64, hi as f64) > 0.0);
+    let window = lut.window();
+    let mut key = vec![0, step.to_bits()];
+    key.extend(
+        tf.points
+            .iter()
+            .flat_map(|p| [p.value.to_bits(), p.opacity.to_bits()]),
+    );
+    key.extend(
+        window
+            .iter()
+            .map(|&(a, b)| u64::from(a.to_bits()) << 32 | u64::from(b.to_bits())),
+    );
+    let prepared = scene.prepared(
+        key,
+        || {
+            scene
+                .bricks
+                .mask(|lo, hi| tf.max_opacity(lo as f64, hi as f64) > 0.0)
+        },
+        window,
+    );
+    let (mask, cells) = (&prepared.mask, prepared.cells.as_ref());
     let s = &scene.sampler;
     let bg = opts.background.map(|c| c as f32);
     let lighting = Lighting::new(&opts.shading);
@@ -98,7 +118,12 @@ pub fn volume_render(
                         busy_until = t + mask.exit(idx, id);
                     }
                     k += 1;
-                    let v = s.at_index(idx);
+                    let (cell, f) = s.cell(idx);
+                    // A sample in a cell outside the visible window is transparent: not read.
+                    if cells.is_some_and(|o| !o.busy(cell)) {
+                        continue;
+                    }
+                    let v = s.at_cell(cell, f);
                     if !lut.visible(v) {
                         continue;
                     }

@@ -11,20 +11,24 @@
 //! - [`volume_render`]: front-to-back ray casting of trilinear samples every `step ≤ ½` of the smallest spacing,
 //!   opacity corrected for the step (α' = 1 − (1 − α)^(Δ/1 mm)), gradient shading (central differences;
 //!   ambient, diffuse, specular with a head light), early termination at accumulated α ≥ 0.99 and
-//!   empty-space skipping over a min/max [`BrickGrid`] of 8³ voxels;
+//!   empty-space skipping over a min/max [`BrickGrid`] of 8³ voxels and, inside busy bricks, over the voxel
+//!   cells whose eight corners all lie outside the transfer function's visible window (one bit a cell, built
+//!   once per transfer function and kept by the [`Scene`]);
 //! - [`surface_render`]: the iso-surfaces crossed by each ray, each hit refined between samples by secant steps on
 //!   the trilinear field, Phong shading with the gradient as normal and depth cueing; several iso-values with
 //!   their own colours and opacities are composited front to back (a transparent skin over bone); a clip that
 //!   cuts into the solid shows the cut face as a flat cap.
 //!
-//! Rays run in parallel over 32 × 32 pixel tiles (rayon). The volume's min/max bricks are built once per volume
-//! and shared by every frame of a rotating sequence.
+//! Rays run in parallel over 32 × 32 pixel tiles (rayon). The volume's min/max bricks are built once per volume,
+//! the cell occupancy once per transfer function or set of iso-values, and both are shared by every frame of a
+//! rotating sequence.
 
 mod bricks;
 mod camera;
 mod clip;
 mod composite;
 mod image;
+mod occupancy;
 mod sampler;
 mod scene;
 mod shading;

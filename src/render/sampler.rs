@@ -53,29 +53,51 @@ impl<'a> Sampler<'a> {
         std::array::from_fn(|a| super::dot(self.lin[a], d))
     }
 
-    /// Trilinear value at fractional index `idx`, clamped to the grid.
+    /// The cell (the 2 × 2 × 2 voxels) a trilinear lookup at fractional index `idx` reads, as the index of its
+    /// first corner `[k, j, i]`, and the position inside it (0–1 per axis), clamped to the grid.
     #[inline(always)]
-    pub fn at_index(&self, idx: [f32; 3]) -> f32 {
-        let [nz, ny, nx] = self.n;
+    pub(crate) fn cell(&self, idx: [f32; 3]) -> ([usize; 3], [f32; 3]) {
         let base = |x: f32, n: usize| -> (usize, f32) {
             let x = x.clamp(0.0, (n - 1) as f32);
             let b = (x as usize).min(n - 2);
             (b, x - b as f32)
         };
-        let (k, fk) = base(idx[0], nz);
-        let (j, fj) = base(idx[1], ny);
-        let (i, fi) = base(idx[2], nx);
+        let (k, fk) = base(idx[0], self.n[0]);
+        let (j, fj) = base(idx[1], self.n[1]);
+        let (i, fi) = base(idx[2], self.n[2]);
+        ([k, j, i], [fk, fj, fi])
+    }
+
+    /// Trilinear value at fractional index `idx`, clamped to the grid.
+    #[inline(always)]
+    pub fn at_index(&self, idx: [f32; 3]) -> f32 {
+        let (c, f) = self.cell(idx);
+        self.at_cell(c, f)
+    }
+
+    /// Trilinear value at position `f` inside cell `c` (as [`Sampler::cell`] gives them).
+    #[inline(always)]
+    pub(crate) fn at_cell(&self, c: [usize; 3], f: [f32; 3]) -> f32 {
+        let [_, ny, nx] = self.n;
+        let [k, j, i] = c;
+        let [fk, fj, fi] = f;
         let row = nx;
         let plane = ny * nx;
         let o = k * plane + j * row + i;
         let d = self.data;
-        // SAFETY-free indexing: o + plane + row + 1 < nz·ny·nx because k ≤ nz−2, j ≤ ny−2, i ≤ nx−2.
+        // o + plane + row + 1 < nz·ny·nx because k ≤ nz−2, j ≤ ny−2, i ≤ nx−2.
         let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
         let c00 = lerp(d[o], d[o + 1], fi);
         let c01 = lerp(d[o + row], d[o + row + 1], fi);
         let c10 = lerp(d[o + plane], d[o + plane + 1], fi);
         let c11 = lerp(d[o + plane + row], d[o + plane + row + 1], fi);
         lerp(lerp(c00, c01, fj), lerp(c10, c11, fj), fk)
+    }
+
+    /// The first corner voxel of cell `c`.
+    #[inline(always)]
+    pub(crate) fn corner(&self, c: [usize; 3]) -> f32 {
+        self.data[(c[0] * self.n[1] + c[1]) * self.n[2] + c[2]]
     }
 
     /// Gradient (value per millimetre, patient axes x, y, z) at fractional index `idx` by central differences of

@@ -90,9 +90,18 @@ pub fn surface_render(
     opts.validate()?;
     let step = scene.step(opts.step_mm)?;
     let isos: Vec<f32> = opts.surfaces.iter().map(|s| s.iso as f32).collect();
-    let mask = scene
-        .bricks
-        .mask(|lo, hi| isos.iter().any(|&iso| lo <= iso && iso <= hi));
+    let mut key = vec![1];
+    key.extend(isos.iter().map(|iso| u64::from(iso.to_bits())));
+    let prepared = scene.prepared(
+        key,
+        || {
+            scene
+                .bricks
+                .mask(|lo, hi| isos.iter().any(|&iso| lo <= iso && iso <= hi))
+        },
+        isos.iter().map(|&iso| (iso, iso)).collect(),
+    );
+    let (mask, cells) = (&prepared.mask, prepared.cells.as_ref());
     let s = &scene.sampler;
     let bg = opts.background.map(|c| c as f32);
     let (centre, radius) = (scene.centre, scene.radius);
@@ -132,6 +141,9 @@ pub fn surface_render(
             'spans: for sp in spans.iter() {
                 // A span that starts inside a solid shows the cut face.
                 let (mut t_prev, mut v_prev) = (sp.t0, value(sp.t0));
+                // Whether `v_prev` is the sample's value; else a corner of a cell that no iso-value crosses, on
+                // the same side of every iso-value as the sample.
+                let mut prev_exact = true;
                 hits.clear();
                 for (i, &iso) in isos.iter().enumerate() {
                     if v_prev >= iso {
@@ -165,16 +177,26 @@ pub fn surface_render(
                             // The field keeps its side of every iso-value through quiet bricks.
                             t_prev = exit;
                             v_prev = value(exit);
+                            prev_exact = true;
                             k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
                             continue;
                         }
                         busy_until = t + mask.exit(idx, id);
                     }
-                    let v = s.at_index(idx);
+                    let (cell, f) = s.cell(idx);
+                    let (v, exact) = match cells {
+                        Some(o) if !o.busy(cell) => (s.corner(cell), false),
+                        _ => (s.at_cell(cell, f), true),
+                    };
                     hits.clear();
                     for (i, &iso) in isos.iter().enumerate() {
                         if (v_prev < iso) != (v < iso) {
-                            let th = refine(&value, iso, (t_prev, v_prev), (t, v));
+                            if !prev_exact {
+                                v_prev = value(t_prev);
+                                prev_exact = true;
+                            }
+                            let vt = if exact { v } else { value(t) };
+                            let th = refine(&value, iso, (t_prev, v_prev), (t, vt));
                             hits.push(Hit {
                                 t: th,
                                 surface: i,
@@ -192,7 +214,7 @@ pub fn surface_render(
                     if t >= sp.t1 {
                         break;
                     }
-                    (t_prev, v_prev) = (t, v);
+                    (t_prev, v_prev, prev_exact) = (t, v, exact);
                     k += 1;
                 }
             }

@@ -241,6 +241,15 @@ impl Lut {
         v >= self.visible.0 && v <= self.visible.1
     }
 
+    /// The window of values that may have opacity (see [`Lut::visible`]), empty when none has.
+    pub(crate) fn window(&self) -> Vec<(f32, f32)> {
+        if self.visible.0 <= self.visible.1 {
+            vec![self.visible]
+        } else {
+            Vec::new()
+        }
+    }
+
     /// `[r, g, b, α_step]` at `v`, linear between table entries.
     #[inline]
     pub(crate) fn get(&self, v: f32) -> [f32; 4] {
