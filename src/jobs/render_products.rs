@@ -271,8 +271,11 @@ pub fn plan_render(
             .rays(frame, dim, w, h, DEFAULT_MAX_SIDE)
             .map_err(|e| problem(i, &e))?;
     }
-    let bricks = (dim.0 * dim.1 * dim.2 / 512 + 1) as u64 * 8;
-    Ok(n as u64 * w as u64 * h as u64 * 7 + bricks)
+    let voxels = (dim.0 * dim.1 * dim.2) as u64;
+    // The brick grid (8 bytes per 8³ brick) and one occupancy bit per voxel cell (`render::occupancy`).
+    let bricks = (voxels / 512 + 1) * 8;
+    let cells = voxels / 8 + 8;
+    Ok(n as u64 * w as u64 * h as u64 * 7 + bricks + cells)
 }
 
 /// The configured largest image side, checked at submission.
