@@ -412,7 +412,16 @@ impl App {
         mut d: Delivery,
     ) -> (Delivery, DeliveryState, Option<i64>, Option<String>) {
         if let Some(web) = self.settings.dicom.web_peer(&d.destination).cloned() {
+            #[cfg(feature = "dicomweb-client")]
             return self.send_web(d, &web).await;
+            #[cfg(not(feature = "dicomweb-client"))]
+            {
+                let why = format!(
+                    "{} is a DICOMweb peer and this build has no DICOMweb client",
+                    web.name
+                );
+                return (d, DeliveryState::Failed, None, Some(why));
+            }
         }
         let Some(peer) = self.settings.dicom.peer(&d.destination).cloned() else {
             let why = format!("{} is no longer a configured peer", d.destination);
