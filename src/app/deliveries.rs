@@ -1,10 +1,12 @@
-//! Deliveries of DICOM results to DIMSE peers, and the peers themselves.
+//! Deliveries of DICOM results to DIMSE peers and DICOMweb origins, and the peers themselves.
 //!
 //! The application owns what a delivery is and how it moves (queued → sending → succeeded | failed, back
 //! to queued with exponential backoff while the peer is unreachable); the wire is a port,
 //! [`DicomCaller`], that the DICOM front door installs ([`App::start_deliveries`]), so that the
 //! application imports no front door. One worker task makes the deliveries of finished rule jobs and
-//! sends whatever is due; deliveries left `sending` by a stop are queued again at start.
+//! sends whatever is due; deliveries left `sending` by a stop are queued again at start. A destination
+//! that names a DICOMweb origin (`dicom.web_peers`) is sent to by STOW-RS instead
+//! ([`stow_client`](super::stow_client)), with the same states, per-instance outcomes and backoff.
 
 use std::future::Future;
 use std::path::PathBuf;
@@ -23,7 +25,7 @@ use crate::jobs::deliveries::{
     Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun, RunState,
     backoff_us,
 };
-use crate::jobs::export::{ExportOptions, export_dir, export_job};
+use crate::jobs::export::{ExportOptions, ExportedFile, export_dir, export_job};
 use crate::jobs::model::{JobStatus, now_us, rfc3339};
 use crate::storage::JobId;
 
@@ -62,6 +64,9 @@ pub trait DicomCaller: Send + Sync + 'static {
 pub struct Outbound {
     caller: Arc<OnceLock<Arc<dyn DicomCaller>>>,
     wake: Arc<Notify>,
+    /// The HTTP client of STOW-RS deliveries, made at the first one.
+    #[cfg(feature = "dicomweb-client")]
+    pub(super) web: Arc<OnceLock<super::stow_client::StowClient>>,
 }
 
 impl std::fmt::Debug for Outbound {
@@ -181,11 +186,12 @@ impl App {
 
     /// Queue a delivery of a succeeded job's DICOM results to a configured peer.
     pub async fn create_delivery(&self, job: JobId, destination: &str) -> AppResult<Delivery> {
-        if self.settings.dicom.peer(destination).is_none() {
+        if !self.settings.dicom.is_destination(destination) {
             return Err(refused(
                 ErrorCode::UnknownPeer,
                 format!(
-                    "destination {:?} is not a configured DICOM peer (`dicom.peers`)",
+                    "destination {:?} is not a configured DICOM peer (`dicom.peers`) or DICOMweb \
+                     origin (`dicom.web_peers`)",
                     destination.chars().take(80).collect::<String>()
                 ),
             ));
@@ -332,12 +338,11 @@ impl App {
         Ok(())
     }
 
-    /// Export the job's results (once) and give the delivery its instances.
-    async fn prepare(&self, d: &mut Delivery) -> Result<(), Problem> {
-        if !d.instances.is_empty() {
-            return Ok(());
-        }
-        let job = match self.db.get_job(d.job_id).await {
+    /// The DICOM results of succeeded job `job`, exported now unless they already were, with the options of
+    /// the rule that made the job (if any) — the same files, and so the same UIDs, for every delivery and
+    /// for the instance index.
+    pub(crate) async fn export_results(&self, job_id: JobId) -> Result<Vec<ExportedFile>, Problem> {
+        let job = match self.db.get_job(job_id).await {
             Ok(Some(j)) => j,
             Ok(None) => return Err(Problem::new(ErrorCode::JobNotFound, "the job was deleted")),
             Err(e) => return Err(AppError::from(e).into_problem()),
@@ -352,12 +357,12 @@ impl App {
                 "the job has no results",
             ));
         };
-        let rule = match &d.rule_name {
-            Some(name) => match self.db.node_tables() {
-                Ok(db) => db.get_rule(name).await.ok().flatten(),
-                Err(_) => None,
+        let rule = match self.db.node_tables() {
+            Ok(db) => match db.run_of_job(job_id).await.ok().flatten() {
+                Some(run) => db.get_rule(&run.rule_name).await.ok().flatten(),
+                None => None,
             },
-            None => None,
+            Err(_) => None,
         };
         let source = match result.source_series {
             Some(id) => self.db.get_series(id).await.ok().flatten(),
@@ -369,12 +374,18 @@ impl App {
             mu_water: self.settings.mu_water_per_mm,
         };
         let store = self.store.clone();
-        let id = d.job_id;
         let spec = job.request.clone();
-        let files = self
-            .engine
-            .compute(move || export_job(&store, id, &spec, &result, source.as_ref(), &opts))
-            .await?;
+        self.engine
+            .compute(move || export_job(&store, job_id, &spec, &result, source.as_ref(), &opts))
+            .await
+    }
+
+    /// Export the job's results (once) and give the delivery its instances.
+    async fn prepare(&self, d: &mut Delivery) -> Result<(), Problem> {
+        if !d.instances.is_empty() {
+            return Ok(());
+        }
+        let files = self.export_results(d.job_id).await?;
         d.instances = files
             .into_iter()
             .map(|f| DeliveryInstance {
@@ -400,6 +411,18 @@ impl App {
         &self,
         mut d: Delivery,
     ) -> (Delivery, DeliveryState, Option<i64>, Option<String>) {
+        if let Some(web) = self.settings.dicom.web_peer(&d.destination).cloned() {
+            #[cfg(feature = "dicomweb-client")]
+            return self.send_web(d, &web).await;
+            #[cfg(not(feature = "dicomweb-client"))]
+            {
+                let why = format!(
+                    "{} is a DICOMweb peer and this build has no DICOMweb client",
+                    web.name
+                );
+                return (d, DeliveryState::Failed, None, Some(why));
+            }
+        }
         let Some(peer) = self.settings.dicom.peer(&d.destination).cloned() else {
             let why = format!("{} is no longer a configured peer", d.destination);
             return (d, DeliveryState::Failed, None, Some(why));
@@ -444,21 +467,29 @@ impl App {
                     (d, DeliveryState::Failed, None, Some(why))
                 }
             }
-            Err(CallError(reason)) => {
-                let s = &self.settings.dicom;
-                if d.attempts >= s.delivery_max_attempts {
-                    let why = format!("{reason} (gave up after {} attempts)", d.attempts);
-                    (d, DeliveryState::Failed, None, Some(why))
-                } else {
-                    let next = now_us()
-                        + backoff_us(
-                            d.attempts,
-                            s.delivery_retry_base_ms,
-                            s.delivery_retry_max_ms,
-                        );
-                    (d, DeliveryState::Queued, Some(next), Some(reason))
-                }
-            }
+            Err(CallError(reason)) => self.unreachable(d, reason),
+        }
+    }
+
+    /// The peer could not be reached: queued again after the backoff, or failed once the attempts are
+    /// spent.
+    pub(super) fn unreachable(
+        &self,
+        d: Delivery,
+        reason: String,
+    ) -> (Delivery, DeliveryState, Option<i64>, Option<String>) {
+        let s = &self.settings.dicom;
+        if d.attempts >= s.delivery_max_attempts {
+            let why = format!("{reason} (gave up after {} attempts)", d.attempts);
+            (d, DeliveryState::Failed, None, Some(why))
+        } else {
+            let next = now_us()
+                + backoff_us(
+                    d.attempts,
+                    s.delivery_retry_base_ms,
+                    s.delivery_retry_max_ms,
+                );
+            (d, DeliveryState::Queued, Some(next), Some(reason))
         }
     }
 }

@@ -1,6 +1,9 @@
-//! The instance index as application commands: keep and index the instances a DICOM node received, index
-//! the DICOM results of volume jobs (a derived CT series of the job's volume, in the study of its source
-//! series), answer queries over what is indexed, and pair instance folders with their rows.
+//! The instance index as application commands: keep and index the instances a DICOM node, STOW-RS or an
+//! HTTP upload (`POST /v1/series`) received, index the DICOM results of volume jobs (a derived CT series
+//! of the job's volume, in the study of its source series, and its products as exported for delivery:
+//! derived CT stacks, Secondary Capture MIPs, reformats and renderings, Encapsulated STL — the same files
+//! and UIDs a delivery sends), answer queries over what is indexed, and pair instance folders with their
+//! rows. Indexing runs whether or not the DICOM node listens.
 //!
 //! Files are named by generated ids ([`InstanceId`]), never by DICOM attributes. Every indexed attribute
 //! is read from the file itself (`dicom::read_header`), so the index says what a C-MOVE sends.
@@ -12,16 +15,40 @@ use ndarray::Ix3;
 
 use super::query::{self, Found, Query};
 use super::{App, AppResult};
-use crate::dicom::{InstanceHeader, SeriesMeta, header_of, read_header, write_ct_series};
+use crate::dicom::{
+    InstanceHeader, SeriesMeta, Unpacked, UploadFile, header_of, read_header, unpack_file,
+    write_ct_series,
+};
 use crate::error_code::Problem;
+use crate::jobs::export::export_dir;
 use crate::jobs::repo::{IndexedInstance, NewInstance, StoredInstance};
 use crate::jobs::{JobStatus, SeriesRecord};
 use crate::storage::npy::decode_f32;
-use crate::storage::{BlobStore, InstanceId, InstanceOwner, JobId, ResultName, SeriesId, UploadId};
+use crate::storage::{
+    BlobStore, InstanceId, InstanceOwner, JobId, ResultName, ScratchDir, SeriesId, UploadId,
+};
 use crate::volume::{Volume, mu_to_hu};
 
 /// The series number of derived series (as on the results' DICOM downloads).
 pub const DERIVED_SERIES_NUMBER: i32 = 900;
+
+/// Instances of an HTTP upload copied aside until the upload is recorded (the scratch folder goes with it).
+#[derive(Debug, Default)]
+pub struct StagedInstances {
+    files: Vec<PathBuf>,
+    scratch: Option<ScratchDir>,
+}
+
+impl StagedInstances {
+    /// Files staged (ZIP members unpacked).
+    pub fn len(&self) -> usize {
+        self.files.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.files.is_empty()
+    }
+}
 
 /// The index row of an instance whose header is `h` and whose file has `bytes` bytes.
 pub fn indexed(h: &InstanceHeader, bytes: u64) -> IndexedInstance {
@@ -147,9 +174,10 @@ impl App {
             .map_err(|e| storage("a query failed", std::io::Error::other(e)).into())
     }
 
-    /// Index the DICOM results of job `id` once it succeeded: the derived CT series of its volume, in the
-    /// study and frame of reference of its source series. A job without a source series (no patient) is
-    /// marked indexed with no instance. A job indexed before is left as it is. Returns the instances indexed.
+    /// Index the DICOM results of job `id` once it succeeded: its products as exported for delivery, and
+    /// the derived CT series of its volume (unless the export holds it already), in the study and frame of
+    /// reference of its source series. A job without a source series (no patient) is marked indexed with
+    /// no instance. A job indexed before is left as it is. Returns the instances indexed.
     pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
         if self.db.node_tables()?.job_indexed(id).await? {
             return Ok(0);
@@ -164,6 +192,104 @@ impl App {
             self.db.node_tables()?.mark_job_indexed(id).await?;
             return Ok(0);
         };
+        let exported = self.exported_instances(id).await;
+        let volume_exported = exported
+            .iter()
+            .any(|(_, r)| r.instance.series_number == Some(DERIVED_SERIES_NUMBER.into()));
+        let written = if volume_exported {
+            Vec::new()
+        } else {
+            self.write_volume_series(id, result).await?
+        };
+        let owner = InstanceOwner::Job(id);
+        let rows: Vec<NewInstance> = written
+            .iter()
+            .map(|(r, _)| r.clone())
+            .chain(exported.iter().map(|(_, r)| r.clone()))
+            .collect();
+        self.db
+            .node_tables()?
+            .insert_instances(owner, &rows)
+            .await?;
+        for (row, temp) in written {
+            self.store
+                .commit_async(temp, self.store.instance_path(owner, row.id))
+                .await
+                .map_err(|e| storage("keeping a derived instance failed", e))?;
+        }
+        let store = self.store.clone();
+        let links: Vec<(PathBuf, PathBuf)> = exported
+            .into_iter()
+            .map(|(from, r)| (from, store.instance_path(owner, r.id)))
+            .collect();
+        tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+            for (from, to) in links {
+                if let Some(dir) = to.parent() {
+                    std::fs::create_dir_all(dir)?;
+                }
+                // The exported file is never written again: a hard link shares it.
+                if std::fs::hard_link(&from, &to).is_err() {
+                    std::fs::copy(&from, &to)?;
+                }
+            }
+            Ok(())
+        })
+        .await
+        .map_err(|e| storage("indexing exported results failed", std::io::Error::other(e)))?
+        .map_err(|e| storage("indexing exported results failed", e))?;
+        tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
+        Ok(rows.len())
+    }
+
+    /// The job's exported DICOM results with their index rows; none (logged) when they cannot be exported,
+    /// so that the volume is indexed all the same.
+    async fn exported_instances(&self, id: JobId) -> Vec<(PathBuf, NewInstance)> {
+        let files = match self.export_results(id).await {
+            Ok(f) => f,
+            Err(p) => {
+                tracing::warn!(job_id = %id, code = p.code.code(), detail = %p.detail, "the job's products are not indexed");
+                return Vec::new();
+            }
+        };
+        let dir = export_dir(&self.store, id);
+        let max = self
+            .settings
+            .dicom
+            .max_instance_bytes
+            .saturating_add(64 << 10);
+        tokio::task::spawn_blocking(move || {
+            files
+                .into_iter()
+                .filter_map(|f| {
+                    let path = dir.join(&f.file);
+                    let bytes = std::fs::metadata(&path).ok()?.len();
+                    match read_header(&path, max) {
+                        Ok(h) => Some((
+                            path,
+                            NewInstance {
+                                id: InstanceId::generate(),
+                                series_id: None,
+                                instance: indexed(&h, bytes),
+                            },
+                        )),
+                        Err(e) => {
+                            tracing::warn!(error = %e, "an exported instance is not indexed");
+                            None
+                        }
+                    }
+                })
+                .collect()
+        })
+        .await
+        .unwrap_or_default()
+    }
+
+    /// Write the derived CT series of job `id`'s volume as temporary files with their index rows.
+    async fn write_volume_series(
+        &self,
+        id: JobId,
+        result: crate::jobs::model::JobResult,
+    ) -> AppResult<Vec<(NewInstance, crate::storage::TempBlob)>> {
         let source = match result.source_series {
             Some(s) => self.db.get_series(s).await?,
             None => None,
@@ -193,7 +319,7 @@ impl App {
         };
         let (store, mu_water) = (self.store.clone(), self.settings.mu_water_per_mm);
         let volume_path = store.result_path(id, &ResultName::Volume);
-        let written = self
+        Ok(self
             .engine
             .compute(move || {
                 let bytes = std::fs::read(&volume_path)
@@ -230,21 +356,65 @@ impl App {
                 }
                 Ok(out)
             })
-            .await?;
-        let owner = InstanceOwner::Job(id);
-        let rows: Vec<NewInstance> = written.iter().map(|(r, _)| r.clone()).collect();
-        self.db
-            .node_tables()?
-            .insert_instances(owner, &rows)
-            .await?;
-        for (row, temp) in written {
-            self.store
-                .commit_async(temp, self.store.instance_path(owner, row.id))
-                .await
-                .map_err(|e| storage("keeping a derived instance failed", e))?;
+            .await?)
+    }
+
+    /// Copy the instances of an HTTP upload (single files, and the members of ZIP archives under the
+    /// upload limits) into a scratch folder, before the upload's own files go; [`index_staged`] indexes
+    /// them once the upload is recorded.
+    ///
+    /// [`index_staged`]: App::index_staged
+    pub async fn stage_uploaded(&self, files: &[UploadFile]) -> AppResult<StagedInstances> {
+        let store = self.store.clone();
+        let limits = self.ingest_options(None).zip;
+        let files = files.to_vec();
+        let staged = tokio::task::spawn_blocking(move || -> std::io::Result<StagedInstances> {
+            let scratch = store.scratch()?;
+            let mut unpacked = Unpacked::default();
+            for (k, f) in files.into_iter().enumerate() {
+                let copy = scratch.path().join(format!("part-{k:06}"));
+                if std::fs::hard_link(&f.path, &copy).is_err() {
+                    std::fs::copy(&f.path, &copy)?;
+                }
+                let file = UploadFile {
+                    label: f.label,
+                    path: copy,
+                };
+                // A member that cannot be unpacked was refused by the ingest already.
+                if let Err(e) = unpack_file(file, &limits, scratch.path(), &mut unpacked) {
+                    tracing::debug!(error = %e, "an uploaded file is not indexed");
+                }
+            }
+            Ok(StagedInstances {
+                files: unpacked.files.into_iter().map(|f| f.path).collect(),
+                scratch: Some(scratch),
+            })
+        })
+        .await
+        .map_err(|e| {
+            storage(
+                "staging uploaded instances failed",
+                std::io::Error::other(e),
+            )
+        })?
+        .map_err(|e| storage("staging uploaded instances failed", e))?;
+        Ok(staged)
+    }
+
+    /// Index the instances of recorded upload `upload` staged by [`stage_uploaded`](App::stage_uploaded),
+    /// each with its assembled series among `series`; returns the count.
+    pub async fn index_staged(
+        &self,
+        upload: UploadId,
+        mut staged: StagedInstances,
+        series: &[SeriesRecord],
+    ) -> AppResult<usize> {
+        let files = std::mem::take(&mut staged.files);
+        let n = self.index_received(upload, files, series).await?;
+        if let Some(scratch) = staged.scratch.take() {
+            let _ = tokio::task::spawn_blocking(move || drop(scratch)).await;
         }
-        tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
-        Ok(rows.len())
+        Ok(n)
     }
 
     /// Index the results of every succeeded volume job not indexed yet (after a restart).

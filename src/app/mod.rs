@@ -16,6 +16,7 @@ pub mod query;
 pub mod rules;
 pub mod series;
 pub mod stow;
+pub mod stow_client;
 pub mod wado;
 
 use std::time::Duration;

@@ -79,7 +79,7 @@ impl App {
     fn parse_rule(&self, body: Value) -> AppResult<RuleSpec> {
         let spec: RuleSpec = serde_json::from_value(body)
             .map_err(|e| refused(ErrorCode::InvalidRequest, e.to_string()))?;
-        spec.validate(|ae| self.settings.dicom.peer(ae).is_some())
+        spec.validate(|ae| self.settings.dicom.is_destination(ae))
             .map_err(rule_problem)?;
         Ok(spec)
     }

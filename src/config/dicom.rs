@@ -1,5 +1,6 @@
-//! Settings of the DICOM node ([`crate::dimse`]): the `dicom` object of the configuration file, and
-//! `CTRECON_DICOM_*`.
+//! Settings of the DICOM node ([`crate::dimse`]) and of the peers ctrecon sends results to: the `dicom`
+//! object of the configuration file, and `CTRECON_DICOM_*`. A destination is a DIMSE peer (`peers`, by AE
+//! title) or a DICOMweb origin (`web_peers`, by name, sent to by STOW-RS).
 
 use std::net::{IpAddr, Ipv4Addr};
 use std::time::Duration;
@@ -30,6 +31,131 @@ fn yes() -> bool {
     true
 }
 
+/// A DICOMweb origin ctrecon sends results to by STOW-RS (`POST {url}/studies`), named like a DIMSE peer
+/// in rule destinations and `POST /v1/deliveries`. Credentials: a bearer token, or a user name and password
+/// (HTTP basic), or none.
+#[derive(Clone, PartialEq, Eq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WebPeer {
+    /// The destination name (1–64 letters, digits, `-`, `_`, `.`), distinct from every DIMSE AE title.
+    pub name: String,
+    /// The DICOMweb root, e.g. `http://pacs:8042/dicom-web` (`http://` or `https://`).
+    pub url: String,
+    #[serde(default)]
+    pub bearer_token: Option<String>,
+    #[serde(default)]
+    pub username: Option<String>,
+    #[serde(default)]
+    pub password: Option<String>,
+    /// Longest STOW-RS request, body and answer included (seconds).
+    #[serde(default = "web_timeout_secs")]
+    pub timeout_secs: u64,
+    /// Most instances in one STOW-RS request (a delivery with more is sent in several).
+    #[serde(default = "web_batch_instances")]
+    pub batch_instances: usize,
+}
+
+fn web_timeout_secs() -> u64 {
+    600
+}
+
+fn web_batch_instances() -> usize {
+    200
+}
+
+impl std::fmt::Debug for WebPeer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        // Credentials never reach a log.
+        f.debug_struct("WebPeer")
+            .field("name", &self.name)
+            .field("url", &self.url)
+            .field("bearer_token", &self.bearer_token.as_ref().map(|_| "…"))
+            .field("username", &self.username)
+            .field("password", &self.password.as_ref().map(|_| "…"))
+            .field("timeout_secs", &self.timeout_secs)
+            .field("batch_instances", &self.batch_instances)
+            .finish()
+    }
+}
+
+impl WebPeer {
+    /// The STOW-RS endpoint: `{url}/studies`.
+    pub fn studies_url(&self) -> String {
+        format!("{}/studies", self.url.trim_end_matches('/'))
+    }
+
+    pub fn timeout(&self) -> Duration {
+        Duration::from_secs(self.timeout_secs.max(1))
+    }
+
+    fn problem(&self) -> Option<String> {
+        let name_ok = !self.name.is_empty()
+            && self.name.len() <= 64
+            && self
+                .name
+                .chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '-' | '_' | '.'));
+        if !name_ok {
+            return Some(format!(
+                "web peer name {:?} is not 1–64 letters, digits, '-', '_' or '.'",
+                self.name
+            ));
+        }
+        let url = self.url.trim();
+        let rest = url
+            .strip_prefix("http://")
+            .or_else(|| url.strip_prefix("https://"));
+        if url != self.url || rest.is_none_or(|r| r.is_empty() || r.starts_with('/')) {
+            return Some(format!(
+                "web peer {}: url must be an http:// or https:// DICOMweb root",
+                self.name
+            ));
+        }
+        if self.url.contains(['?', '#']) {
+            return Some(format!(
+                "web peer {}: url must be a DICOMweb root without query or fragment",
+                self.name
+            ));
+        }
+        let basic = self.username.is_some() || self.password.is_some();
+        if self.bearer_token.is_some() && basic {
+            return Some(format!(
+                "web peer {}: give bearer_token or username/password, not both",
+                self.name
+            ));
+        }
+        if basic && (self.username.is_none() || self.password.is_none()) {
+            return Some(format!(
+                "web peer {}: username and password go together",
+                self.name
+            ));
+        }
+        if self
+            .bearer_token
+            .as_deref()
+            .is_some_and(|t| t.is_empty() || !t.bytes().all(|b| b.is_ascii_graphic()))
+        {
+            return Some(format!(
+                "web peer {}: bearer_token must be printable ASCII without spaces",
+                self.name
+            ));
+        }
+        if self.username.as_deref().is_some_and(|u| u.contains(':')) {
+            return Some(format!(
+                "web peer {}: a username cannot contain ':'",
+                self.name
+            ));
+        }
+        if self.timeout_secs == 0 || self.batch_instances == 0 {
+            return Some(format!(
+                "web peer {}: timeout_secs and batch_instances must be positive",
+                self.name
+            ));
+        }
+        None
+    }
+}
+
 /// The DICOM node (DIMSE service class provider), off unless `port` is set.
 #[derive(Debug, Clone, PartialEq, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -44,6 +170,8 @@ pub struct NodeSettings {
     pub allow_insecure: bool,
     /// The AE allow-list (and destinations). Empty = any calling AE, which only a loopback node allows.
     pub peers: Vec<Peer>,
+    /// DICOMweb origins results are sent to by STOW-RS (destinations by name).
+    pub web_peers: Vec<WebPeer>,
     /// Largest PDU ctrecon receives (bytes).
     pub max_pdu_length: u32,
     /// Time for a caller to complete association negotiation (seconds).
@@ -74,6 +202,7 @@ impl Default for NodeSettings {
             host: IpAddr::V4(Ipv4Addr::LOCALHOST),
             allow_insecure: false,
             peers: Vec::new(),
+            web_peers: Vec::new(),
             max_pdu_length: 65_536,
             association_timeout_secs: 30,
             dimse_timeout_secs: 60,
@@ -106,6 +235,16 @@ impl NodeSettings {
         self.peers.iter().find(|p| p.ae_title == ae_title)
     }
 
+    /// The DICOMweb origin called `name`, if configured.
+    pub fn web_peer(&self, name: &str) -> Option<&WebPeer> {
+        self.web_peers.iter().find(|p| p.name == name)
+    }
+
+    /// Whether `name` is a destination results can be sent to: a DIMSE peer's AE title or a web peer's name.
+    pub fn is_destination(&self, name: &str) -> bool {
+        self.peer(name).is_some() || self.web_peer(name).is_some()
+    }
+
     /// Why these settings cannot be used, if they cannot.
     pub fn problem(&self) -> Option<String> {
         if !is_ae_title(&self.ae_title) {
@@ -116,6 +255,9 @@ impl NodeSettings {
         }
         if let Some(p) = self.peers.iter().find(|p| !is_ae_title(&p.ae_title)) {
             return Some(format!("peer AE title {:?} is not valid", p.ae_title));
+        }
+        if let Some(why) = self.web_peers_problem() {
+            return Some(why);
         }
         if self.port.is_some()
             && !self.host.is_loopback()
@@ -138,6 +280,31 @@ impl NodeSettings {
         }
         if self.max_associations == 0 || self.max_instance_bytes == 0 {
             return Some("max_associations and max_instance_bytes must be positive".into());
+        }
+        None
+    }
+}
+
+impl NodeSettings {
+    fn web_peers_problem(&self) -> Option<String> {
+        if !self.web_peers.is_empty() && !cfg!(feature = "dicomweb-client") {
+            return Some(
+                "web_peers (DICOMweb destinations) need ctrecon built with the `dicomweb-client` \
+                 feature"
+                    .into(),
+            );
+        }
+        for (k, w) in self.web_peers.iter().enumerate() {
+            if let Some(why) = w.problem() {
+                return Some(why);
+            }
+            if self.peer(&w.name).is_some() || self.web_peers[..k].iter().any(|o| o.name == w.name)
+            {
+                return Some(format!(
+                    "web peer name {:?} is already a destination (names and AE titles are one namespace)",
+                    w.name
+                ));
+            }
         }
         None
     }
@@ -176,6 +343,85 @@ mod tests {
         s.peers.clear();
         s.allow_insecure = true;
         assert_eq!(s.problem(), None);
+    }
+
+    fn web(name: &str, url: &str) -> WebPeer {
+        WebPeer {
+            name: name.into(),
+            url: url.into(),
+            bearer_token: None,
+            username: None,
+            password: None,
+            timeout_secs: 600,
+            batch_instances: 200,
+        }
+    }
+
+    #[test]
+    fn web_peers_need_an_http_root_one_kind_of_credentials_and_a_name_of_their_own() {
+        let ok = |w: WebPeer| {
+            NodeSettings {
+                web_peers: vec![w],
+                peers: vec![Peer {
+                    ae_title: "PACS".into(),
+                    host: "127.0.0.1".into(),
+                    port: 104,
+                    store: true,
+                    query: true,
+                    retrieve: true,
+                }],
+                ..NodeSettings::default()
+            }
+            .problem()
+        };
+        let good = web("ARCHIVE", "https://pacs.example/dicom-web/");
+        if cfg!(feature = "dicomweb-client") {
+            assert_eq!(ok(good.clone()), None);
+            assert_eq!(good.studies_url(), "https://pacs.example/dicom-web/studies");
+            let basic = WebPeer {
+                username: Some("alice".into()),
+                password: Some("s3cret".into()),
+                ..good.clone()
+            };
+            assert_eq!(ok(basic.clone()), None);
+            assert!(!format!("{basic:?}").contains("s3cret"));
+        } else {
+            assert!(ok(good.clone()).unwrap().contains("dicomweb-client"));
+            return;
+        }
+        for bad in [
+            web("PACS", "http://x/dicom-web"),
+            web("has space", "http://x/dicom-web"),
+            web("A", "ftp://x/dicom-web"),
+            web("A", "http:///dicom-web"),
+            web("A", " http://x"),
+            web("A", "http://x/dicom-web?q=1"),
+            WebPeer {
+                bearer_token: Some("t".into()),
+                username: Some("u".into()),
+                password: Some("p".into()),
+                ..web("A", "http://x")
+            },
+            WebPeer {
+                username: Some("u".into()),
+                ..web("A", "http://x")
+            },
+            WebPeer {
+                bearer_token: Some("two words".into()),
+                ..web("A", "http://x")
+            },
+            WebPeer {
+                batch_instances: 0,
+                ..web("A", "http://x")
+            },
+        ] {
+            assert!(ok(bad.clone()).is_some(), "{bad:?}");
+        }
+        let twice = NodeSettings {
+            web_peers: vec![web("A", "http://x"), web("A", "http://y")],
+            ..NodeSettings::default()
+        };
+        assert!(twice.problem().unwrap().contains("already"));
     }
 
     #[test]

@@ -34,6 +34,7 @@
 //! | `dicom.delivery_retry_base_ms` | — | 5000: first wait before a delivery to an unreachable peer is tried again, doubled each time |
 //! | `dicom.delivery_retry_max_ms` | — | 600000: longest wait between attempts of a delivery |
 //! | `dicom.delivery_max_attempts` | — | 10: attempts before a delivery to an unreachable peer is `failed` |
+//! | `dicom.web_peers` | `CTRECON_DICOM_WEB_PEERS` (a JSON array, replacing the file's) | none: DICOMweb destinations `{"name", "url", "bearer_token" \| "username" + "password", "timeout_secs": 600, "batch_instances": 200}`, sent to by STOW-RS; see [`dicom::WebPeer`] (needs the default `dicomweb-client` feature) |
 //! | `database_url` | `CTRECON_DATABASE_URL` | none: SQLite in the data directory; `postgres://user@host:port/db` for a PostgreSQL job database shared by several processes |
 //! | `lease_secs` | `CTRECON_LEASE_SECS` | 30: a running job whose worker sent no heartbeat for this long goes back to the queue |
 //! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
@@ -233,6 +234,16 @@ impl Settings {
             "CTRECON_DICOM_AE_TITLE" => self.dicom.ae_title = v.trim().to_string(),
             "CTRECON_DICOM_HOST" => self.dicom.host = parsed(name, v)?,
             "CTRECON_DICOM_STABLE_AGE_SECS" => self.dicom.stable_age_secs = parsed(name, v)?,
+            "CTRECON_DICOM_WEB_PEERS" => {
+                self.dicom.web_peers = if v.trim().is_empty() {
+                    Vec::new()
+                } else {
+                    serde_json::from_str(v).map_err(|e| ConfigError::Env {
+                        name: name.to_string(),
+                        reason: format!("not a JSON array of web peers: {e}"),
+                    })?
+                }
+            }
             "CTRECON_RENDER_MAX_SIDE" => self.render_max_side = parsed(name, v)?,
             "CTRECON_DATABASE_URL" => {
                 self.database_url = Some(v.trim().to_string()).filter(|u| !u.is_empty())
@@ -393,12 +404,38 @@ mod tests {
                 "CTRECON_ALLOW_INSECURE" => "true",
                 "CTRECON_MU_WATER_PER_MM" => "0.02",
                 "CTRECON_DATA_DIR" | "CTRECON_LOG_FORMAT" | "CTRECON_SIMD" => "avx2",
-                n if n.ends_with("TOKENS") || n.ends_with("ORIGINS") || n.ends_with("SHA256") => "",
+                n if n.ends_with("TOKENS")
+                    || n.ends_with("ORIGINS")
+                    || n.ends_with("SHA256")
+                    || n.ends_with("WEB_PEERS") =>
+                {
+                    ""
+                }
                 _ => "1",
             };
             let r = Settings::load(None, env(&[(name, value)]));
             assert!(r.is_ok(), "{name}={value}: {:?}", r.err());
         }
+    }
+
+    #[test]
+    fn web_peers_come_from_the_environment_as_json_and_their_secrets_stay_out_of_debug() {
+        let s = Settings::load(
+            None,
+            env(&[(
+                "CTRECON_DICOM_WEB_PEERS",
+                r#"[{"name": "ARCHIVE", "url": "http://pacs:8042/dicom-web", "bearer_token": "tok-123"}]"#,
+            )]),
+        )
+        .unwrap();
+        let w = s.dicom.web_peer("ARCHIVE").unwrap();
+        assert_eq!(w.bearer_token.as_deref(), Some("tok-123"));
+        assert_eq!((w.timeout_secs, w.batch_instances), (600, 200));
+        assert!(!format!("{s:?}").contains("tok-123"));
+        assert!(s.dicom.is_destination("ARCHIVE") && !s.dicom.is_destination("OTHER"));
+        assert!(
+            Settings::load(None, env(&[("CTRECON_DICOM_WEB_PEERS", "{\"name\": 1}")])).is_err()
+        );
     }
 
     #[test]

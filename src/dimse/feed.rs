@@ -19,6 +19,8 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
     app.start_deliveries(std::sync::Arc::new(super::sender::ScuCaller::new(
         &app.settings.dicom,
     )));
+    // Derived results are indexed (QIDO-RS, WADO-RS) whether or not the node listens.
+    app.spawn_result_indexer();
     if app.settings.dicom.port.is_none() {
         return Ok(None);
     }
@@ -28,7 +30,6 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
         Some(app.clone()),
     )
     .await?;
-    app.spawn_result_indexer();
     let addr = node.local_addr();
     tokio::spawn(async move {
         while let Some(done) = node.next_completed().await {

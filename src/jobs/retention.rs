@@ -177,7 +177,9 @@ fn tree_bytes(dir: &Path) -> u64 {
         .sum()
 }
 
-/// The bytes the data directory holds, by kind: `datasets`, `series`, `results`, `uploads`.
-pub fn storage_bytes(store: &BlobStore) -> [(&'static str, u64); 4] {
-    ["datasets", "series", "results", "uploads"].map(|k| (k, tree_bytes(&store.root().join(k))))
+/// The bytes the data directory holds, by kind: `datasets`, `series`, `results`, `uploads`, `instances`
+/// (received instances kept in the instance index; a job's indexed results count under `results`).
+pub fn storage_bytes(store: &BlobStore) -> [(&'static str, u64); 5] {
+    ["datasets", "series", "results", "uploads", "instances"]
+        .map(|k| (k, tree_bytes(&store.root().join(k))))
 }

@@ -1,7 +1,7 @@
 //! Automatic processing rules: when a complete series matching [`SeriesMatch`] arrives, run a volume job
 //! (a named protocol or an explicit template of steps and products) and send its DICOM results to
-//! destinations (configured DIMSE peers). Model, validation, matching and the shipped protocols; the rules
-//! are stored by `repo` and fired by the application.
+//! destinations (configured DIMSE peers or DICOMweb origins). Model, validation, matching and the shipped
+//! protocols; the rules are stored by `repo` and fired by the application.
 //!
 //! Patterns (`modality`, `body_part`, `series_description`) are DICOM-style wildcards: `*` any run of
 //! characters, `?` one character, compared without regard to case.
@@ -249,7 +249,8 @@ impl RuleSpec {
         }
         if let Some(d) = self.destinations.iter().find(|d| !is_peer(d)) {
             return Err(RuleProblem::UnknownPeer(format!(
-                "destination {:?} is not a configured DICOM peer (`dicom.peers`)",
+                "destination {:?} is not a configured DICOM peer (`dicom.peers`) or DICOMweb origin \
+                 (`dicom.web_peers`)",
                 d.chars().take(80).collect::<String>()
             )));
         }

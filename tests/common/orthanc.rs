@@ -67,6 +67,30 @@ pub struct OrthancOptions {
     /// Load the DICOMweb plugin, with ctrecon's DICOMweb root (`http://…/dicom-web/`) as the server
     /// `ctrecon` and a bearer token for it.
     pub dicomweb: Option<(String, Option<String>)>,
+    /// Its HTTP port (0: a free one).
+    pub http_port: u16,
+    /// HTTP basic authentication on, with this one user (user name, password); the harness's own client
+    /// sends them.
+    pub user: Option<(String, String)>,
+}
+
+/// Base64 (RFC 4648, padded) of `bytes`, for a basic `Authorization` header.
+pub fn base64(bytes: &[u8]) -> String {
+    const A: &[u8; 64] = b"ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789+/";
+    let mut out = String::new();
+    for c in bytes.chunks(3) {
+        let n = (c[0] as u32) << 16
+            | (*c.get(1).unwrap_or(&0) as u32) << 8
+            | *c.get(2).unwrap_or(&0) as u32;
+        for k in 0..4 {
+            if k <= c.len() {
+                out.push(A[(n >> (18 - 6 * k) & 63) as usize] as char);
+            } else {
+                out.push('=');
+            }
+        }
+    }
+    out
 }
 
 pub const DICOMWEB_PLUGIN: &str = "/usr/share/orthanc/plugins/libOrthancDicomWeb.so";
@@ -90,7 +114,11 @@ pub fn orthanc_dicomweb_present() -> bool {
 impl Orthanc {
     pub async fn start(opts: OrthancOptions) -> Orthanc {
         let dir = tempfile::tempdir().expect("temp dir");
-        let http_port = free_port();
+        let http_port = if opts.http_port == 0 {
+            free_port()
+        } else {
+            opts.http_port
+        };
         let dicom_port = if opts.dicom_port == 0 {
             free_port()
         } else {
@@ -121,6 +149,15 @@ impl Orthanc {
                 "Servers": { "ctrecon": server },
             });
         }
+        let mut client = reqwest::Client::builder();
+        if let Some((user, password)) = &opts.user {
+            config["AuthenticationEnabled"] = json!(true);
+            config["RegisteredUsers"] = json!({ user: password });
+            let mut headers = reqwest::header::HeaderMap::new();
+            let basic = format!("Basic {}", base64(format!("{user}:{password}").as_bytes()));
+            headers.insert(reqwest::header::AUTHORIZATION, basic.parse().unwrap());
+            client = client.default_headers(headers);
+        }
         if let Some(lua) = &opts.lua {
             let path = t.join("script.lua");
             std::fs::write(&path, lua).expect("lua script");
@@ -144,7 +181,7 @@ impl Orthanc {
             http_port,
             dicom_port,
             ae_title: "ORTHANC".into(),
-            client: reqwest::Client::new(),
+            client: client.build().expect("a client"),
         };
         let deadline = Instant::now() + Duration::from_secs(30);
         loop {

@@ -86,6 +86,19 @@ struct Received {
 }
 
 /// Remove the temporary files of a request.
+/// Index the instances of recorded upload `id` (the upload stands whether or not they could be indexed;
+/// with a PostgreSQL job database there is no instance index).
+async fn index_upload(
+    st: &AppState,
+    id: UploadId,
+    kept: crate::app::instances::StagedInstances,
+    records: &[SeriesRecord],
+) {
+    if let Err(e) = st.index_staged(id, kept, records).await {
+        tracing::warn!(upload_id = %id, error = %e, "the upload's instances are not indexed");
+    }
+}
+
 async fn discard_received(files: Vec<Received>) {
     for f in files {
         f.file.temp.discard().await;
@@ -282,6 +295,20 @@ pub async fn post_series(
         Ok(Some(r)) => Ok(Err(r)),
         Err(e) => Err(e),
     };
+    // Kept aside for the instance index before the received files go; indexed once the upload is recorded.
+    let kept = match &outcome {
+        Ok(Ok((ingested, _))) if ingested.ready().next().is_some() => {
+            let on_disk: Vec<UploadFile> = files
+                .iter()
+                .map(|f| UploadFile {
+                    label: f.label.clone(),
+                    path: f.file.temp.path().to_path_buf(),
+                })
+                .collect();
+            st.stage_uploaded(&on_disk).await.ok()
+        }
+        _ => None,
+    };
     discard_received(files).await;
     let (ingested, staged) = match outcome? {
         Ok(done) => done,
@@ -298,6 +325,9 @@ pub async fn post_series(
     let recorded = record_upload(&st, id, (instances, bytes), &view, &records, key.as_ref()).await;
     if let Some(r) = commit_series(&st, staged, recorded).await? {
         return Ok(r);
+    }
+    if let Some(kept) = kept {
+        index_upload(&st, id, kept, &records).await;
     }
     st.fire_rules(&ingested, None).await;
     tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
@@ -524,7 +554,7 @@ pub async fn complete_upload(
         bytes += tokio::fs::metadata(&path).await?.len();
         files.push(UploadFile { label: name, path });
     }
-    let (ingested, staged) = st.ingest_files(id, files, q.uneven).await?;
+    let (ingested, staged) = st.ingest_files(id, files.clone(), q.uneven).await?;
     let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
     if records.is_empty() {
         // The upload stays open: a missing instance can still be appended.
@@ -545,6 +575,9 @@ pub async fn complete_upload(
         Err(e) => Err(e.into()),
     };
     commit_series(&st, staged, recorded).await?;
+    if let Ok(kept) = st.stage_uploaded(&files).await {
+        index_upload(&st, id, kept, &records).await;
+    }
     st.fire_rules(&ingested, None).await;
     let store = st.store.clone();
     let removed = tokio::task::spawn_blocking(move || store.remove_upload(id)).await;

@@ -1,0 +1,198 @@
+#!/usr/bin/env python3
+"""STOW-RS and WADO-RS of LIDC-IDRI-0001 into and out of ctrecon and Orthanc, side by side in one run.
+
+Each server runs on 127.0.0.1 with a fresh data directory of its own: a `ctrecon serve` (the binary in
+`--bin`, else `$CARGO_TARGET_DIR/release/ctrecon`, else `target/release/ctrecon`) and Orthanc with its
+DICOMweb plugin (Debian packages, `scripts/install-peers.sh orthanc`). The same
+`multipart/related; type="application/dicom"` body of the series' files (`.testdata/lidc/*.dcm`, 133
+instances, about 70 MB) is written to a file once and streamed from it to `POST /dicom-web/studies` of each;
+then the series comes back by WADO-RS (`GET /dicom-web/studies/{study}/series/{series}`, multipart, the
+answer read and thrown away as it streams). Printed per step: seconds, bytes, the server's peak resident
+memory so far (VmHWM from /proc) and the HTTP status. One run, not a timed test; no retries.
+
+    python3 benches/dicomweb_peers.py [--lidc .testdata/lidc] [--bin path/to/ctrecon]
+"""
+
+import argparse
+import glob
+import http.client
+import json
+import os
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+ROOT = os.path.dirname(HERE)
+ORTHANC = "/usr/sbin/Orthanc"
+PLUGIN = "/usr/share/orthanc/plugins/libOrthancDicomWeb.so"
+BOUNDARY = "ctrecon-bench-boundary"
+ARGS = None
+
+
+def ctrecon_bin():
+    if ARGS.bin:
+        return ARGS.bin
+    target = os.environ.get("CARGO_TARGET_DIR", os.path.join(ROOT, "target"))
+    return os.path.join(target, "release", "ctrecon")
+
+
+def free_port():
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def peak_rss_mb(pid):
+    with open(f"/proc/{pid}/status") as f:
+        for line in f:
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def wait_http(port, path, deadline_s=60):
+    t0 = time.time()
+    while time.time() - t0 < deadline_s:
+        try:
+            c = http.client.HTTPConnection("127.0.0.1", port, timeout=2)
+            c.request("GET", path)
+            if c.getresponse().status < 500:
+                return
+        except OSError:
+            pass
+        time.sleep(0.1)
+    raise SystemExit(f"nothing answers on port {port}")
+
+
+def write_body(files, path):
+    with open(path, "wb") as out:
+        for f in files:
+            out.write(f"--{BOUNDARY}\r\nContent-Type: application/dicom\r\n\r\n".encode())
+            with open(f, "rb") as src:
+                shutil.copyfileobj(src, out)
+            out.write(b"\r\n")
+        out.write(f"--{BOUNDARY}--\r\n".encode())
+    return os.path.getsize(path)
+
+
+def stow(port, body_path):
+    size = os.path.getsize(body_path)
+    c = http.client.HTTPConnection("127.0.0.1", port, timeout=600)
+    t0 = time.perf_counter()
+    with open(body_path, "rb") as body:
+        c.request("POST", "/dicom-web/studies", body=body, headers={
+            "Content-Type": f'multipart/related; type="application/dicom"; boundary={BOUNDARY}',
+            "Accept": "application/dicom+json",
+            "Content-Length": str(size),
+        })
+        r = c.getresponse()
+        answer = r.read()
+    dt = time.perf_counter() - t0
+    stored = 0
+    try:
+        stored = len(json.loads(answer).get("00081199", {}).get("Value", []))
+    except ValueError:
+        pass
+    return dt, size, r.status, stored
+
+
+def wado_series(port, study, series, accept):
+    c = http.client.HTTPConnection("127.0.0.1", port, timeout=600)
+    t0 = time.perf_counter()
+    c.request("GET", f"/dicom-web/studies/{study}/series/{series}", headers={"Accept": accept})
+    r = c.getresponse()
+    n = 0
+    while True:
+        chunk = r.read(1 << 20)
+        if not chunk:
+            break
+        n += len(chunk)
+    return time.perf_counter() - t0, n, r.status
+
+
+def series_of(port):
+    c = http.client.HTTPConnection("127.0.0.1", port, timeout=60)
+    c.request("GET", "/dicom-web/series?PatientID=LIDC-IDRI-0001", headers={"Accept": "application/dicom+json"})
+    v = json.loads(c.getresponse().read())
+    s = v[0]
+    return s["0020000D"]["Value"][0], s["0020000E"]["Value"][0]
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--lidc", default=os.path.join(ROOT, ".testdata", "lidc"))
+    ap.add_argument("--bin", help="the ctrecon binary (default: the release build)")
+    global ARGS
+    ARGS = args = ap.parse_args()
+    files = sorted(glob.glob(os.path.join(args.lidc, "*.dcm")))
+    if not files:
+        sys.exit(f"no .dcm files under {args.lidc} (scripts/fetch-test-data.sh)")
+    for need in (ctrecon_bin(), ORTHANC, PLUGIN):
+        if not os.path.exists(need):
+            sys.exit(f"missing {need}")
+    tmp = tempfile.mkdtemp(prefix="dicomweb-bench-")
+    procs = []
+    try:
+        body = os.path.join(tmp, "stow.body")
+        size = write_body(files, body)
+        print(f"LIDC-IDRI-0001: {len(files)} instances, body {size / 1e6:.1f} MB; load {open('/proc/loadavg').read().split()[0]}")
+
+        cport = free_port()
+        cdir = os.path.join(tmp, "ctrecon")
+        env = dict(os.environ, CTRECON_DATA_DIR=cdir, CTRECON_MAX_UPLOAD_BYTES=str(1 << 30),
+                   CTRECON_LOG_FORMAT="json", RUST_LOG="warn")
+        ctrecon = subprocess.Popen([ctrecon_bin(), "serve", "--bind", f"127.0.0.1:{cport}"], env=env,
+                                   stdout=subprocess.DEVNULL, stderr=open(os.path.join(tmp, "ctrecon.log"), "w"))
+        procs.append(ctrecon)
+
+        oport = free_port()
+        odir = os.path.join(tmp, "orthanc")
+        os.makedirs(os.path.join(odir, "logs"))
+        cfg = {"Name": "BENCH", "StorageDirectory": os.path.join(odir, "db"), "IndexDirectory": os.path.join(odir, "db"),
+               "HttpPort": oport, "RemoteAccessAllowed": False, "AuthenticationEnabled": False,
+               "DicomServerEnabled": False, "Plugins": [PLUGIN],
+               "DicomWeb": {"Enable": True, "Root": "/dicom-web/", "Host": f"127.0.0.1:{oport}", "Ssl": False}}
+        with open(os.path.join(odir, "orthanc.json"), "w") as f:
+            json.dump(cfg, f)
+        orthanc = subprocess.Popen([ORTHANC, f"--logdir={os.path.join(odir, 'logs')}", os.path.join(odir, "orthanc.json")],
+                                   env=dict(os.environ, TCP_NODELAY="1"),
+                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        procs.append(orthanc)
+        try:
+            wait_http(cport, "/healthz")
+        except SystemExit:
+            sys.stderr.write(open(os.path.join(tmp, "ctrecon.log")).read()[-2000:])
+            raise
+        wait_http(oport, "/system")
+
+        rows = []
+        for name, port, proc in (("ctrecon", cport, ctrecon), ("Orthanc", oport, orthanc)):
+            dt, n, status, stored = stow(port, body)
+            rows.append((name, "STOW-RS", dt, n, status, f"{stored} stored", peak_rss_mb(proc.pid)))
+        for name, port, proc, accept in (
+            ("ctrecon", cport, ctrecon, 'multipart/related; type="application/dicom"; transfer-syntax=*'),
+            ("Orthanc", oport, orthanc, 'multipart/related; type="application/dicom"'),
+        ):
+            study, series = series_of(port)
+            dt, n, status = wado_series(port, study, series, accept)
+            rows.append((name, "WADO-RS series", dt, n, status, "", peak_rss_mb(proc.pid)))
+        print(f"{'server':8} {'step':15} {'seconds':>8} {'MB':>7} {'MB/s':>7} {'status':>6} {'peak RSS MB':>11}  note")
+        for name, step, dt, n, status, note, rss in rows:
+            print(f"{name:8} {step:15} {dt:8.2f} {n / 1e6:7.1f} {n / 1e6 / dt:7.1f} {status:6d} {rss:11.0f}  {note}")
+    finally:
+        for p in procs:
+            p.terminate()
+        for p in procs:
+            try:
+                p.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                p.kill()
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
