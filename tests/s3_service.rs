@@ -264,7 +264,7 @@ async fn s3_an_api_and_two_workers_with_their_own_directories_share_datasets_and
         "ctrecon listening on ",
     );
     let client = common::attach(&a.base);
-    let mut workers = vec![
+    let mut workers = [
         Some(worker(w1_dir.path(), &url, &s3)),
         Some(worker(w2_dir.path(), &url, &s3)),
     ];
