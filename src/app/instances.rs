@@ -322,7 +322,9 @@ impl App {
         Ok(self
             .engine
             .compute(move || {
-                let bytes = std::fs::read(&volume_path)
+                let bytes = store
+                    .local(&volume_path)
+                    .and_then(std::fs::read)
                     .map_err(|e| storage("reading a job's volume failed", e))?;
                 let data = decode_f32(&bytes)
                     .ok()

@@ -177,7 +177,7 @@ impl App {
             ));
         }
         let store = self.store.clone();
-        tokio::task::spawn_blocking(move || store.remove_results(id))
+        tokio::task::spawn_blocking(move || store.delete_results(id))
             .await
             .map_err(std::io::Error::other)??;
         tracing::info!(job_id = %id, "job deleted");

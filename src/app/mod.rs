@@ -42,6 +42,8 @@ pub enum OpenError {
     Config(#[from] ConfigError),
     #[error("data directory: {0}")]
     DataDir(std::io::Error),
+    #[error("object storage: {0}")]
+    Storage(String),
     #[error("database: {0}")]
     Db(#[from] DbError),
     #[error("engine: {0}")]
@@ -85,6 +87,11 @@ impl App {
             .await
             .map_err(|e| OpenError::DataDir(std::io::Error::other(e)))?
             .map_err(OpenError::DataDir)?;
+        // Checked before anything is swept or claimed: a store that cannot be reached takes no job.
+        let store = match &settings.storage.url {
+            None => store,
+            Some(url) => store.with_mirror(open_object_storage(&settings, url).await?),
+        };
         let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
         tracing::info!(?swept, "blob files paired with their rows");
         let retention = Retention::from_secs(
@@ -147,4 +154,50 @@ impl App {
             shutdown,
         );
     }
+}
+
+/// The object store of `storage.url`, checked: reachable, the bucket there, the credentials accepted.
+#[cfg(feature = "s3")]
+async fn open_object_storage(
+    settings: &Settings,
+    url: &str,
+) -> Result<crate::storage::mirror::Mirror, OpenError> {
+    use crate::storage::object::{ObjectBlobs, S3Location};
+    let s = &settings.storage;
+    let mut location = S3Location::parse(url).map_err(OpenError::Storage)?;
+    location.endpoint = s.endpoint.clone();
+    location.region = s.region.clone();
+    location.access_key_id = s.access_key_id.clone();
+    location.secret_access_key = s.secret_access_key.clone();
+    let blobs = ObjectBlobs::s3(&location, &settings.data_dir.join("tmp"))
+        .map_err(|e| OpenError::Storage(format!("{url}: {e}")))?;
+    if let Err(e) = blobs.check().await {
+        let hint = match e.kind() {
+            std::io::ErrorKind::PermissionDenied => {
+                "the server refused the credentials (storage.access_key_id / storage.secret_access_key \
+                 or AWS_ACCESS_KEY_ID / AWS_SECRET_ACCESS_KEY)"
+            }
+            std::io::ErrorKind::NotFound => "the bucket does not exist",
+            _ => {
+                "the server could not be used (storage.endpoint or AWS_ENDPOINT_URL, the bucket, the credentials)"
+            }
+        };
+        return Err(OpenError::Storage(format!("{url}: {hint}: {e}")));
+    }
+    tracing::info!(url, endpoint = ?location.endpoint, "datasets, series and results kept in object storage");
+    Ok(crate::storage::mirror::Mirror::new(
+        std::sync::Arc::new(blobs),
+        tokio::runtime::Handle::current(),
+        url,
+    ))
+}
+
+#[cfg(not(feature = "s3"))]
+async fn open_object_storage(
+    _settings: &Settings,
+    url: &str,
+) -> Result<crate::storage::mirror::Mirror, OpenError> {
+    Err(OpenError::Storage(format!(
+        "{url}: this build has no object storage (the `s3` cargo feature is off)"
+    )))
 }

@@ -38,6 +38,10 @@
 //! | `database_url` | `CTRECON_DATABASE_URL` | none: SQLite in the data directory; `postgres://user@host:port/db` for a PostgreSQL job database shared by several processes |
 //! | `lease_secs` | `CTRECON_LEASE_SECS` | 30: a running job whose worker sent no heartbeat for this long goes back to the queue |
 //! | `render_max_side` | `CTRECON_RENDER_MAX_SIDE` | 2048: largest side (pixels) of a volume or surface rendering |
+//! | `storage.url` | `CTRECON_STORAGE_URL` | none: blobs in the data directory only; `s3://bucket/prefix` keeps datasets, series and results in S3-compatible object storage (the data directory is then a cache) |
+//! | `storage.endpoint` | `CTRECON_STORAGE_ENDPOINT` | none: AWS (or `AWS_ENDPOINT_URL`); `http://host:port` for a self-hosted server, addressed path-style |
+//! | `storage.region` | `CTRECON_STORAGE_REGION` | none: `AWS_REGION` / `AWS_DEFAULT_REGION`, else `us-east-1` |
+//! | `storage.access_key_id`, `storage.secret_access_key` | — | none: `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY` (and, on AWS, the instance's role) |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -102,6 +106,36 @@ pub struct Settings {
     pub database_url: Option<String>,
     /// Seconds a claim holds a running job without a heartbeat.
     pub lease_secs: u64,
+    /// Object storage for datasets, series and results (off unless `storage.url` is set).
+    pub storage: StorageSettings,
+}
+
+/// Where datasets, series and results live durably besides the data directory.
+#[derive(Clone, Default, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct StorageSettings {
+    /// `s3://bucket[/prefix]`; `None` keeps everything in the data directory.
+    pub url: Option<String>,
+    /// A self-hosted server (`http://127.0.0.1:9000`), addressed path-style.
+    pub endpoint: Option<String>,
+    pub region: Option<String>,
+    pub access_key_id: Option<String>,
+    pub secret_access_key: Option<String>,
+}
+
+impl std::fmt::Debug for StorageSettings {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("StorageSettings")
+            .field("url", &self.url)
+            .field("endpoint", &self.endpoint)
+            .field("region", &self.region)
+            .field("access_key_id", &self.access_key_id)
+            .field(
+                "secret_access_key",
+                &self.secret_access_key.as_ref().map(|_| "<redacted>"),
+            )
+            .finish()
+    }
 }
 
 impl Default for Settings {
@@ -135,6 +169,7 @@ impl Default for Settings {
             render_max_side: 2048,
             database_url: None,
             lease_secs: 30,
+            storage: StorageSettings::default(),
         }
     }
 }
@@ -249,6 +284,15 @@ impl Settings {
                 self.database_url = Some(v.trim().to_string()).filter(|u| !u.is_empty())
             }
             "CTRECON_LEASE_SECS" => self.lease_secs = parsed(name, v)?,
+            "CTRECON_STORAGE_URL" => {
+                self.storage.url = Some(v.trim().to_string()).filter(|u| !u.is_empty())
+            }
+            "CTRECON_STORAGE_ENDPOINT" => {
+                self.storage.endpoint = Some(v.trim().to_string()).filter(|u| !u.is_empty())
+            }
+            "CTRECON_STORAGE_REGION" => {
+                self.storage.region = Some(v.trim().to_string()).filter(|u| !u.is_empty())
+            }
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -308,6 +352,19 @@ impl Settings {
                 "database_url",
                 "must be a postgres:// URL (leave it out for SQLite in the data directory)",
             );
+        }
+        if let Some(url) = &self.storage.url
+            && !url.starts_with("s3://")
+        {
+            return invalid(
+                "storage.url",
+                "must be an s3://bucket/prefix URL (leave it out to keep blobs in the data directory)",
+            );
+        }
+        if let Some(e) = &self.storage.endpoint
+            && !(e.starts_with("http://") || e.starts_with("https://"))
+        {
+            return invalid("storage.endpoint", "must be an http:// or https:// URL");
         }
         if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
             return invalid("timeouts", "must be positive");

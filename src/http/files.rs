@@ -11,6 +11,7 @@ use tokio_util::io::ReaderStream;
 
 use super::problem::{ApiResult, api_error};
 use crate::error_code::ErrorCode;
+use crate::storage::BlobStore;
 
 /// A file to serve and how to describe it.
 pub struct FileMeta {
@@ -121,13 +122,47 @@ pub fn serve_bytes(
 
 /// Serve `meta` answering the conditional and range headers of `req`.
 pub async fn serve_file(req: &HeaderMap, meta: FileMeta) -> ApiResult<Response> {
+    serve_from(req, meta, None).await
+}
+
+/// Serve a stored blob (a result, a series volume): the local file, or, where this host has no copy of it
+/// and object storage holds it, the object with the range asked for read straight from the store.
+pub async fn serve_stored(
+    req: &HeaderMap,
+    store: &BlobStore,
+    meta: FileMeta,
+) -> ApiResult<Response> {
+    serve_from(req, meta, Some(store)).await
+}
+
+/// Where the bytes come from: an open local file, or the object behind the path.
+enum Source<'a> {
+    File(tokio::fs::File),
+    Object(&'a BlobStore),
+}
+
+async fn serve_from(
+    req: &HeaderMap,
+    meta: FileMeta,
+    store: Option<&BlobStore>,
+) -> ApiResult<Response> {
     let quoted = format!("\"{}\"", meta.etag);
     let mut builder = match conditional(req, &quoted)? {
         Ok(b) => b.header(header::ACCEPT_RANGES, "bytes"),
         Err(not_modified) => return Ok(not_modified),
     };
-    let mut file = tokio::fs::File::open(&meta.path).await?;
-    let len = file.metadata().await?.len();
+    let object = match store {
+        Some(s) => s.object_meta(&meta.path).await?.map(|m| (s, m.size)),
+        None => None,
+    };
+    let (source, len) = match object {
+        Some((s, size)) => (Source::Object(s), size),
+        None => {
+            let file = tokio::fs::File::open(&meta.path).await?;
+            let len = file.metadata().await?.len();
+            (Source::File(file), len)
+        }
+    };
     let if_range_ok = req
         .get(header::IF_RANGE)
         .and_then(|v| v.to_str().ok())
@@ -154,13 +189,27 @@ pub async fn serve_file(req: &HeaderMap, meta: FileMeta) -> ApiResult<Response> 
                 .insert(header::CONTENT_RANGE, hv(&format!("bytes */{len}")));
             return Ok(r);
         }
-        ByteRange::Full => builder
-            .status(StatusCode::OK)
-            .header(header::CONTENT_LENGTH, len)
-            .body(Body::from_stream(ReaderStream::new(file))),
+        ByteRange::Full => {
+            let body = match source {
+                Source::File(file) => Body::from_stream(ReaderStream::new(file)),
+                Source::Object(s) => Body::from_stream(s.object_get(&meta.path, None).await?),
+            };
+            builder
+                .status(StatusCode::OK)
+                .header(header::CONTENT_LENGTH, len)
+                .body(body)
+        }
         ByteRange::Part(start, end) => {
-            file.seek(std::io::SeekFrom::Start(start)).await?;
             let n = end - start + 1;
+            let body = match source {
+                Source::File(mut file) => {
+                    file.seek(std::io::SeekFrom::Start(start)).await?;
+                    Body::from_stream(ReaderStream::new(file.take(n)))
+                }
+                Source::Object(s) => {
+                    Body::from_stream(s.object_get(&meta.path, Some(start..end + 1)).await?)
+                }
+            };
             builder
                 .status(StatusCode::PARTIAL_CONTENT)
                 .header(header::CONTENT_LENGTH, n)
@@ -168,7 +217,7 @@ pub async fn serve_file(req: &HeaderMap, meta: FileMeta) -> ApiResult<Response> 
                     header::CONTENT_RANGE,
                     hv(&format!("bytes {start}-{end}/{len}")),
                 )
-                .body(Body::from_stream(ReaderStream::new(file.take(n))))
+                .body(body)
         }
     };
     response.map_err(|_| api_error(ErrorCode::Internal, "building a response"))

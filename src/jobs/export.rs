@@ -102,19 +102,23 @@ pub fn export_job(
             901 + p.index as i32,
         );
         let ext = if p.is_mesh() { "stl" } else { "npy" };
-        let bytes = std::fs::read(store.result_path(
-            job,
-            &ResultName::Product {
-                index: p.index,
-                ext,
-            },
-        ))
-        .map_err(io_problem)?;
+        let bytes = store
+            .local(&store.result_path(
+                job,
+                &ResultName::Product {
+                    index: p.index,
+                    ext,
+                },
+            ))
+            .and_then(std::fs::read)
+            .map_err(io_problem)?;
         export_product(&mut out, &bytes, p, &m, &ctx, opts)?;
     }
     if opts.send_volume || result.products.is_empty() {
-        let bytes =
-            std::fs::read(store.result_path(job, &ResultName::Volume)).map_err(io_problem)?;
+        let bytes = store
+            .local(&store.result_path(job, &ResultName::Volume))
+            .and_then(std::fs::read)
+            .map_err(io_problem)?;
         let m = meta(
             source,
             "volume",

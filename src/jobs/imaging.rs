@@ -504,8 +504,10 @@ pub fn execute_volume(
 ) -> Result<JobResult, RunError> {
     ctl.step("loading", 0.0);
     let plan = plan(req, input.shape, budget_bytes).map_err(RunError::Failed)?;
-    let bytes =
-        std::fs::read(&input.path).map_err(|e| io_failure("reading the input volume", e))?;
+    let bytes = store
+        .local(&input.path)
+        .and_then(std::fs::read)
+        .map_err(|e| io_failure("reading the input volume", e))?;
     let data = decode_f32(&bytes)
         .ok()
         .and_then(|a| a.into_dimensionality::<Ix3>().ok())

@@ -55,13 +55,6 @@ pub struct Swept {
     pub uploads: usize,
 }
 
-fn remove_file(path: &Path) -> io::Result<()> {
-    match fs::remove_file(path) {
-        Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
-        _ => Ok(()),
-    }
-}
-
 /// Remove what has aged out under `retention`, now.
 pub async fn sweep(
     db: &Database,
@@ -100,13 +93,13 @@ pub async fn sweep(
             }
         };
         for id in jobs {
-            check(store.remove_results(id));
+            check(store.delete_results(id));
         }
         for id in datasets {
-            check(remove_file(&store.dataset_path(id)));
+            check(store.remove_blob(&store.dataset_path(id)));
         }
         for id in series {
-            check(remove_file(&store.series_path(id)));
+            check(store.remove_blob(&store.series_path(id)));
         }
         for id in uploads {
             check(store.remove_upload(id));

@@ -111,7 +111,9 @@ pub fn execute(
     ctl: Control<'_>,
 ) -> Result<JobResult, RunError> {
     ctl.step("loading", 0.0);
-    let bytes = std::fs::read(store.dataset_path(dataset.id))
+    let bytes = store
+        .local(&store.dataset_path(dataset.id))
+        .and_then(std::fs::read)
         .map_err(|e| io_failure("reading the dataset", e))?;
     let data = decode_f32(&bytes)
         .map_err(|e| RunError::Failed(Problem::new(ErrorCode::MalformedNpy, e.to_string())))?;

@@ -12,8 +12,13 @@
 //!   flushed to disk and then renamed into place, so a file under `datasets/` or `results/` is always
 //!   complete. A blob that has a database row is renamed into place only after its row is committed.
 //!   `tmp/` is emptied at start (in a directory shared by several processes, of what lay idle for an hour).
+//!
+//! With object storage (`storage.url = "s3://…"`, see [`mirror`]) the durable copy of `datasets/`, `series/`
+//! and `results/` is the object under the same key, put before the local rename; the data directory is then a
+//! cache that readers fill on a miss ([`BlobStore::local`], [`BlobStore::fetch`]).
 
 pub mod ids;
+pub mod mirror;
 pub mod npy;
 #[cfg(feature = "s3")]
 pub mod object;
@@ -58,10 +63,12 @@ pub enum InstanceOwner {
     Job(JobId),
 }
 
-/// The local blob store rooted at the data directory.
+/// The local blob store rooted at the data directory, with the object store that holds the durable copies
+/// of its blobs when one is configured.
 #[derive(Debug, Clone)]
 pub struct BlobStore {
     root: PathBuf,
+    mirror: Option<mirror::Mirror>,
 }
 
 /// A file being written under `tmp/`; removed on drop unless committed.
@@ -183,6 +190,7 @@ impl BlobStore {
         }
         Ok(Self {
             root: root.to_path_buf(),
+            mirror: None,
         })
     }
 
@@ -294,8 +302,18 @@ impl BlobStore {
         }
     }
 
-    /// Move a fully written and synced temporary file to `dest` (atomic on one file system).
-    pub fn commit(&self, mut temp: TempBlob, dest: &Path) -> io::Result<()> {
+    /// Move a fully written and synced temporary file to `dest` (atomic on one file system). With object
+    /// storage a durable blob is first put to its object (complete or absent there too), so a local file
+    /// always has its object; blocking, so call it off the async runtime ([`commit_async`](Self::commit_async)).
+    pub fn commit(&self, temp: TempBlob, dest: &Path) -> io::Result<()> {
+        if let Some((mirror, key)) = self.mirrored(dest) {
+            mirror.put_file(&key, temp.path())?;
+        }
+        self.commit_local(temp, dest)
+    }
+
+    /// Move a temporary file to `dest` in the data directory only.
+    fn commit_local(&self, mut temp: TempBlob, dest: &Path) -> io::Result<()> {
         if let Some(parent) = dest.parent() {
             fs::create_dir_all(parent)?;
         }
@@ -313,7 +331,8 @@ impl BlobStore {
         self.commit(temp, dest)
     }
 
-    /// Remove a job's results (missing is fine).
+    /// Remove a job's results from the data directory (missing is fine); the objects stay (see
+    /// [`delete_results`](Self::delete_results)).
     pub fn remove_results(&self, id: JobId) -> io::Result<()> {
         match fs::remove_dir_all(self.result_dir(id)) {
             Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),

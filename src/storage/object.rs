@@ -16,6 +16,7 @@ use std::io;
 use std::ops::Range;
 use std::path::{Path as FsPath, PathBuf};
 use std::sync::Arc;
+use std::time::Duration;
 
 use futures_util::FutureExt;
 use futures_util::future::BoxFuture;
@@ -23,7 +24,8 @@ use futures_util::stream::{StreamExt, TryStreamExt};
 use object_store::aws::AmazonS3Builder;
 use object_store::path::Path;
 use object_store::{
-    GetOptions, GetRange, ObjectMeta, ObjectStore, ObjectStoreExt, PutPayload, WriteMultipart,
+    ClientOptions, GetOptions, GetRange, ObjectMeta, ObjectStore, ObjectStoreExt, PutPayload,
+    RetryConfig, WriteMultipart,
 };
 use sha2::{Digest, Sha256};
 use tokio::io::AsyncWriteExt;
@@ -36,6 +38,22 @@ pub const SINGLE_PUT_MAX: usize = 8 << 20;
 pub const PART_SIZE: usize = 8 << 20;
 /// Parts in flight at once during a multipart upload.
 const PARTS_IN_FLIGHT: usize = 4;
+/// How long a request is retried against a server that fails or does not answer.
+pub const GIVE_UP: Duration = Duration::from_secs(15);
+/// How long connecting to the server may take.
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(5);
+
+/// The `AWS_*` variables the S3 adapter reads (a deployment's environment names only these).
+pub const AWS_VARIABLES: &[&str] = &[
+    "AWS_ACCESS_KEY_ID",
+    "AWS_SECRET_ACCESS_KEY",
+    "AWS_SESSION_TOKEN",
+    "AWS_REGION",
+    "AWS_DEFAULT_REGION",
+    "AWS_ENDPOINT_URL",
+    "AWS_ENDPOINT",
+    "AWS_ALLOW_HTTP",
+];
 
 /// Where and how to reach an S3-compatible server.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -119,10 +137,24 @@ impl ObjectBlobs {
         })
     }
 
-    /// An adapter over an S3-compatible server.
+    /// An adapter over an S3-compatible server. What `location` leaves out comes from the `AWS_*`
+    /// variables (`AWS_ENDPOINT_URL`, `AWS_REGION`, `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, …). A
+    /// server that does not answer fails a request within about [`GIVE_UP`], not after minutes of retries.
     pub fn s3(location: &S3Location, cache: &FsPath) -> io::Result<Self> {
-        let mut builder = AmazonS3Builder::from_env().with_bucket_name(&location.bucket);
-        if let Some(endpoint) = &location.endpoint {
+        let mut builder = AmazonS3Builder::from_env()
+            .with_bucket_name(&location.bucket)
+            .with_retry(RetryConfig {
+                max_retries: 3,
+                retry_timeout: GIVE_UP,
+                ..RetryConfig::default()
+            })
+            .with_client_options(ClientOptions::new().with_connect_timeout(CONNECT_TIMEOUT));
+        let endpoint = location.endpoint.clone().or_else(|| {
+            ["AWS_ENDPOINT_URL", "AWS_ENDPOINT"]
+                .iter()
+                .find_map(|v| std::env::var(v).ok().filter(|e| !e.is_empty()))
+        });
+        if let Some(endpoint) = &endpoint {
             builder = builder
                 .with_endpoint(endpoint)
                 .with_allow_http(endpoint.starts_with("http://"))
@@ -174,7 +206,24 @@ impl ObjectBlobs {
             .list_with_delimiter(prefix.as_ref())
             .await
             .map(|_| ())
-            .map_err(to_io)
+            .map_err(|e| {
+                // Servers answer these as plain 403/404 statuses, which the client reports as generic.
+                let text = e.to_string();
+                let any = |codes: &[&str]| codes.iter().any(|c| text.contains(c));
+                let kind = if any(&[
+                    "SignatureDoesNotMatch",
+                    "InvalidAccessKeyId",
+                    "AccessDenied",
+                    "403 Forbidden",
+                ]) {
+                    io::ErrorKind::PermissionDenied
+                } else if any(&["NoSuchBucket", "404 Not Found"]) {
+                    io::ErrorKind::NotFound
+                } else {
+                    to_io(e).kind()
+                };
+                io::Error::new(kind, text)
+            })
     }
 
     async fn put_stream(&self, key: &BlobKey, mut body: ByteStream) -> io::Result<BlobMeta> {

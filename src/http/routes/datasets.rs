@@ -25,7 +25,7 @@ use crate::jobs::{Dataset, DatasetKind, IdempotencyKey, Inserted, SimulationRequ
 use crate::recon::geometry::Geometry;
 use crate::storage::npy::{StreamLimits, encode_f32, hex};
 use crate::storage::sweep::BlobKind;
-use crate::storage::{BlobStore, DatasetId, TempBlob};
+use crate::storage::{DatasetId, TempBlob};
 
 const ROUTE_SIMULATIONS: &str = "POST /v1/simulations";
 const ROUTE_SINOGRAMS: &str = "POST /v1/sinograms";
@@ -373,7 +373,7 @@ pub async fn delete_dataset(
     match st.db.delete_dataset(id).await? {
         Deleted::Done => {
             // A crash before this removal leaves an orphan file, which the start-up sweep removes.
-            if let Err(e) = BlobStore::remove_file(&st.store.dataset_path(id)).await {
+            if let Err(e) = st.store.remove_blob_async(&st.store.dataset_path(id)).await {
                 tracing::warn!(error = %e, dataset_id = %id, "removing a deleted dataset's file failed");
             }
             tracing::info!(dataset_id = %id, "dataset deleted");

@@ -10,7 +10,7 @@ use sha2::{Digest, Sha256};
 
 use super::super::AppState;
 use super::super::extract::{ApiQuery, job_id};
-use super::super::files::{FileMeta, serve_bytes, serve_file};
+use super::super::files::{FileMeta, serve_bytes, serve_file, serve_stored};
 use super::super::problem::{ApiResult, api_error};
 use crate::dicom::SeriesMeta;
 use crate::error_code::{ErrorCode, Problem};
@@ -48,8 +48,9 @@ pub async fn volume(
 ) -> ApiResult<Response> {
     let id = job_id(&id)?;
     let r = result_of(&st, id).await?;
-    serve_file(
+    serve_stored(
         &headers,
+        &st.store,
         FileMeta {
             path: st.store.result_path(id, &ResultName::Volume),
             etag: r.volume.sha256,
@@ -141,7 +142,7 @@ where
                 tracing::error!(error = %e, "rendering a result failed");
                 Problem::internal()
             };
-            let bytes = std::fs::read(&source).map_err(io)?;
+            let bytes = store.local(&source).and_then(std::fs::read).map_err(io)?;
             let out = make(&bytes, &ctx)?;
             store.write_atomic(&dest, &out).map_err(io)
         })
@@ -233,8 +234,9 @@ pub async fn product(
     );
     let (ext, content_type) = format.media();
     if matches!(format, ProductFormat::Npy | ProductFormat::Stl) {
-        return serve_file(
+        return serve_stored(
             &headers,
+            &st.store,
             FileMeta {
                 path: stored,
                 etag: p.file.sha256,

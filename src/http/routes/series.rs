@@ -19,7 +19,7 @@ use sha2::{Digest, Sha256};
 
 use super::super::AppState;
 use super::super::extract::{ApiQuery, idempotency_key, media_type};
-use super::super::files::{FileMeta, serve_file};
+use super::super::files::{FileMeta, serve_stored};
 use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{Spooled, paced, spool, too_large};
 use crate::app::Replay;
@@ -35,7 +35,7 @@ use crate::jobs::{Appended, Completed, IdempotencyKey, SeriesRecord, UploadRecor
 use crate::series::UnevenPolicy;
 use crate::storage::npy::hex;
 use crate::storage::sweep::BlobKind;
-use crate::storage::{BlobStore, SeriesId, UploadId};
+use crate::storage::{SeriesId, UploadId};
 
 /// Query of `POST /v1/series` and `POST /v1/uploads/{id}/complete`.
 #[derive(Debug, Deserialize)]
@@ -632,7 +632,7 @@ pub async fn delete_series(
     match st.db.delete_series(id).await? {
         Deleted::Done => {
             // A crash before this removal leaves an orphan file, which the start-up sweep removes.
-            if let Err(e) = BlobStore::remove_file(&st.store.series_path(id)).await {
+            if let Err(e) = st.store.remove_blob_async(&st.store.series_path(id)).await {
                 tracing::warn!(error = %e, series_id = %id, "removing a deleted series' volume failed");
             }
             // Its indexed instances went with its row; their folder goes once no row names it.
@@ -660,8 +660,9 @@ pub async fn series_volume(
 ) -> ApiResult<Response> {
     let r = load_series(&st, &id).await?;
     check_available(&st, r.id).await?;
-    serve_file(
+    serve_stored(
         &headers,
+        &st.store,
         FileMeta {
             path: st.store.series_path(r.id),
             etag: r.volume.sha256,

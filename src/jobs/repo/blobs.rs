@@ -193,8 +193,10 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
                     _ => DatasetId::parse(id).map(|i| store.dataset_path(i)),
                 };
                 // A row inserted after the listing may have its file by now.
+                // With object storage the data directory is a cache: the object decides (an
+                // unanswered request counts as there).
                 if let Ok(p) = path
-                    && tokio::fs::try_exists(&p).await.unwrap_or(false)
+                    && store.exists(&p).await.unwrap_or(true)
                 {
                     continue;
                 }
