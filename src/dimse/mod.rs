@@ -13,7 +13,7 @@
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
 //! - [`node`]: the listener; [`association`]: one association; [`query`]: C-FIND and C-MOVE over the
 //!   application's instance index; [`scu`]: ctrecon calling a peer; [`pull`]: ctrecon querying and
-//!   retrieving from a peer.
+//!   retrieving from a peer; [`puller`]: a volume job's series pulled from a PACS through them.
 
 pub mod association;
 pub mod command;
@@ -21,6 +21,7 @@ pub mod feed;
 pub mod inbox;
 pub mod node;
 pub mod pull;
+pub mod puller;
 pub mod query;
 pub mod scu;
 pub mod sender;
