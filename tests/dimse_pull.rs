@@ -471,3 +471,191 @@ async fn the_readme_pull_example_runs_as_written_against_orthanc() {
         .unwrap();
     assert_eq!(s["series_uid"], uid.as_str(), "{s}");
 }
+
+fn dcmtk_present() -> bool {
+    let ok = ["findscu", "movescu", "storescu", "storescp"]
+        .iter()
+        .all(|t| {
+            std::process::Command::new(t)
+                .arg("--version")
+                .output()
+                .is_ok()
+        });
+    if !ok {
+        assert!(
+            std::env::var("CTRECON_REQUIRE_PEERS").as_deref() != Ok("1"),
+            "DCMTK (findscu, movescu, storescu, storescp) is missing and CTRECON_REQUIRE_PEERS=1"
+        );
+        eprintln!("skipped: DCMTK is not installed (apt-get install dcmtk)");
+    }
+    ok
+}
+
+/// A DCMTK tool run to its end (TCP_NODELAY set, as PEERS.md advises), in `cwd` when given.
+async fn run(tool: &str, args: &[String], cwd: Option<&Path>) -> std::process::Output {
+    let (tool, args, cwd) = (tool.to_string(), args.to_vec(), cwd.map(Path::to_path_buf));
+    tokio::task::spawn_blocking(move || {
+        let mut c = std::process::Command::new(tool);
+        c.args(args).env("TCP_NODELAY", "1");
+        if let Some(d) = cwd {
+            c.current_dir(d);
+        }
+        c.output().unwrap()
+    })
+    .await
+    .unwrap()
+}
+
+fn strings(list: &[&str]) -> Vec<String> {
+    list.iter().map(|s| s.to_string()).collect()
+}
+
+fn text(o: &std::process::Output) -> String {
+    format!(
+        "{}{}",
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr)
+    )
+}
+
+/// A child process killed when dropped.
+struct Running(std::process::Child);
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}
+
+/// `storescp` as `DEST` on `port`, writing into `dir`, with extra `options`.
+fn storescp(port: u16, dir: &Path, options: &[String]) -> Running {
+    let mut a = strings(&["--aetitle", "DEST", "--output-directory"]);
+    a.push(dir.to_string_lossy().into_owned());
+    a.extend(options.iter().cloned());
+    a.push(port.to_string());
+    Running(
+        std::process::Command::new("storescp")
+            .args(a)
+            .env("TCP_NODELAY", "1")
+            .spawn()
+            .unwrap(),
+    )
+}
+
+/// `findscu` (Study Root) at IMAGE level for `series_uid` with extra `options`: its output and the number of
+/// match responses it received (each extracted to a file).
+async fn find_images(
+    node_port: u16,
+    series_uid: &str,
+    options: &[&str],
+) -> (std::process::Output, usize) {
+    let out_dir = tempfile::tempdir().unwrap();
+    let mut a = strings(&["-S", "-v", "-X", "-aet", "TESTSCU", "-aec", "CTRECON"]);
+    a.extend(strings(options));
+    for k in [
+        "QueryRetrieveLevel=IMAGE".to_string(),
+        format!("SeriesInstanceUID={series_uid}"),
+        "SOPInstanceUID".to_string(),
+    ] {
+        a.push("-k".into());
+        a.push(k);
+    }
+    a.extend(strings(&["127.0.0.1", &node_port.to_string()]));
+    let out = run("findscu", &a, Some(out_dir.path())).await;
+    (out, files_in(out_dir.path()))
+}
+
+/// Whether a DCMTK tool's output reports a final response with status Cancel (FE00).
+fn says_canceled(o: &std::process::Output) -> bool {
+    text(o).lines().any(|l| {
+        let l = l.to_lowercase();
+        (l.contains("final") || l.contains("status"))
+            && (l.contains("cancel") || l.contains("fe00"))
+    })
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_c_cancel_stops_a_c_find_and_a_c_move_in_progress_with_the_counts_so_far() {
+    if !dcmtk_present() {
+        return;
+    }
+    let n = 300;
+    let src = tempfile::tempdir().unwrap();
+    let (uid, _) = synthetic(src.path(), n);
+    let node_port = free_port();
+    let dest_port = free_port();
+    let app = ctrecon(
+        node_port,
+        vec![
+            peer("TESTSCU", 1, true, true),
+            peer("DEST", dest_port, true, true),
+        ],
+    )
+    .await;
+    let sent = run(
+        "storescu",
+        &strings(&[
+            "-aet",
+            "TESTSCU",
+            "-aec",
+            "CTRECON",
+            "+sd",
+            "127.0.0.1",
+            &node_port.to_string(),
+            &src.path().to_string_lossy(),
+        ]),
+        None,
+    )
+    .await;
+    assert!(sent.status.success(), "{}", text(&sent));
+    // The series is assembled and indexed once its stable age passed.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    loop {
+        let (_, found) = find_images(node_port, &uid, &[]).await;
+        if found == n {
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{found} of {n} instances indexed"
+        );
+        tokio::time::sleep(Duration::from_millis(250)).await;
+    }
+
+    // C-FIND: findscu cancels after the first match; the node stops and answers Cancel.
+    let (out, found) = find_images(node_port, &uid, &["--cancel", "1"]).await;
+    assert!(says_canceled(&out), "{}", text(&out));
+    assert!(
+        (1..n).contains(&found),
+        "{found} matches of {n} before the cancel took effect"
+    );
+
+    // C-MOVE: movescu cancels after the first pending response; the node stops sending to DEST.
+    let received = tempfile::tempdir().unwrap();
+    let _dest = storescp(dest_port, received.path(), &[]);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let mut a = strings(&[
+        "-S", "-v", "-aet", "TESTSCU", "-aem", "DEST", "-aec", "CTRECON", "--cancel", "1",
+    ]);
+    for k in [
+        "QueryRetrieveLevel=SERIES".to_string(),
+        format!("SeriesInstanceUID={uid}"),
+    ] {
+        a.push("-k".into());
+        a.push(k);
+    }
+    a.extend(strings(&["127.0.0.1", &node_port.to_string()]));
+    let out = run("movescu", &a, None).await;
+    assert!(says_canceled(&out), "{}", text(&out));
+    let stored = files_in(received.path());
+    assert!(
+        (1..n).contains(&stored),
+        "{stored} instances of {n} moved before the cancel took effect"
+    );
+
+    // The node is still there and answers the whole series again.
+    let (_, found) = find_images(node_port, &uid, &[]).await;
+    assert_eq!(found, n);
+    drop(app);
+}

@@ -207,6 +207,8 @@ pub struct StoreOptions {
     pub move_originator: Option<(String, u16)>,
     /// Receives each file's outcome as soon as it is known.
     pub progress: Option<tokio::sync::mpsc::UnboundedSender<StoreOutcome>>,
+    /// Once set, no further file is sent (the association is released; the files not sent have no outcome).
+    pub cancel: Option<crate::recon::control::Cancel>,
 }
 
 /// [`store`] with options.
@@ -250,6 +252,9 @@ pub async fn store_with(
     }
     let mut assoc = associate(caller, peer, &contexts).await?;
     for (i, (file, meta)) in files.iter().zip(metas).enumerate() {
+        if options.cancel.as_ref().is_some_and(|c| c.is_canceled()) {
+            break;
+        }
         let meta = match meta {
             Ok(m) => m,
             Err(reason) => {
