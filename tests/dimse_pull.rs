@@ -659,3 +659,131 @@ async fn a_c_cancel_stops_a_c_find_and_a_c_move_in_progress_with_the_counts_so_f
     assert_eq!(found, n);
     drop(app);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn a_peer_that_accepts_only_ct_in_implicit_vr_gets_the_ct_re_encoded_and_the_rest_fails_per_instance()
+ {
+    if !dcmtk_present() {
+        return;
+    }
+    let dest_port = free_port();
+    let received = tempfile::tempdir().unwrap();
+    let cfg = received.path().join("ct-implicit.cfg");
+    std::fs::write(
+        &cfg,
+        "[[TransferSyntaxes]]\n[ImplicitOnly]\nTransferSyntax1 = LittleEndianImplicit\n\n\
+         [[PresentationContexts]]\n[CTOnly]\nPresentationContext1 = VerificationSOPClass\\ImplicitOnly\n\
+         PresentationContext2 = CTImageStorage\\ImplicitOnly\n\n[[Profiles]]\n[CTImplicit]\n\
+         PresentationContexts = CTOnly\n",
+    )
+    .unwrap();
+    let out_dir = received.path().join("out");
+    std::fs::create_dir(&out_dir).unwrap();
+    let _dest = storescp(
+        dest_port,
+        &out_dir,
+        &strings(&["-xf", &cfg.to_string_lossy(), "CTImplicit"]),
+    );
+    let app = common::spawn_app_with(|s| {
+        s.dicom.peers = vec![peer("DEST", dest_port, true, true)];
+    })
+    .await;
+    let src = tempfile::tempdir().unwrap();
+    let (_, files) = synthetic(src.path(), 8);
+    let mut form = reqwest::multipart::Form::new();
+    for f in &files {
+        form = form.part(
+            "file",
+            reqwest::multipart::Part::bytes(std::fs::read(f).unwrap())
+                .file_name("x.dcm")
+                .mime_str("application/dicom")
+                .unwrap(),
+        );
+    }
+    let r = app
+        .client
+        .post(app.url("/v1/series"))
+        .multipart(form)
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let up: Value = r.json().await.unwrap();
+    let series = up["series"][0]["series"]["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    // A derived CT series (axial planes every 2.5 mm) and a Secondary Capture MIP.
+    let job = app
+        .submit(&json!({"kind": "volume", "input": series, "products": [
+            {"type": "mpr", "plane": "axial", "spacing_mm": 2.5},
+            {"type": "projection", "axis": "axial", "kind": "mip"}]}))
+        .await;
+    let job_id = job["id"].as_str().unwrap().to_string();
+    let done = app.finish(&job_id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let r = app
+        .post_json(
+            "/v1/deliveries",
+            &json!({"job_id": job_id, "destination": "DEST"}),
+        )
+        .await;
+    assert!(r.status().is_success(), "{}", r.status());
+    let d: Value = r.json().await.unwrap();
+    let path = format!("/v1/deliveries/{}", d["id"].as_str().unwrap());
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let d = loop {
+        let v: Value = app.get(&path).await.json().await.unwrap();
+        if matches!(v["state"].as_str(), Some("succeeded" | "failed")) {
+            break v;
+        }
+        assert!(Instant::now() < deadline, "{v}");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let instances = d["instances"].as_array().unwrap();
+    let ct: Vec<&Value> = instances
+        .iter()
+        .filter(|i| i["sop_class_uid"] == "1.2.840.10008.5.1.4.1.1.2")
+        .collect();
+    let others: Vec<&Value> = instances
+        .iter()
+        .filter(|i| i["sop_class_uid"] != "1.2.840.10008.5.1.4.1.1.2")
+        .collect();
+    assert!(!ct.is_empty() && !others.is_empty(), "{d}");
+    for i in &ct {
+        assert_eq!(i["state"], "succeeded", "{d}");
+        assert_eq!(i["status"], 0, "{d}");
+    }
+    for i in &others {
+        assert_eq!(i["state"], "failed", "{d}");
+        let detail = i["detail"].as_str().unwrap_or_default();
+        assert!(
+            detail.contains("DEST") && detail.contains("Secondary Capture Image Storage"),
+            "{detail}"
+        );
+    }
+    // storescp holds the CT instances, in implicit VR little endian, with the exported pixel values.
+    let exported = app.dir.path().join(format!("results/{job_id}/dicom"));
+    let originals: std::collections::BTreeMap<String, PathBuf> = std::fs::read_dir(&exported)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "dcm"))
+        .map(|p| (ctrecon::dicom::read_part10(&p).unwrap().sop_instance_uid, p))
+        .collect();
+    let got: Vec<PathBuf> = std::fs::read_dir(&out_dir)
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .collect();
+    assert_eq!(got.len(), ct.len());
+    let limits = ctrecon::dicom::ReadLimits::default();
+    for f in &got {
+        let p10 = ctrecon::dicom::read_part10(f).unwrap();
+        assert_eq!(p10.transfer_syntax, "1.2.840.10008.1.2");
+        let sent = ctrecon::dicom::read_path(f, &limits).unwrap();
+        let original =
+            ctrecon::dicom::read_path(&originals[&p10.sop_instance_uid], &limits).unwrap();
+        assert_eq!(original.transfer_syntax, "1.2.840.10008.1.2.1");
+        assert!(sent.slices[0].stored == original.slices[0].stored);
+        assert_eq!(sent.slices[0].position_mm, original.slices[0].position_mm);
+    }
+}
