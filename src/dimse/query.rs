@@ -241,8 +241,7 @@ pub async fn find(
     };
     let study_root = cmd.sop_class_uid == STUDY_ROOT_FIND;
     let ae_title = &retrieval.caller.ae_title;
-    let mut sent = 0usize;
-    for f in &found {
+    for (sent, f) in found.iter().enumerate() {
         let ident = response_identifier(&elements, query.level, study_root, f, ae_title);
         let bytes = match write_identifier(&ident, &context.transfer_syntax) {
             Ok(b) => b,
@@ -268,7 +267,6 @@ pub async fn find(
         )
         .await?;
         send_data(assoc, context.id, &bytes).await?;
-        sent += 1;
     }
     tracing::info!(
         level = query.level.as_str(),
