@@ -125,6 +125,10 @@ catalogue! {
     PeerNotFound = ("peer_not_found", 404, "No such DICOM peer"),
     PeerUnreachable = ("peer_unreachable", 502, "The DICOM peer did not answer"),
     DimseUnavailable = ("dimse_unavailable", 503, "ctrecon cannot call DICOM peers in this process"),
+    PeerNotPermitted = ("peer_not_permitted", 422, "The DICOM peer is not configured for this use"),
+    DicomNodeOff = ("dicom_node_off", 409, "No DICOM node listens here: a series cannot be pulled from a PACS"),
+    PullFailed = ("pull_failed", 422, "The series could not be pulled from the PACS"),
+    PullSeriesNotFound = ("pull_series_not_found", 422, "The PACS holds no such series"),
     DeliveryNotFound = ("delivery_not_found", 404, "No such delivery"),
     DeliveryNotRetryable = ("delivery_not_retryable", 409, "Only a failed delivery can be retried"),
     // DICOMweb.

@@ -4,11 +4,13 @@ use super::App;
 use super::error::{AppError, AppResult, refused};
 use super::idempotency::{Replay, settle};
 use crate::error_code::ErrorCode;
-use crate::jobs::imaging::{VolumeJobRequest, plan, resolve_input};
+use crate::jobs::imaging::{VolumeJobRequest, VolumeShape, plan, resolve_input};
 use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us};
 use crate::jobs::plan::admit_job;
+use crate::jobs::volume_spec::{PacsSeries, VolumeSource};
 use crate::jobs::{CancelError, IdempotencyKey, Job, JobFilter, JobRequest, JobSpec, JobSummary};
 use crate::storage::JobId;
+use crate::volume::Frame;
 
 /// The job a submission answers: the one it queued, or the one an identical earlier request queued.
 #[derive(Debug, Clone)]
@@ -40,6 +42,23 @@ fn parse<T: serde::de::DeserializeOwned>(v: serde_json::Value) -> AppResult<T> {
     serde_json::from_value(v).map_err(|e| refused(ErrorCode::InvalidRequest, e.to_string()))
 }
 
+/// The volume a pulled series is planned against at submission, before it arrived: 512 × 512 slices of
+/// 1 mm, as many as fit in a quarter of the memory budget (at most 512), so that its estimate reserves room
+/// for a typical CT series.
+fn nominal_pulled(budget_bytes: u64) -> VolumeShape {
+    let slice_bytes = 512 * 512 * 4;
+    let nz = (budget_bytes / 4 / slice_bytes).clamp(1, 512) as usize;
+    VolumeShape {
+        dim: (nz, 512, 512),
+        frame: Frame {
+            spacing_mm: [1.0, 1.0, 1.0],
+            origin_mm: [0.0, 0.0, 0.0],
+            direction: Frame::AXIS_ALIGNED,
+        },
+        max_value: None,
+    }
+}
+
 fn job_not_found(id: JobId) -> AppError {
     refused(ErrorCode::JobNotFound, format!("no job {id}"))
 }
@@ -59,8 +78,18 @@ impl App {
                     &req,
                     self.settings.render_max_side,
                 )?;
-                let input = resolve_input(&self.db, &self.store, req.input).await?;
-                let planned = plan(&req, input.shape, budget)?;
+                let shape = match &req.input {
+                    VolumeSource::Stored(id) => {
+                        resolve_input(&self.db, &self.store, *id).await?.shape
+                    }
+                    VolumeSource::Pacs(source) => {
+                        self.check_pull(source)?;
+                        // Planned against a nominal CT volume until the series has arrived; the job plans
+                        // again on the series it pulled and fails if that does not fit.
+                        nominal_pulled(budget)
+                    }
+                };
+                let planned = plan(&req, shape, budget)?;
                 Ok((JobSpec::Volume(req), planned.estimate_bytes))
             }
             None | Some(KIND_RECONSTRUCTION) => {
@@ -83,6 +112,44 @@ impl App {
                 format!("unknown job kind `{other}`: `reconstruction` (default) or `volume`"),
             )),
         }
+    }
+
+    /// Check that `source` can be pulled: a configured peer allowed to retrieve and to store (the moved
+    /// instances come back by C-STORE from it), a valid series UID, and a DICOM node listening here.
+    fn check_pull(&self, source: &PacsSeries) -> AppResult<()> {
+        let dicom = &self.settings.dicom;
+        let peer = dicom.peer(&source.pacs).ok_or_else(|| {
+            refused(
+                ErrorCode::UnknownPeer,
+                format!(
+                    "`{}` is not a configured DICOM peer (dicom.peers)",
+                    source.pacs
+                ),
+            )
+        })?;
+        if !(peer.retrieve && peer.store) {
+            return Err(refused(
+                ErrorCode::PeerNotPermitted,
+                format!(
+                    "peer `{}` needs `retrieve` and `store` set in dicom.peers to be pulled from (its \
+                     instances arrive by C-STORE)",
+                    peer.ae_title
+                ),
+            ));
+        }
+        if !crate::dicom::is_valid_uid(&source.series_instance_uid) {
+            return Err(refused(
+                ErrorCode::InvalidParameter,
+                "`series_instance_uid` is not a valid UID (digits and dots, at most 64 characters)",
+            ));
+        }
+        if !self.engine.can_pull() {
+            return Err(refused(
+                ErrorCode::DicomNodeOff,
+                "the DICOM node is off (set dicom.port): a series cannot be pulled from a PACS",
+            ));
+        }
+        Ok(())
     }
 
     /// Submit a job (a JSON request as `POST /v1/jobs` takes it) under an optional Idempotency-Key: it is

@@ -116,6 +116,15 @@ impl App {
         bytes: u64,
         calling_ae: Option<&str>,
     ) -> AppResult<Received> {
+        let received = self.record_received(files, bytes).await?;
+        self.fire_rules(&received.ingested, calling_ae.filter(|a| !a.is_empty()))
+            .await;
+        Ok(received)
+    }
+
+    /// [`ingest_received`](Self::ingest_received) without processing rules: a series pulled from a PACS as
+    /// a job's input is that job's, not an arrival that rules act on.
+    pub async fn record_received(&self, files: Vec<UploadFile>, bytes: u64) -> AppResult<Received> {
         let id = UploadId::generate();
         let (ingested, staged) = self.ingest_files(id, files, None).await?;
         let instances = ingested.files() as u32;
@@ -132,8 +141,6 @@ impl App {
                 return Err(e.into());
             }
         }
-        self.fire_rules(&ingested, calling_ae.filter(|a| !a.is_empty()))
-            .await;
         Ok(Received {
             upload_id: id,
             ingested,

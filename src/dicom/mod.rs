@@ -15,6 +15,8 @@
 //! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model and re-encoded in
 //!   explicit VR little endian (DICOMweb); [`multipart`]: streamed `multipart/related` bodies (pure).
 //! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
+//! - [`data_set_as`]: a stored data set re-encoded between explicit and implicit VR little endian (C-STORE to
+//!   a peer that accepted only the other).
 //!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
@@ -29,6 +31,7 @@ pub mod multipart;
 mod pixels;
 mod read;
 mod scan;
+mod transcode;
 mod unzip;
 mod upload;
 mod web;
@@ -43,6 +46,7 @@ pub use header::{
 };
 pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
+pub use transcode::{data_set_as, le_interchangeable};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,

@@ -30,6 +30,12 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
         Some(app.clone()),
     )
     .await?;
+    // Volume jobs may pull their series from a PACS through this node.
+    app.engine
+        .install_puller(std::sync::Arc::new(super::puller::NodePuller::new(
+            app.clone(),
+            node.tracker(),
+        )));
     let addr = node.local_addr();
     tokio::spawn(async move {
         while let Some(done) = node.next_completed().await {
@@ -40,7 +46,7 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
     Ok(Some(addr))
 }
 
-fn instance_files(folder: &Path) -> std::io::Result<Vec<UploadFile>> {
+pub(super) fn instance_files(folder: &Path) -> std::io::Result<Vec<UploadFile>> {
     let mut files: Vec<PathBuf> = std::fs::read_dir(folder)?
         .filter_map(|e| e.ok().map(|e| e.path()))
         .filter(|p| p.extension().is_some_and(|e| e == "dcm"))

@@ -9,18 +9,20 @@
 //!
 //! - [`NodeSettings`]: the `dicom` configuration (AE title, port, allow-list, limits), kept with the other
 //!   settings in [`crate::config`];
-//! - [`command`]: DIMSE command sets;
+//! - [`command`]: DIMSE command sets; `cancel`: C-CANCEL of a C-FIND or C-MOVE in progress;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
 //! - [`node`]: the listener; [`association`]: one association; [`query`]: C-FIND and C-MOVE over the
 //!   application's instance index; [`scu`]: ctrecon calling a peer; [`pull`]: ctrecon querying and
-//!   retrieving from a peer.
+//!   retrieving from a peer; [`puller`]: a volume job's series pulled from a PACS through them.
 
 pub mod association;
+mod cancel;
 pub mod command;
 pub mod feed;
 pub mod inbox;
 pub mod node;
 pub mod pull;
+pub mod puller;
 pub mod query;
 pub mod scu;
 pub mod sender;

@@ -212,6 +212,11 @@ impl DicomNode {
     pub fn arriving(&self) -> Vec<(String, usize)> {
         self.tracker.arriving()
     }
+
+    /// The node's series tracker (where received instances are filed), for pulls that wait for a series.
+    pub fn tracker(&self) -> Arc<Tracker> {
+        self.tracker.clone()
+    }
 }
 
 async fn seal_loop(

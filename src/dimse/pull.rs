@@ -10,6 +10,7 @@ use super::query::{STUDY_ROOT_FIND, STUDY_ROOT_MOVE};
 use super::scu::{Assoc, Caller, ScuError, associate, send_command, timed};
 use crate::config::dicom::Peer;
 use crate::dicom::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
+use crate::recon::control::Cancel;
 
 const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
 const IMPLICIT_LE: &str = "1.2.840.10008.1.2";
@@ -213,6 +214,31 @@ pub async fn retrieve(
     destination: &str,
     keys: &[IdentifierElement],
 ) -> Result<MoveOutcome, ScuError> {
+    let never = Cancel::new();
+    retrieve_watched(caller, peer, destination, keys, &never, &|_| {})
+        .await
+        .map(|o| {
+            o.unwrap_or(MoveOutcome {
+                status: status::CANCEL,
+                sub_operations: SubOperations::default(),
+            })
+        })
+}
+
+/// How often a retrieval looks at its cancel flag.
+const CANCEL_POLL: std::time::Duration = std::time::Duration::from_millis(200);
+
+/// [`retrieve`], telling `pending` the sub-operation counts of each pending response; `None` when `cancel`
+/// was set before the final response (the association is then aborted, which ends the peer's
+/// sub-operations).
+pub async fn retrieve_watched(
+    caller: &Caller,
+    peer: &Peer,
+    destination: &str,
+    keys: &[IdentifierElement],
+    cancel: &Cancel,
+    pending: &(dyn Fn(SubOperations) + Sync),
+) -> Result<Option<MoveOutcome>, ScuError> {
     let (mut assoc, _, mut messages) = request(
         caller,
         peer,
@@ -221,15 +247,31 @@ pub async fn retrieve(
         keys,
     )
     .await?;
+    let canceled = || async {
+        while !cancel.is_canceled() {
+            tokio::time::sleep(CANCEL_POLL).await;
+        }
+    };
     loop {
-        let (cmd, _) = messages.next(&mut assoc, caller, peer).await?;
+        let next = tokio::select! {
+            r = messages.next(&mut assoc, caller, peer) => Some(r),
+            _ = canceled() => None,
+        };
+        let Some(next) = next else {
+            let _ = assoc.abort().await;
+            return Ok(None);
+        };
+        let (cmd, _) = next?;
         let status = cmd.status.unwrap_or(status::CANNOT_UNDERSTAND);
         if status != status::PENDING {
             let _ = assoc.release().await;
-            return Ok(MoveOutcome {
+            return Ok(Some(MoveOutcome {
                 status,
                 sub_operations: cmd.sub_operations.unwrap_or_default(),
-            });
+            }));
+        }
+        if let Some(counts) = cmd.sub_operations {
+            pending(counts);
         }
     }
 }

@@ -16,6 +16,7 @@ use crate::app::matching::{Attr, Level};
 use crate::app::query::{Found, Query};
 use crate::config::dicom::Peer;
 use crate::dicom::{IdentifierElement, read_identifier, write_identifier};
+use crate::recon::control::Cancel;
 
 pub const STUDY_ROOT_FIND: &str = "1.2.840.10008.5.1.4.1.2.2.1";
 pub const STUDY_ROOT_MOVE: &str = "1.2.840.10008.5.1.4.1.2.2.2";
@@ -43,6 +44,9 @@ pub struct Retrieval {
     pub caller: Caller,
     pub peers: Vec<Peer>,
 }
+
+/// How often a C-MOVE in progress looks for a C-CANCEL while no sub-operation ends.
+const CANCEL_POLL: std::time::Duration = std::time::Duration::from_millis(100);
 
 /// A refusal: a final status and its comment.
 type Refusal = (u16, String);
@@ -237,7 +241,7 @@ pub async fn find(
     };
     let study_root = cmd.sop_class_uid == STUDY_ROOT_FIND;
     let ae_title = &retrieval.caller.ae_title;
-    for f in &found {
+    for (sent, f) in found.iter().enumerate() {
         let ident = response_identifier(&elements, query.level, study_root, f, ae_title);
         let bytes = match write_identifier(&ident, &context.transfer_syntax) {
             Ok(b) => b,
@@ -252,6 +256,10 @@ pub async fn find(
                 .await;
             }
         };
+        if super::cancel::requested(assoc, cmd.message_id).await? {
+            tracing::info!(level = query.level.as_str(), sent, "C-FIND canceled");
+            return send_command(assoc, context.id, final_status(status::CANCEL, None)).await;
+        }
         send_command(
             assoc,
             context.id,
@@ -346,9 +354,11 @@ pub async fn move_instances(
     let total = files.len();
     tracing::info!(destination = %dest.ae_title, instances = total, "C-MOVE started");
     let (tx, mut rx) = tokio::sync::mpsc::unbounded_channel();
+    let stop = Cancel::new();
     let options = StoreOptions {
         move_originator: Some((grant.calling_ae.clone(), cmd.message_id)),
         progress: Some(tx),
+        cancel: Some(stop.clone()),
     };
     let caller = retrieval.caller.clone();
     let peer = dest.clone();
@@ -360,7 +370,20 @@ pub async fn move_instances(
     });
     let (mut completed, mut failed, mut warning) = (0usize, 0usize, 0usize);
     let mut failed_uids: Vec<String> = Vec::new();
-    while let Some(o) = rx.recv().await {
+    loop {
+        let next = tokio::select! {
+            o = rx.recv() => Some(o),
+            _ = tokio::time::sleep(CANCEL_POLL) => None,
+        };
+        if !stop.is_canceled() && super::cancel::requested(assoc, cmd.message_id).await? {
+            // The sub-association stops before its next instance; the outcomes so far still come.
+            stop.cancel();
+        }
+        let o = match next {
+            None => continue,
+            Some(None) => break,
+            Some(Some(o)) => o,
+        };
         match o.status {
             Some(s) if s == status::SUCCESS => completed += 1,
             Some(s) if command::is_stored(s) => warning += 1,
@@ -369,7 +392,7 @@ pub async fn move_instances(
                 failed_uids.push(o.sop_instance_uid.clone());
             }
         }
-        if completed + failed + warning < total {
+        if completed + failed + warning < total && !stop.is_canceled() {
             send_command(
                 assoc,
                 context.id,
@@ -415,6 +438,15 @@ pub async fn move_instances(
         }
     }
     let c = counts(total, completed, failed, warning);
+    if stop.is_canceled() && completed + failed + warning < total {
+        tracing::info!(completed, failed, warning, "C-MOVE canceled");
+        return send_command(
+            assoc,
+            context.id,
+            respond(status::CANCEL, Some(c), false, None),
+        )
+        .await;
+    }
     tracing::info!(completed, failed, warning, "C-MOVE finished");
     if failed == 0 && warning == 0 {
         return send_command(

@@ -1,5 +1,7 @@
 //! ctrecon as a service class user: C-ECHO to test a peer, C-STORE of Part 10 files to a peer, each file's
-//! data set sent as it is stored (streamed from disk in PDU-sized fragments, never whole in memory).
+//! data set sent as it is stored (streamed from disk in PDU-sized fragments, never whole in memory), or, for
+//! a peer that accepted its SOP class only in the other uncompressed little-endian syntax, re-encoded (one
+//! instance in memory). A file whose SOP class the peer rejected is reported as not sent, with the reason.
 
 use std::path::{Path, PathBuf};
 use std::time::Duration;
@@ -10,7 +12,9 @@ use tokio::io::{AsyncReadExt, AsyncSeekExt};
 
 use super::command::{self, VERIFICATION};
 use crate::config::dicom::Peer;
-use crate::dicom::{Part10, read_part10};
+use crate::dicom::{
+    EXPLICIT_LE, IMPLICIT_LE, Part10, data_set_as, le_interchangeable, read_part10,
+};
 
 /// How ctrecon calls a peer.
 #[derive(Debug, Clone)]
@@ -207,6 +211,8 @@ pub struct StoreOptions {
     pub move_originator: Option<(String, u16)>,
     /// Receives each file's outcome as soon as it is known.
     pub progress: Option<tokio::sync::mpsc::UnboundedSender<StoreOutcome>>,
+    /// Once set, no further file is sent (the association is released; the files not sent have no outcome).
+    pub cancel: Option<crate::recon::control::Cancel>,
 }
 
 /// [`store`] with options.
@@ -237,7 +243,10 @@ pub async fn store_with(
     })?;
     let mut contexts: Vec<(String, Vec<String>)> = Vec::new();
     for m in metas.iter().flatten() {
-        let c = (m.sop_class_uid.clone(), vec![m.transfer_syntax.clone()]);
+        let c = (
+            m.sop_class_uid.clone(),
+            proposed_syntaxes(&m.transfer_syntax),
+        );
         if !contexts.contains(&c) && contexts.len() < 128 {
             contexts.push(c);
         }
@@ -250,6 +259,9 @@ pub async fn store_with(
     }
     let mut assoc = associate(caller, peer, &contexts).await?;
     for (i, (file, meta)) in files.iter().zip(metas).enumerate() {
+        if options.cancel.as_ref().is_some_and(|c| c.is_canceled()) {
+            break;
+        }
         let meta = match meta {
             Ok(m) => m,
             Err(reason) => {
@@ -257,16 +269,36 @@ pub async fn store_with(
                 continue;
             }
         };
-        let Some(context) = accepted(&assoc, &meta.sop_class_uid, &meta.transfer_syntax) else {
+        let Some((context, ts)) = accepted_for(&assoc, &meta.sop_class_uid, &meta.transfer_syntax)
+        else {
             outcomes.push(not_sent(
                 file,
                 meta.sop_instance_uid.clone(),
-                format!(
-                    "{} did not accept SOP class {} in transfer syntax {}",
-                    peer.ae_title, meta.sop_class_uid, meta.transfer_syntax
-                ),
+                refusal(&assoc, peer, &meta.sop_class_uid, &meta.transfer_syntax),
             ));
             continue;
+        };
+        // A peer that accepted only the other little-endian syntax gets the data set re-encoded.
+        let transcoded = if ts == meta.transfer_syntax {
+            None
+        } else {
+            let (path, to) = (file.clone(), ts.clone());
+            let limit = MAX_TRANSCODED_BYTES;
+            match tokio::task::spawn_blocking(move || data_set_as(&path, &to, limit)).await {
+                Ok(Ok(bytes)) => Some(bytes),
+                Ok(Err(e)) => {
+                    outcomes.push(not_sent(
+                        file,
+                        meta.sop_instance_uid.clone(),
+                        format!("cannot re-encode it in {ts}: {e}"),
+                    ));
+                    continue;
+                }
+                Err(e) => {
+                    outcomes.push(not_sent(file, meta.sop_instance_uid.clone(), e.to_string()));
+                    continue;
+                }
+            }
         };
         let message_id = (i % 0xFFFF) as u16 + 1;
         let rq = command::store_request(
@@ -276,7 +308,12 @@ pub async fn store_with(
             originator,
         );
         send_command(&mut assoc, peer, context, rq).await?;
-        send_data_set(&mut assoc, caller, peer, context, file, meta.dataset_offset).await?;
+        match &transcoded {
+            None => {
+                send_data_set(&mut assoc, caller, peer, context, file, meta.dataset_offset).await?
+            }
+            Some(bytes) => send_buffer(&mut assoc, caller, peer, context, bytes).await?,
+        }
         let rsp = response(&mut assoc, caller, peer).await?;
         outcomes.push(StoreOutcome {
             file: file.clone(),
@@ -287,6 +324,125 @@ pub async fn store_with(
     }
     let _ = assoc.release().await;
     Ok(outcomes.list)
+}
+
+/// Largest instance re-encoded for a peer (it is held whole in memory while sent).
+const MAX_TRANSCODED_BYTES: u64 = 1 << 30;
+
+/// The transfer syntaxes proposed for a file stored in `ts`: its own, then the other uncompressed
+/// little-endian syntax when it is one of them (sent re-encoded if only that one is accepted).
+fn proposed_syntaxes(ts: &str) -> Vec<String> {
+    let mut out = vec![ts.to_string()];
+    for other in [EXPLICIT_LE, IMPLICIT_LE] {
+        if other != ts && le_interchangeable(ts, other) {
+            out.push(other.to_string());
+        }
+    }
+    out
+}
+
+/// The accepted context for `sop_class` in which a file stored in `ts` can be sent: the same syntax first,
+/// else the other little-endian one. Returns its id and transfer syntax.
+fn accepted_for(assoc: &Assoc, sop_class: &str, ts: &str) -> Option<(u8, String)> {
+    let usable = assoc.presentation_contexts().iter().filter(|pc| {
+        pc.reason == PresentationContextResultReason::Acceptance && pc.abstract_syntax == sop_class
+    });
+    let mut fallback = None;
+    for pc in usable {
+        if pc.transfer_syntax == ts {
+            return Some((pc.id, pc.transfer_syntax.clone()));
+        }
+        if fallback.is_none() && le_interchangeable(ts, &pc.transfer_syntax) {
+            fallback = Some((pc.id, pc.transfer_syntax.clone()));
+        }
+    }
+    fallback
+}
+
+/// Why a file of `sop_class` stored in `ts` cannot be sent on this association, in the peer's terms.
+fn refusal(assoc: &Assoc, peer: &Peer, sop_class: &str, ts: &str) -> String {
+    let name = sop_class_name(sop_class);
+    let offered: Vec<_> = assoc
+        .presentation_contexts()
+        .iter()
+        .filter(|pc| pc.abstract_syntax == sop_class)
+        .collect();
+    match offered
+        .iter()
+        .find(|pc| pc.reason != PresentationContextResultReason::Acceptance)
+    {
+        Some(pc) => format!(
+            "{} rejected the presentation context of SOP class {sop_class}{name} ({:?})",
+            peer.ae_title, pc.reason
+        ),
+        None if offered.is_empty() => format!(
+            "{} did not accept SOP class {sop_class}{name} (no presentation context)",
+            peer.ae_title
+        ),
+        None => format!(
+            "{} accepted SOP class {sop_class}{name} only in a transfer syntax it cannot be converted to \
+             from {ts}",
+            peer.ae_title
+        ),
+    }
+}
+
+/// `" (<name>)"` for the SOP classes ctrecon sends, else nothing.
+fn sop_class_name(uid: &str) -> &'static str {
+    match uid {
+        "1.2.840.10008.5.1.4.1.1.2" => " (CT Image Storage)",
+        "1.2.840.10008.5.1.4.1.1.2.1" => " (Enhanced CT Image Storage)",
+        "1.2.840.10008.5.1.4.1.1.7" => " (Secondary Capture Image Storage)",
+        "1.2.840.10008.5.1.4.1.1.7.4" => {
+            " (Multi-frame True Color Secondary Capture Image Storage)"
+        }
+        "1.2.840.10008.5.1.4.1.1.104.3" => " (Encapsulated STL Storage)",
+        _ => "",
+    }
+}
+
+/// Send an in-memory data set as P-DATA fragments no larger than the peer admits.
+async fn send_buffer(
+    assoc: &mut Assoc,
+    caller: &Caller,
+    peer: &Peer,
+    context: u8,
+    bytes: &[u8],
+) -> Result<(), ScuError> {
+    let peer_max = match assoc.acceptor_max_pdu_length() {
+        0 => 64 << 10,
+        n => n.min(1 << 20),
+    };
+    let chunk = (peer_max as usize).saturating_sub(6).max(1024);
+    let parts: Vec<&[u8]> = if bytes.is_empty() {
+        vec![bytes]
+    } else {
+        bytes.chunks(chunk).collect()
+    };
+    let n = parts.len();
+    for (i, part) in parts.into_iter().enumerate() {
+        let pdu = Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: context,
+                value_type: PDataValueType::Data,
+                is_last: i + 1 == n,
+                data: part.to_vec(),
+            }],
+        };
+        match tokio::time::timeout(caller.timeout, assoc.send(&pdu)).await {
+            Ok(r) => r.map_err(|e| ScuError::Network {
+                peer: peer.ae_title.clone(),
+                reason: e.to_string(),
+            })?,
+            Err(_) => {
+                return Err(ScuError::Timeout {
+                    peer: peer.ae_title.clone(),
+                    timeout: caller.timeout,
+                });
+            }
+        }
+    }
+    Ok(())
 }
 
 /// The outcomes so far, each also sent to the progress listener.

@@ -1,7 +1,7 @@
 //! Series completion by stable age (as Orthanc's `StableAge`): a series is complete when no instance of it
 //! arrived for the configured time; it is then sealed (its folder handed over) and announced.
 
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
@@ -36,6 +36,8 @@ pub struct Tracker {
     inbox: Inbox,
     stable_age: Duration,
     arriving: Mutex<HashMap<String, Arriving>>,
+    /// Series a pull waits for: never sealed by their stable age, taken by the pull itself.
+    claimed: Mutex<HashSet<String>>,
 }
 
 /// Which instance arrived, for filing.
@@ -69,6 +71,7 @@ impl Tracker {
             inbox,
             stable_age,
             arriving: Mutex::new(arriving),
+            claimed: Mutex::new(HashSet::new()),
         })
     }
 
@@ -122,8 +125,13 @@ impl Tracker {
             .arriving
             .lock()
             .map_err(|_| io::Error::other("series tracker poisoned"))?;
+        let claimed = self
+            .claimed
+            .lock()
+            .map_err(|_| io::Error::other("series tracker poisoned"))?;
         let due: Vec<String> = arriving
             .iter()
+            .filter(|(uid, _)| !claimed.contains(*uid))
             .filter(|(_, a)| now.saturating_duration_since(a.last) >= self.stable_age)
             .map(|(k, _)| k.clone())
             .collect();
@@ -144,6 +152,61 @@ impl Tracker {
             });
         }
         Ok(out)
+    }
+}
+
+impl Tracker {
+    /// Keep series `uid` from being sealed by its stable age, for a pull that takes it itself; false when
+    /// another pull holds it.
+    pub fn claim(&self, uid: &str) -> bool {
+        self.claimed
+            .lock()
+            .map(|mut c| c.insert(uid.to_string()))
+            .unwrap_or(false)
+    }
+
+    /// Let series `uid` be sealed by its stable age again.
+    pub fn unclaim(&self, uid: &str) {
+        if let Ok(mut c) = self.claimed.lock() {
+            c.remove(uid);
+        }
+    }
+
+    /// Instances of series `uid` filed since it last started arriving.
+    pub fn arrived(&self, uid: &str) -> usize {
+        self.arriving
+            .lock()
+            .ok()
+            .and_then(|a| a.get(uid).map(|s| s.instances))
+            .unwrap_or(0)
+    }
+
+    /// Seal series `uid` now, whatever its age (blocking); `None` when nothing of it arrived.
+    pub fn take(&self, uid: &str) -> io::Result<Option<CompletedSeries>> {
+        let mut arriving = self
+            .arriving
+            .lock()
+            .map_err(|_| io::Error::other("series tracker poisoned"))?;
+        let Some(a) = arriving.remove(uid) else {
+            return Ok(None);
+        };
+        let folder = self.inbox.seal(uid)?;
+        Ok(Some(CompletedSeries {
+            series_uid: uid.to_string(),
+            study_uid: a.study_uid,
+            folder,
+            instances: a.instances,
+            bytes: a.bytes,
+            calling_ae: a.calling_ae,
+        }))
+    }
+
+    /// Remove what arrived of series `uid` (blocking): a pull that failed or was canceled leaves nothing.
+    pub fn discard(&self, uid: &str) -> io::Result<()> {
+        if let Some(done) = self.take(uid)? {
+            std::fs::remove_dir_all(done.folder)?;
+        }
+        Ok(())
     }
 }
 
@@ -205,6 +268,45 @@ mod tests {
         assert_eq!((s.instances, s.bytes, s.calling_ae.as_str()), (2, 8, "SCU"));
         assert_eq!(count(&s.folder).unwrap(), (2, 8));
         assert!(tracker.arriving().is_empty());
+    }
+
+    #[test]
+    fn a_claimed_series_is_not_sealed_by_age_and_is_taken_or_discarded_by_its_pull() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let tracker = Tracker::new(inbox.clone(), Duration::ZERO).unwrap();
+        let temp = |name: &str| {
+            let p = dir.path().join(name);
+            std::fs::write(&p, b"DATA").unwrap();
+            p
+        };
+        assert!(tracker.claim("1.5"));
+        assert!(!tracker.claim("1.5"), "one pull at a time");
+        tracker.file(&temp("a"), arrival("1.5", "1.5.1")).unwrap();
+        tracker.file(&temp("b"), arrival("1.5", "1.5.2")).unwrap();
+        tracker.file(&temp("c"), arrival("1.6", "1.6.1")).unwrap();
+        assert_eq!(tracker.arrived("1.5"), 2);
+        let sealed = tracker.seal_due(Instant::now()).unwrap();
+        assert_eq!(
+            sealed
+                .iter()
+                .map(|s| s.series_uid.as_str())
+                .collect::<Vec<_>>(),
+            vec!["1.6"]
+        );
+        let taken = tracker.take("1.5").unwrap().unwrap();
+        assert_eq!((taken.instances, count(&taken.folder).unwrap().0), (2, 2));
+        assert_eq!(tracker.take("1.5").unwrap(), None);
+
+        tracker.file(&temp("d"), arrival("1.5", "1.5.3")).unwrap();
+        tracker.discard("1.5").unwrap();
+        assert_eq!(tracker.arrived("1.5"), 0);
+        assert!(inbox.leftover_incoming().unwrap().is_empty());
+        let complete = inbox.leftover_complete().unwrap();
+        assert_eq!(complete.len(), 2, "1.6 sealed by age, 1.5 taken");
+        assert!(complete.contains(&taken.folder));
+        tracker.unclaim("1.5");
+        assert!(tracker.claim("1.5"));
     }
 
     #[test]

@@ -13,6 +13,7 @@
 mod cancel;
 mod leases;
 mod progress;
+mod pulled;
 mod wakeups;
 
 pub use leases::{LEASE, expiry_interval, heartbeat_interval};
@@ -20,7 +21,7 @@ pub use leases::{LEASE, expiry_interval, heartbeat_interval};
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
 use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::{Arc, Mutex};
+use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
 use serde::Serialize;
@@ -33,9 +34,11 @@ use super::database::Database;
 use super::imaging::{VolumeInput, VolumeJobRequest, execute_volume, resolve_input};
 use super::lifecycle::Outcome;
 use super::model::{Dataset, Job, JobRequest, JobSpec, JobStatus};
+use super::pull::{PULL_SHARE, Scaled, SeriesPuller};
 use super::repo::DbError;
 use super::run::{RunError, execute};
 use super::store::{JobStore, StoreError};
+use super::volume_spec::VolumeSource;
 use crate::error_code::{ErrorCode, Problem};
 use crate::recon::control::{Cancel, Control};
 use crate::recon::grid::Limits;
@@ -105,6 +108,8 @@ struct Inner {
     stopping: AtomicBool,
     /// Notified each time a running job is released.
     released: Notify,
+    /// Pulls series from PACS peers for jobs whose input is one; installed by the DICOM node.
+    puller: OnceLock<Arc<dyn SeriesPuller>>,
 }
 
 /// What a job run does, with its input resolved (one per running job: its size does not matter).
@@ -158,6 +163,7 @@ impl Engine {
                 events,
                 stopping: AtomicBool::new(false),
                 released: Notify::new(),
+                puller: OnceLock::new(),
             }),
         };
         let scheduler = engine.clone();
@@ -395,6 +401,24 @@ impl Engine {
             }
         };
         self.publish(&job);
+        let cancel = self
+            .inner
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()))
+            .unwrap_or_default();
+        if job.cancel_requested {
+            cancel.cancel();
+        }
+        let latest = Arc::new(Mutex::new(Latest::default()));
+        let sink = Sink {
+            id,
+            latest: latest.clone(),
+            events: self.inner.events.clone(),
+        };
+        // A series pulled from a PACS takes the first part of the progress bar.
+        let mut pulled = false;
         let work = match &job.request {
             JobSpec::Reconstruction(req) => match db.get_dataset(req.input).await {
                 Ok(Some(d)) => Work::Reconstruct(req.clone(), d),
@@ -409,28 +433,31 @@ impl Engine {
                     return failed(Problem::internal());
                 }
             },
-            JobSpec::Volume(req) => match resolve_input(db, &self.inner.store, req.input).await {
-                Ok(input) => Work::Volume(req.clone(), input),
-                Err(p) => return failed(p),
-            },
+            JobSpec::Volume(req) => {
+                let stored = match &req.input {
+                    VolumeSource::Stored(input) => *input,
+                    VolumeSource::Pacs(source) => {
+                        pulled = true;
+                        match self
+                            .pull_input(id, attempt, source, &cancel, &sink, &latest)
+                            .await
+                        {
+                            Ok(series) => match crate::storage::AnyId::parse(&series.to_string()) {
+                                Ok(any) => any,
+                                Err(_) => return failed(Problem::internal()),
+                            },
+                            Err(RunError::Canceled) => return Outcome::Canceled,
+                            Err(RunError::Failed(p)) => return failed(p),
+                        }
+                    }
+                };
+                match resolve_input(db, &self.inner.store, stored).await {
+                    Ok(input) => Work::Volume(req.clone(), input),
+                    Err(p) => return failed(p),
+                }
+            }
         };
-        let cancel = self
-            .inner
-            .running
-            .lock()
-            .ok()
-            .and_then(|r| r.get(&id).map(|x| x.cancel.clone()))
-            .unwrap_or_default();
-        if job.cancel_requested {
-            cancel.cancel();
-        }
         let cancel_flag = cancel.clone();
-        let latest = Arc::new(Mutex::new(Latest::default()));
-        let sink = Sink {
-            id,
-            latest: latest.clone(),
-            events: self.inner.events.clone(),
-        };
         let store = self.inner.store.clone();
         let limits = Limits {
             max_bytes: self.inner.config.memory_budget_bytes,
@@ -440,6 +467,13 @@ impl Engine {
         let span = tracing::Span::current();
         self.inner.pool.spawn(move || {
             let _g = span.enter();
+            let after_pull = Scaled {
+                inner: &sink,
+                start: PULL_SHARE,
+                span: 1.0 - PULL_SHARE,
+            };
+            let progress: &dyn crate::recon::control::Progress =
+                if pulled { &after_pull } else { &sink };
             let r = std::panic::catch_unwind(AssertUnwindSafe(|| match &work {
                 Work::Reconstruct(req, dataset) => execute(
                     &store,
@@ -447,7 +481,7 @@ impl Engine {
                     req,
                     dataset,
                     &limits,
-                    Control::new(&cancel, &sink),
+                    Control::new(&cancel, progress),
                 ),
                 Work::Volume(req, input) => execute_volume(
                     &store,
@@ -456,7 +490,7 @@ impl Engine {
                     input,
                     limits.max_bytes,
                     mu_water,
-                    Control::new(&cancel, &sink),
+                    Control::new(&cancel, progress),
                 ),
             }));
             let _ = tx.send(r);

@@ -16,6 +16,7 @@ pub mod lifecycle;
 pub mod model;
 pub mod pg;
 pub mod plan;
+pub mod pull;
 pub mod quality;
 pub mod render_outputs;
 pub mod render_products;

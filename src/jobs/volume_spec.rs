@@ -1,8 +1,8 @@
-//! The request of a volume job (`"kind": "volume"`): its input, the `steps` applied to the volume in order,
-//! and the `products` made from the result, with their defaults and limits. Model types only: planning and
-//! execution live in `imaging`.
+//! The request of a volume job (`"kind": "volume"`): its input (a stored series, a succeeded job's volume, or
+//! a series pulled from a PACS), the `steps` applied to the volume in order, and the `products` made from the
+//! result, with their defaults and limits. Model types only: planning and execution live in `imaging`.
 
-use serde::{Deserialize, Serialize};
+use serde::{Deserialize, Deserializer, Serialize};
 
 use crate::mesh::MeshOptions;
 use crate::storage::AnyId;
@@ -20,12 +20,68 @@ pub enum VolumeKind {
 #[serde(deny_unknown_fields)]
 pub struct VolumeJobRequest {
     pub kind: VolumeKind,
-    /// A series id (from `POST /v1/series`) or the id of a succeeded job whose volume is the input.
-    pub input: AnyId,
+    /// A series id (from `POST /v1/series`), the id of a succeeded job whose volume is the input, or a series
+    /// to pull from a PACS.
+    pub input: VolumeSource,
     #[serde(default)]
     pub steps: Vec<Step>,
     #[serde(default)]
     pub products: Vec<ProductSpec>,
+}
+
+/// Where a volume job's volume comes from.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+#[serde(untagged)]
+pub enum VolumeSource {
+    /// A stored series or a succeeded job (its id; which one is found by looking it up).
+    Stored(AnyId),
+    /// A series pulled from a PACS by C-FIND and C-MOVE when the job runs.
+    Pacs(PacsSeries),
+}
+
+/// `{"pacs": "<peer>", "series_instance_uid": "…"}`: a series held by a configured DIMSE peer.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PacsSeries {
+    /// The AE title of a peer of the `dicom.peers` list.
+    pub pacs: String,
+    /// The Series Instance UID (0020,000E) on that peer.
+    pub series_instance_uid: String,
+}
+
+impl From<AnyId> for VolumeSource {
+    fn from(id: AnyId) -> Self {
+        VolumeSource::Stored(id)
+    }
+}
+
+impl std::fmt::Display for VolumeSource {
+    /// The id of a stored input; `pacs:<peer>/<series uid>` for a pulled one.
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            VolumeSource::Stored(id) => write!(f, "{id}"),
+            VolumeSource::Pacs(p) => write!(f, "pacs:{}/{}", p.pacs, p.series_instance_uid),
+        }
+    }
+}
+
+impl<'de> Deserialize<'de> for VolumeSource {
+    /// A string is an id; an object names a PACS series (unknown fields refused). Errors name what is wrong
+    /// instead of serde's "no variant matched".
+    fn deserialize<D: Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error as _;
+        match serde_json::Value::deserialize(d)? {
+            serde_json::Value::String(s) => AnyId::parse(&s)
+                .map(VolumeSource::Stored)
+                .map_err(D::Error::custom),
+            v @ serde_json::Value::Object(_) => serde_json::from_value(v)
+                .map(VolumeSource::Pacs)
+                .map_err(D::Error::custom),
+            _ => Err(D::Error::custom(
+                "`input` is a series or job id, or {\"pacs\": <peer>, \"series_instance_uid\": <uid>}",
+            )),
+        }
+    }
 }
 
 /// An operation on the whole volume.
