@@ -161,12 +161,56 @@ impl ErrorCode {
 }
 
 /// An RFC 9457 problem: a catalogue code plus a detail for this occurrence. Serialises as the
-/// `application/problem+json` body (`type`, `title`, `status`, `detail`, `code`). A 5xx problem's detail is
-/// replaced by its title, so server errors never leak internals.
+/// `application/problem+json` body (`type`, `title`, `status`, `detail`, `code`, and `errors` when the
+/// problem names fields of the request). A 5xx problem's detail is replaced by its title, so server errors
+/// never leak internals.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Problem {
     pub code: ErrorCode,
     pub detail: String,
+    /// The fields of the request body the problem is about (the extension member `errors`).
+    pub errors: Vec<FieldError>,
+}
+
+/// One field of a refused request body: an RFC 6901 JSON Pointer into the body (`/geometry/dsd_mm`; the
+/// empty pointer is the whole body) and what is wrong with it.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FieldError {
+    pub pointer: String,
+    pub detail: String,
+}
+
+/// The JSON Pointer of `segments` under `base` (a pointer itself), each segment escaped (`~` → `~0`,
+/// `/` → `~1`).
+pub fn json_pointer<'a>(base: &str, segments: impl IntoIterator<Item = &'a str>) -> String {
+    let mut out = base.to_string();
+    for s in segments {
+        out.push('/');
+        out.push_str(&s.replace('~', "~0").replace('/', "~1"));
+    }
+    out
+}
+
+/// The JSON Pointer of a field path as the validators name fields (`detector.nu`, `centre_mm[0]`,
+/// `angles.degrees[3]`) under `base`.
+pub fn field_pointer(base: &str, path: &str) -> String {
+    let mut segments = Vec::new();
+    for part in path.split('.').filter(|p| !p.is_empty()) {
+        let mut rest = part;
+        if let Some(open) = rest.find('[') {
+            segments.push(&rest[..open]);
+            rest = &rest[open..];
+            while let Some(tail) = rest.strip_prefix('[') {
+                let Some(close) = tail.find(']') else { break };
+                segments.push(&tail[..close]);
+                rest = &tail[close + 1..];
+            }
+        } else {
+            segments.push(rest);
+        }
+    }
+    json_pointer(base, segments.into_iter().filter(|s| !s.is_empty()))
 }
 
 impl Problem {
@@ -174,7 +218,18 @@ impl Problem {
         Self {
             code,
             detail: detail.into(),
+            errors: Vec::new(),
         }
+    }
+    /// The same problem, naming the field at `pointer` (a JSON Pointer into the request body) with the
+    /// problem's detail.
+    pub fn at(mut self, pointer: impl Into<String>) -> Self {
+        let detail = self.detail.clone();
+        self.errors.push(FieldError {
+            pointer: pointer.into(),
+            detail,
+        });
+        self
     }
     /// A server error: the detail is logged by the caller, never sent.
     pub fn internal() -> Self {
@@ -206,6 +261,8 @@ struct ProblemBody {
     status: u16,
     detail: String,
     code: String,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    errors: Vec<FieldError>,
 }
 
 impl serde::Serialize for Problem {
@@ -216,6 +273,11 @@ impl serde::Serialize for Problem {
             status: self.code.status(),
             detail: self.public_detail().to_string(),
             code: self.code.code().to_string(),
+            errors: if self.code.status() >= 500 {
+                Vec::new()
+            } else {
+                self.errors.clone()
+            },
         }
         .serialize(s)
     }
@@ -226,7 +288,10 @@ impl<'de> serde::Deserialize<'de> for Problem {
         let body = ProblemBody::deserialize(d)?;
         let code = ErrorCode::from_code(&body.code)
             .ok_or_else(|| serde::de::Error::custom(format!("unknown code {}", body.code)))?;
-        Ok(Problem::new(code, body.detail))
+        Ok(Problem {
+            errors: body.errors,
+            ..Problem::new(code, body.detail)
+        })
     }
 }
 
@@ -297,6 +362,39 @@ impl From<&crate::dicom::DicomError> for ErrorCode {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn field_paths_become_json_pointers_with_escapes() {
+        assert_eq!(field_pointer("/geometry", "dso_mm"), "/geometry/dso_mm");
+        assert_eq!(
+            field_pointer("/geometry", "detector.nu"),
+            "/geometry/detector/nu"
+        );
+        assert_eq!(field_pointer("/grid", "centre_mm[1]"), "/grid/centre_mm/1");
+        assert_eq!(
+            field_pointer("/geometry", "angles.degrees[12]"),
+            "/geometry/angles/degrees/12"
+        );
+        assert_eq!(field_pointer("", ""), "");
+        assert_eq!(json_pointer("/rules", ["a/b", "c~d"]), "/rules/a~1b/c~0d");
+    }
+
+    #[test]
+    fn field_errors_are_serialised_for_client_errors_only() {
+        let p = Problem::new(ErrorCode::InvalidGeometry, "bad").at("/geometry/dsd_mm");
+        let v = serde_json::to_value(&p).expect("json");
+        assert_eq!(
+            v["errors"],
+            serde_json::json!([{"pointer": "/geometry/dsd_mm", "detail": "bad"}])
+        );
+        let back: Problem = serde_json::from_value(v).expect("problem");
+        assert_eq!(back, p);
+        let plain =
+            serde_json::to_value(Problem::new(ErrorCode::InvalidGeometry, "bad")).expect("json");
+        assert!(plain.get("errors").is_none());
+        let internal = serde_json::to_value(Problem::internal().at("/x")).expect("json");
+        assert!(internal.get("errors").is_none());
+    }
 
     #[test]
     fn codes_are_unique_snake_case_and_their_statuses_are_errors() {

@@ -2,7 +2,7 @@
 //! does not allow the command), or a failure of a port (database, storage), which front doors answer as an
 //! internal error after logging it once.
 
-use crate::error_code::{ErrorCode, Problem};
+use crate::error_code::{ErrorCode, Problem, json_pointer};
 use crate::jobs::DbError;
 
 /// Why a command or query did not succeed.
@@ -48,4 +48,23 @@ impl AppError {
             }
         }
     }
+}
+
+/// Deserialise a request body into `T`; a mismatch is `invalid_request` naming the field (a JSON Pointer
+/// into the body: the field itself for a wrong value, the object for a missing or unknown field).
+pub fn parse_body<T: serde::de::DeserializeOwned>(v: serde_json::Value) -> Result<T, Problem> {
+    serde_path_to_error::deserialize(v).map_err(|e| {
+        use serde_path_to_error::Segment;
+        let mut segments: Vec<String> = Vec::new();
+        for s in e.path().iter() {
+            match s {
+                Segment::Seq { index } => segments.push(index.to_string()),
+                Segment::Map { key } => segments.push(key.clone()),
+                Segment::Enum { .. } => {}
+                Segment::Unknown => break,
+            }
+        }
+        let pointer = json_pointer("", segments.iter().map(String::as_str));
+        Problem::new(ErrorCode::InvalidRequest, e.into_inner().to_string()).at(pointer)
+    })
 }

@@ -39,7 +39,7 @@ impl<T> Page<T> {
 }
 
 fn parse<T: serde::de::DeserializeOwned>(v: serde_json::Value) -> AppResult<T> {
-    serde_json::from_value(v).map_err(|e| refused(ErrorCode::InvalidRequest, e.to_string()))
+    Ok(super::error::parse_body(v)?)
 }
 
 /// The volume a pulled series is planned against at submission, before it arrived: 512 × 512 slices of
@@ -172,6 +172,7 @@ impl App {
                     JobSpec::Volume(_) => KIND_VOLUME,
                 };
                 tracing::info!(job_id = %job.id, kind = %job.kind, what, "job queued");
+                self.feed.created(&job);
                 self.engine.publish(&job);
                 self.engine.wake();
                 Ok(Submitted { job, created: true })
@@ -243,6 +244,7 @@ impl App {
                 "cancel the job and wait for it to finish before deleting it",
             ));
         }
+        self.feed.deleted(id);
         let store = self.store.clone();
         tokio::task::spawn_blocking(move || store.delete_results(id))
             .await

@@ -8,9 +8,11 @@
 pub mod deliveries;
 pub mod dicomweb;
 pub mod error;
+pub mod feed;
 pub mod idempotency;
 pub mod instances;
 pub mod jobs;
+pub mod limits;
 pub mod matching;
 pub mod query;
 pub mod rules;
@@ -58,6 +60,8 @@ pub struct App {
     pub store: BlobStore,
     pub engine: Engine,
     pub settings: Settings,
+    /// Every job's creation, status, progress and deletion, for `GET /v1/events`.
+    pub feed: feed::Feed,
     retention: Retention,
     outbound: deliveries::Outbound,
 }
@@ -123,11 +127,14 @@ impl App {
             },
         )
         .await?;
+        let feed = feed::Feed::new();
+        feed.spawn_forwarder(engine.subscribe());
         let app = Self {
             db,
             store,
             engine,
             settings,
+            feed,
             retention,
             outbound: deliveries::Outbound::default(),
         };

@@ -77,10 +77,12 @@ pub fn run_view(r: &RuleRun, deliveries: &[String]) -> Value {
 
 impl App {
     fn parse_rule(&self, body: Value) -> AppResult<RuleSpec> {
-        let spec: RuleSpec = serde_json::from_value(body)
-            .map_err(|e| refused(ErrorCode::InvalidRequest, e.to_string()))?;
-        spec.validate(|ae| self.settings.dicom.is_destination(ae))
-            .map_err(rule_problem)?;
+        let spec: RuleSpec = super::error::parse_body(body)?;
+        spec.validate_at(|ae| self.settings.dicom.is_destination(ae))
+            .map_err(|(p, at)| match rule_problem(p) {
+                AppError::Refused(p) => AppError::Refused(p.at(at)),
+                other => other,
+            })?;
         Ok(spec)
     }
 

@@ -59,7 +59,7 @@ pub fn fingerprint(v: &serde_json::Value) -> String {
 
 /// Parse a JSON value into `T`, mapping schema errors to `invalid_request`.
 pub fn from_value<T: DeserializeOwned>(v: serde_json::Value) -> ApiResult<T> {
-    serde_json::from_value(v).map_err(|e| api_error(ErrorCode::InvalidRequest, e.to_string()))
+    Ok(crate::app::error::parse_body(v)?)
 }
 
 /// Parse JSON text: syntax errors are `malformed_json`, schema errors `invalid_request`.

@@ -44,7 +44,9 @@ use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
-use routes::{datasets, dicomweb, events, health, jobs, results, rules, series, stow};
+use routes::{
+    datasets, dicomweb, events, feed, health, jobs, limits, results, rules, series, stow,
+};
 
 /// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
 /// and what only the HTTP layer needs.
@@ -151,6 +153,7 @@ fn cors(origins: &[String]) -> Option<CorsLayer> {
                 header::IF_NONE_MATCH,
                 HeaderName::from_static("idempotency-key"),
                 HeaderName::from_static("x-ctrecon-geometry"),
+                HeaderName::from_static("last-event-id"),
             ])
             .expose_headers([
                 header::LOCATION,
@@ -248,6 +251,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             "/v1/datasets/{id}",
             get(datasets::get_dataset).delete(datasets::delete_dataset),
         )
+        .route("/v1/limits", get(limits::get_limits))
         .route("/v1/jobs", post(jobs::post_job).get(jobs::list_jobs))
         .route("/v1/jobs/{id}", get(jobs::get_job).delete(jobs::delete_job))
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))
@@ -300,7 +304,9 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         )
         .layer(DefaultBodyLimit::disable())
         .layer(timeout(upload_timeout));
-    let streams = Router::new().route("/v1/jobs/{id}/events", get(events::job_events));
+    let streams = Router::new()
+        .route("/v1/jobs/{id}/events", get(events::job_events))
+        .route("/v1/events", get(feed::all_events));
     let cors = cors(&s.cors_origins);
     let app = api
         .merge(simulations)

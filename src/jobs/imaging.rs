@@ -279,7 +279,8 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
             if s.frames == 0 || s.frames > MAX_ROTATING_FRAMES {
                 return Err(invalid(format!(
                     "products[{i}]: `frames` must be in 1..={MAX_ROTATING_FRAMES}"
-                )));
+                ))
+                .at(format!("/products/{i}/frames")));
             }
             let angles = (0..s.frames)
                 .map(|k| 360.0 * k as f64 / s.frames as f64)
@@ -311,7 +312,8 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
                         "products[{i}]: `iso` {} is above every value of the volume (at most {max}): the surface would be empty",
                         m.iso
                     ),
-                ));
+                )
+                .at(format!("/products/{i}/iso")));
             }
             // Marching cubes keeps a vertex index over two slices plus the mesh; bound it by the volume.
             Ok((Planned::Mesh(m.clone()), shape.voxels() * 4))
@@ -333,9 +335,15 @@ pub fn plan(
     budget_bytes: u64,
 ) -> Result<VolumePlan, Problem> {
     if req.steps.len() > MAX_ITEMS || req.products.len() > MAX_ITEMS {
+        let at = if req.steps.len() > MAX_ITEMS {
+            "/steps"
+        } else {
+            "/products"
+        };
         return Err(invalid(format!(
             "at most {MAX_ITEMS} steps and {MAX_ITEMS} products"
-        )));
+        ))
+        .at(at));
     }
     let max_voxels = budget_bytes / 4;
     let mut shape = input;
@@ -344,7 +352,9 @@ pub fn plan(
         match *step {
             Step::Resample { spacing_mm } => {
                 let (n, frame) = isotropic_grid(&shape.frame, shape.dim, spacing_mm, max_voxels)
-                    .map_err(|e| invalid(format!("steps[{i}]: {e}")))?;
+                    .map_err(|e| {
+                        invalid(format!("steps[{i}]: {e}")).at(format!("/steps/{i}/spacing_mm"))
+                    })?;
                 let before = shape.voxels();
                 shape = VolumeShape {
                     dim: (n[2], n[1], n[0]),
@@ -354,10 +364,11 @@ pub fn plan(
                 peak = peak.max((before + shape.voxels()) * 4);
             }
             Step::Gaussian { sigma_mm } => {
-                if !(sigma_mm.is_finite() && (0.0..=100.0).contains(&sigma_mm)) {
+                if !(sigma_mm.is_finite() && (0.0..=MAX_SIGMA_MM).contains(&sigma_mm)) {
                     return Err(invalid(format!(
-                        "steps[{i}]: `sigma_mm` must be in [0, 100], got {sigma_mm}"
-                    )));
+                        "steps[{i}]: `sigma_mm` must be in [0, {MAX_SIGMA_MM}], got {sigma_mm}"
+                    ))
+                    .at(format!("/steps/{i}/sigma_mm")));
                 }
                 peak = peak.max(3 * shape.voxels() * 4);
             }
@@ -368,7 +379,14 @@ pub fn plan(
     let mut products = Vec::with_capacity(req.products.len());
     let mut product_bytes = 0u64;
     for (i, p) in req.products.iter().enumerate() {
-        let (planned, bytes) = plan_product(p, &shape, i)?;
+        // A product's problem names its field, or at least the product.
+        let (planned, bytes) = plan_product(p, &shape, i).map_err(|e| {
+            if e.errors.is_empty() {
+                e.at(format!("/products/{i}"))
+            } else {
+                e
+            }
+        })?;
         products.push(planned);
         product_bytes = product_bytes.max(bytes);
     }

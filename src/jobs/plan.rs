@@ -2,13 +2,13 @@
 //! geometry, the grid, the algorithm's parameters, the requested outputs and the memory it will need. A job
 //! that can never fit the memory budget is refused here, not failed later.
 
-use crate::error_code::{ErrorCode, Problem};
-use crate::recon::ReconError;
+use crate::error_code::{ErrorCode, Problem, field_pointer};
 use crate::recon::algorithm::{AlgorithmSpec, FbpParams, OutputGrid, check_grid, estimate_bytes};
 use crate::recon::geometry::Views;
 use crate::recon::grid::Limits;
 use crate::recon::iterative::params::InitialImage;
-use crate::recon::phantom::MAX_BODIES;
+use crate::recon::phantom::{MAX_BODIES, MAX_INCIDENT_PHOTONS};
+use crate::recon::{GeometryError, ReconError};
 
 use super::model::{Dataset, DatasetKind, JobRequest, SimulationRequest};
 
@@ -23,6 +23,51 @@ pub fn recon_problem(e: &ReconError) -> Problem {
         ReconError::Canceled => ErrorCode::ReconstructionFailed,
     };
     Problem::new(code, e.to_string())
+}
+
+/// The problem of a core error about the part of the request body at `base` (a JSON Pointer), naming the
+/// field it is about in `errors`.
+pub fn recon_problem_at(e: &ReconError, base: &str) -> Problem {
+    let p = recon_problem(e);
+    match e {
+        ReconError::Geometry(g) => p.at(geometry_pointer(g, base)),
+        ReconError::InvalidParameter { name, .. } if base.ends_with(&format!("/{name}")) => {
+            p.at(base)
+        }
+        ReconError::InvalidParameter { name, .. } if is_field_path(name) => {
+            p.at(field_pointer(base, name))
+        }
+        _ => p.at(base),
+    }
+}
+
+/// Whether a core field name is a path into the request (`detector.nu`, `centre_mm[0]`), not a phrase.
+fn is_field_path(name: &str) -> bool {
+    !name.is_empty()
+        && name
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || matches!(b, b'_' | b'.' | b'[' | b']'))
+}
+
+/// The pointer of the geometry field (under `base`, the geometry's own pointer) a geometry error is about.
+fn geometry_pointer(g: &GeometryError, base: &str) -> String {
+    use GeometryError as G;
+    match g {
+        G::NonFinite { field, .. }
+        | G::NonPositive { field, .. }
+        | G::Zero { field }
+        | G::TooMany { field, .. }
+            if is_field_path(field) =>
+        {
+            field_pointer(base, field)
+        }
+        G::DetectorInsideOrbit { .. } => field_pointer(base, "dsd_mm"),
+        G::SourceInsideFov { .. } => field_pointer(base, "dso_mm"),
+        G::FanTooWide { .. } => field_pointer(base, "detector"),
+        G::ShortScanTooShort { .. } => field_pointer(base, "angles"),
+        G::AnglesNotMonotonic { index } => field_pointer(base, &format!("angles.degrees[{index}]")),
+        _ => base.to_string(),
+    }
 }
 
 fn count_of_views(views: &Views) -> usize {
@@ -76,22 +121,35 @@ fn grid_radius_mm(grid: &OutputGrid) -> f64 {
 
 /// Check a job against its input and the memory budget; returns the bytes it will need.
 pub fn admit_job(req: &JobRequest, dataset: &Dataset, budget_bytes: u64) -> Result<u64, Problem> {
+    // The geometry is the input dataset's: its problems point at `input`.
     let views = dataset
         .geometry
         .to_views()
-        .map_err(|e| recon_problem(&e.into()))?;
-    check_grid(&views, &req.grid)
-        .map_err(|e| Problem::new(ErrorCode::InvalidParameter, format!("grid: {e}")))?;
+        .map_err(|e| recon_problem(&e.into()).at("/input"))?;
+    check_grid(&views, &req.grid).map_err(|e| {
+        let pointer = recon_problem_at(&e, "/grid")
+            .errors
+            .pop()
+            .map_or_else(|| "/grid".to_string(), |f| f.pointer);
+        Problem::new(ErrorCode::InvalidParameter, format!("grid: {e}")).at(pointer)
+    })?;
     dataset
         .geometry
         .check_fov(grid_radius_mm(&req.grid))
-        .map_err(|e| recon_problem(&e.into()))?;
-    check_algorithm(&req.algorithm, &views).map_err(|e| recon_problem(&e))?;
+        .map_err(|e| recon_problem(&e.into()).at("/grid"))?;
+    check_algorithm(&req.algorithm, &views).map_err(|e| match &e {
+        ReconError::Geometry(_) => recon_problem(&e).at("/input"),
+        ReconError::InvalidParameter { name, .. } if *name == "geometry" => {
+            recon_problem(&e).at("/input")
+        }
+        _ => recon_problem_at(&e, "/algorithm"),
+    })?;
     if req.wants_metrics() && dataset.kind != DatasetKind::Simulation {
         return Err(Problem::new(
             ErrorCode::InvalidParameter,
             "`metrics` needs a simulated input (POST /v1/simulations): uploads have no truth",
-        ));
+        )
+        .at("/outputs"));
     }
     let input = Limits::f32_bytes(dataset.shape.iter().product::<usize>() as u64);
     let voxels = Limits::f32_bytes(grid_voxels(&req.grid));
@@ -116,28 +174,32 @@ pub fn admit_simulation(req: &SimulationRequest, max_elements: u64) -> Result<Vi
     let views = req
         .geometry
         .to_views()
-        .map_err(|e| recon_problem(&e.into()))?;
+        .map_err(|e| recon_problem_at(&e.into(), "/geometry"))?;
     let bodies = match &views {
         Views::D2(_) => req.phantom.phantom2().map(|p| p.ellipses.len()),
         Views::D3(_) => req.phantom.phantom3().map(|p| p.ellipsoids.len()),
     }
-    .map_err(|e| recon_problem(&e))?;
+    .map_err(|e| recon_problem_at(&e, "/phantom"))?;
     if bodies > MAX_BODIES {
         return Err(Problem::new(
             ErrorCode::InvalidParameter,
             format!("at most {MAX_BODIES} ellipses or ellipsoids"),
-        ));
+        )
+        .at("/phantom"));
     }
     req.geometry
         .check_fov(req.phantom.scale_mm)
-        .map_err(|e| recon_problem(&e.into()))?;
+        .map_err(|e| recon_problem(&e.into()).at("/phantom/scale_mm"))?;
     if let Some(noise) = &req.noise {
         let i0 = noise.incident_photons;
-        if !(i0.is_finite() && i0 > 0.0 && i0 <= 1e15) {
+        if !(i0.is_finite() && i0 > 0.0 && i0 <= MAX_INCIDENT_PHOTONS) {
             return Err(Problem::new(
                 ErrorCode::InvalidParameter,
-                format!("`noise.incident_photons` must be in (0, 1e15], got {i0}"),
-            ));
+                format!(
+                    "`noise.incident_photons` must be in (0, {MAX_INCIDENT_PHOTONS:e}], got {i0}"
+                ),
+            )
+            .at("/noise/incident_photons"));
         }
     }
     let elements = views
@@ -150,7 +212,8 @@ pub fn admit_simulation(req: &SimulationRequest, max_elements: u64) -> Result<Vi
             format!(
                 "the projections would have {elements} values, more than the limit of {max_elements}"
             ),
-        ));
+        )
+        .at("/geometry"));
     }
     Ok(views)
 }

@@ -303,10 +303,12 @@ pub fn check_render_sizes(
     for (i, p) in req.products.iter().enumerate() {
         match p {
             ProductSpec::VolumeRender(s) => {
-                check_render_size(&RenderSpec::Volume(s.clone()), i, max_side)?
+                check_render_size(&RenderSpec::Volume(s.clone()), i, max_side)
+                    .map_err(|e| e.at(format!("/products/{i}/size")))?
             }
             ProductSpec::SurfaceRender(s) => {
-                check_render_size(&RenderSpec::Surface(s.clone()), i, max_side)?
+                check_render_size(&RenderSpec::Surface(s.clone()), i, max_side)
+                    .map_err(|e| e.at(format!("/products/{i}/size")))?
             }
             _ => {}
         }

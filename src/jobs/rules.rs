@@ -179,7 +179,12 @@ impl RuleSpec {
 
     /// Check everything that needs no volume; `is_peer` says whether an AE title is a configured peer.
     pub fn validate(&self, is_peer: impl Fn(&str) -> bool) -> Result<(), RuleProblem> {
-        let invalid = |m: String| Err(RuleProblem::Invalid(m));
+        self.validate_at(is_peer).map_err(|(p, _)| p)
+    }
+
+    /// [`RuleSpec::validate`], with the JSON Pointer (into the rule's body) of the field a problem is about.
+    pub fn validate_at(&self, is_peer: impl Fn(&str) -> bool) -> Result<(), (RuleProblem, String)> {
+        let invalid = |m: String, at: &str| Err((RuleProblem::Invalid(m), at.to_string()));
         if self.name.is_empty()
             || self.name.len() > MAX_NAME
             || !self
@@ -187,16 +192,21 @@ impl RuleSpec {
                 .bytes()
                 .all(|b| b.is_ascii_lowercase() || b.is_ascii_digit() || b == b'_' || b == b'-')
         {
-            return invalid(format!(
-                "rule name {:?} must be 1–{MAX_NAME} characters of a–z, 0–9, `_` and `-`",
-                self.name.chars().take(80).collect::<String>()
-            ));
+            return invalid(
+                format!(
+                    "rule name {:?} must be 1–{MAX_NAME} characters of a–z, 0–9, `_` and `-`",
+                    self.name.chars().take(80).collect::<String>()
+                ),
+                "/name",
+            );
         }
         match (&self.protocol, &self.job) {
             (Some(_), Some(_)) => {
-                return invalid("give either `protocol` or `job`, not both".into());
+                return invalid("give either `protocol` or `job`, not both".into(), "/job");
             }
-            (None, None) => return invalid("a rule needs a `protocol` or a `job` template".into()),
+            (None, None) => {
+                return invalid("a rule needs a `protocol` or a `job` template".into(), "");
+            }
             _ => {}
         }
         let t = self.template();
@@ -204,12 +214,19 @@ impl RuleSpec {
             return invalid(
                 "the job template makes no product and `send_volume` is false: nothing to send"
                     .into(),
+                "/job/products",
             );
         }
         if t.products.len() > MAX_ITEMS || t.steps.len() > MAX_ITEMS {
-            return invalid(format!(
-                "at most {MAX_ITEMS} steps and {MAX_ITEMS} products"
-            ));
+            let at = if t.steps.len() > MAX_ITEMS {
+                "/job/steps"
+            } else {
+                "/job/products"
+            };
+            return invalid(
+                format!("at most {MAX_ITEMS} steps and {MAX_ITEMS} products"),
+                at,
+            );
         }
         let m = &self.matches;
         for (what, p) in [
@@ -218,14 +235,18 @@ impl RuleSpec {
             ("series_description", &m.series_description),
         ] {
             if let Some(p) = p {
-                check_pattern(what, p)?;
+                check_pattern(what, p).map_err(|e| (e, format!("/match/{what}")))?;
             }
         }
-        for v in &m.image_type {
-            check_pattern("image_type", v)?;
+        for (k, v) in m.image_type.iter().enumerate() {
+            let at = format!("/match/image_type/{k}");
+            check_pattern("image_type", v).map_err(|e| (e, at.clone()))?;
             if v.contains(['*', '?']) {
-                return Err(RuleProblem::BadPattern(
-                    "`image_type` lists exact values, without wildcards".into(),
+                return Err((
+                    RuleProblem::BadPattern(
+                        "`image_type` lists exact values, without wildcards".into(),
+                    ),
+                    at,
                 ));
             }
         }
@@ -234,25 +255,40 @@ impl RuleSpec {
             ("instances", &m.instances),
         ] {
             if let Some(p) = r.as_ref().and_then(|r| r.problem(what)) {
-                return invalid(p);
+                return invalid(p, &format!("/match/{what}"));
             }
         }
-        if let Some(ae) = m
+        if let Some((k, ae)) = m
             .calling_ae
             .iter()
-            .find(|a| !crate::config::dicom::is_ae_title(a))
+            .enumerate()
+            .find(|(_, a)| !crate::config::dicom::is_ae_title(a))
         {
-            return invalid(format!("calling AE {ae:?} is not a valid AE title"));
+            return invalid(
+                format!("calling AE {ae:?} is not a valid AE title"),
+                &format!("/match/calling_ae/{k}"),
+            );
         }
         if self.destinations.len() > MAX_DESTINATIONS {
-            return invalid(format!("at most {MAX_DESTINATIONS} destinations"));
+            return invalid(
+                format!("at most {MAX_DESTINATIONS} destinations"),
+                "/destinations",
+            );
         }
-        if let Some(d) = self.destinations.iter().find(|d| !is_peer(d)) {
-            return Err(RuleProblem::UnknownPeer(format!(
-                "destination {:?} is not a configured DICOM peer (`dicom.peers`) or DICOMweb origin \
-                 (`dicom.web_peers`)",
-                d.chars().take(80).collect::<String>()
-            )));
+        if let Some((k, d)) = self
+            .destinations
+            .iter()
+            .enumerate()
+            .find(|(_, d)| !is_peer(d))
+        {
+            return Err((
+                RuleProblem::UnknownPeer(format!(
+                    "destination {:?} is not a configured DICOM peer (`dicom.peers`) or DICOMweb origin \
+                     (`dicom.web_peers`)",
+                    d.chars().take(80).collect::<String>()
+                )),
+                format!("/destinations/{k}"),
+            ));
         }
         Ok(())
     }

@@ -197,5 +197,7 @@ pub struct RotatingSpec {
 pub const MAX_CURVE_POINTS: usize = 10_000;
 /// Largest number of products or steps in one job.
 pub const MAX_ITEMS: usize = 64;
+/// Largest σ (mm) of a Gaussian smoothing step.
+pub const MAX_SIGMA_MM: f64 = 100.0;
 /// Largest number of frames of a rotating projection.
 pub const MAX_ROTATING_FRAMES: usize = 720;

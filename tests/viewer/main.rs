@@ -4,7 +4,8 @@
 //! the cursor equals the API's volume, window changes recolour the canvas as the window formula says, the
 //! mesh is drawn and its triangle count is the API's, and a wrong token or a stopped server give the page's
 //! messages. Renderings of a reconstructed phantom are shown as the API serves them; the list's filters,
-//! cancel and delete, and the phantom form agree with the API; oblique volumes get combined orientation
+//! cancel and delete, and the phantom form agree with the API (its bounds from `/v1/limits`, refusals placed
+//! by JSON Pointer); the list follows every job through one `/v1/events` stream; oblique volumes get combined orientation
 //! labels; the page's files go gzip-compressed to clients that take it. Screenshots of each view go to
 //! `screenshots/` in the target directory (or `CTRECON_SCREENSHOT_DIR`); the figures (time to first slice,
 //! frames per second, page weight) are printed.
@@ -15,9 +16,11 @@ mod common;
 mod browser;
 mod checks;
 mod flow;
+mod form;
+mod list;
 mod orient;
-mod pages;
 mod renders;
+mod ui;
 
 use common::spawn_app_with;
 
@@ -190,12 +193,17 @@ async fn renderings_of_a_reconstructed_phantom_are_shown_as_the_api_serves_them(
 
 #[tokio::test]
 async fn the_list_filters_by_status_and_kind_and_cancel_and_delete_reach_the_api() {
-    pages::filters_cancel_delete().await;
+    list::filters_cancel_delete().await;
 }
 
 #[tokio::test]
 async fn the_phantom_form_creates_the_simulation_and_job_it_shows_and_places_refusals_by_field() {
-    pages::phantom_form().await;
+    form::phantom_form().await;
+}
+
+#[tokio::test]
+async fn the_list_follows_every_job_live_through_one_event_stream() {
+    list::live_list().await;
 }
 
 #[tokio::test]

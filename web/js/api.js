@@ -22,6 +22,8 @@ export class ApiError extends Error {
     this.detail = detail;
     this.code = code;
     this.problem = problem || null;
+    /** The fields the problem names: [{pointer, detail}] (RFC 6901 pointers into the request body). */
+    this.errors = problem && Array.isArray(problem.errors) ? problem.errors : [];
   }
 }
 
@@ -77,6 +79,19 @@ export async function api(path, { method = 'GET', body, headers, signal } = {}) 
   return resp.json();
 }
 
+let limitsOnce = null;
+
+/** The bounds the API checks at submission (`GET /v1/limits`), fetched once per page load. */
+export function limits() {
+  if (!limitsOnce) {
+    limitsOnce = api('/v1/limits').catch((e) => {
+      limitsOnce = null;
+      throw e;
+    });
+  }
+  return limitsOnce;
+}
+
 /** An ArrayBuffer, optionally a byte range [start, end] inclusive. */
 export async function bytes(path, range, signal) {
   const headers = range ? { Range: `bytes=${range[0]}-${range[1]}` } : {};
@@ -103,11 +118,14 @@ export async function download(path, name) {
 }
 
 /**
- * Follow a job's Server-Sent Events: calls onEvent(name, data) for each event until the stream ends or
- * `signal` aborts. Resolves when the stream ends.
+ * Follow a stream of Server-Sent Events (a job's, or every job's at `/v1/events`): calls
+ * onEvent(name, data, id) for each event until the stream ends or `signal` aborts. Resolves when the
+ * stream ends. `lastEventId` resumes a stream after that event.
  */
-export async function follow(path, onEvent, signal) {
-  const resp = await request(path, { signal, headers: { Accept: 'text/event-stream' } });
+export async function follow(path, onEvent, signal, lastEventId) {
+  const headers = { Accept: 'text/event-stream' };
+  if (lastEventId) headers['Last-Event-ID'] = lastEventId;
+  const resp = await request(path, { signal, headers });
   const reader = resp.body.getReader();
   const dec = new TextDecoder();
   let buf = '';
@@ -120,10 +138,12 @@ export async function follow(path, onEvent, signal) {
       const block = buf.slice(0, cut);
       buf = buf.slice(cut + 2);
       let name = 'message';
+      let id = null;
       const data = [];
       for (const line of block.split('\n')) {
         if (line.startsWith('event:')) name = line.slice(6).trim();
         else if (line.startsWith('data:')) data.push(line.slice(5).replace(/^ /, ''));
+        else if (line.startsWith('id:')) id = line.slice(3).trim();
       }
       if (data.length) {
         let parsed = null;
@@ -132,7 +152,7 @@ export async function follow(path, onEvent, signal) {
         } catch {
           parsed = data.join('\n');
         }
-        onEvent(name, parsed);
+        onEvent(name, parsed, id);
       }
     }
   }

@@ -65,7 +65,9 @@ export function fmtNum(x, digits = 1) {
 export function errorBox(e) {
   const title = (e && e.title) || 'Error';
   const detail = (e && (e.detail || e.message)) || String(e);
-  return h('div.error', { role: 'alert' }, h('strong.error-title', title), ' ',
+  const attrs = { role: 'alert' };
+  if (e && e.pointer) attrs.dataset = { pointer: e.pointer };
+  return h('div.error', attrs, h('strong.error-title', title), ' ',
     h('span.error-detail', detail), e && e.code ? h('code.error-code', ` ${e.code}`) : null);
 }
 

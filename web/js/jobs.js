@@ -1,5 +1,5 @@
-// The jobs list: filters by status and kind, live status and progress through each running job's event
-// stream, cancel and delete.
+// The jobs list: filters by status and kind, live creation, status, progress and deletion of every job
+// through one stream (`GET /v1/events`), cancel and delete.
 
 import { api, follow } from './api.js';
 import { clear, errorBox, fmtTime, h } from './dom.js';
@@ -54,18 +54,7 @@ export async function showJobs(main, signal) {
       h('a.button', { href: '#/send' }, 'Send work'))),
     msg, h('div.scroll', table), more));
 
-  const live = new Map();
   let cursor = null;
-  const watch = (job, tr) => {
-    if (TERMINAL.has(job.status) || live.has(job.id)) return;
-    const ctl = new AbortController();
-    signal.addEventListener('abort', () => ctl.abort());
-    live.set(job.id, ctl);
-    follow(`/v1/jobs/${job.id}/events`, (name, data) => {
-      if (data && typeof data === 'object') update(tr, data);
-      if (name === 'final') clear(tr.querySelector('.actions')).append(actions(data));
-    }, ctl.signal).catch(() => {}).finally(() => live.delete(job.id));
-  };
   const actions = (job) => {
     if (!TERMINAL.has(job.status)) {
       return h('button.cancel', { type: 'button', onclick: () => act(job, 'cancel') }, 'Cancel');
@@ -91,7 +80,6 @@ export async function showJobs(main, signal) {
       generation += 1;
       cursor = null;
       clear(body);
-      for (const c of live.values()) c.abort();
     }
     const mine = generation;
     const q = new URLSearchParams({ limit: '50' });
@@ -101,9 +89,7 @@ export async function showJobs(main, signal) {
     const page = await api(`/v1/jobs?${q}`, { signal });
     if (mine !== generation) return;
     for (const job of page.jobs) {
-      const tr = row(job, actions);
-      body.append(tr);
-      watch(job, tr);
+      if (!body.querySelector(`tr[data-id="${job.id}"]`)) body.append(row(job, actions));
     }
     if (!body.children.length) body.append(h('tr.empty', h('td', { colspan: '7' }, 'No jobs.')));
     cursor = page.next_cursor;
@@ -119,5 +105,57 @@ export async function showJobs(main, signal) {
   status.addEventListener('change', refilter);
   kind.addEventListener('change', refilter);
   more.addEventListener('click', () => load(false).catch((e) => msg.append(errorBox(e))));
+
+  // Every job's events on one connection. The list is loaded once the stream is `ready`, so no event falls
+  // between the two; a dropped stream resumes after the last event it delivered (`Last-Event-ID`), and
+  // `resync` (events lost) reloads the list.
+  const rowOf = (id) => body.querySelector(`tr[data-id="${id}"]`);
+  const shown = (job) => (!status.value || status.value === job.status) && (!kind.value || kind.value === job.kind);
+  const apply = (name, data) => {
+    if (!data || typeof data !== 'object') return;
+    if (name === 'created') {
+      if (rowOf(data.id) || !shown(data)) return;
+      const empty = body.querySelector('tr.empty');
+      if (empty) empty.remove();
+      body.prepend(row(data, actions));
+    } else if (name === 'status' || name === 'progress') {
+      const tr = rowOf(data.id);
+      if (!tr) return;
+      update(tr, data);
+      if (name === 'status') clear(tr.querySelector('.actions')).append(actions(data));
+    } else if (name === 'deleted') {
+      const tr = rowOf(data.id);
+      if (tr) tr.remove();
+    } else if (name === 'resync') {
+      load(true).catch((e) => msg.append(errorBox(e)));
+    }
+  };
+  let lastId = null;
+  let started = false;
+  let ready;
+  const first = new Promise((resolve, reject) => {
+    ready = { resolve, reject };
+  });
+  const run = async () => {
+    while (!signal.aborted) {
+      try {
+        await follow('/v1/events', (name, data, id) => {
+          if (id) lastId = id;
+          if (name !== 'ready') apply(name, data);
+          else if (!started) {
+            started = true;
+            ready.resolve();
+          } else load(true).catch((e) => msg.append(errorBox(e)));
+        }, signal, lastId);
+      } catch (e) {
+        if (signal.aborted) return;
+        ready.reject(e);
+        if (e.status === 401) return;
+      }
+      await new Promise((r) => { setTimeout(r, 1000); });
+    }
+  };
+  run();
+  await first;
   await load(true);
 }

@@ -1,22 +1,13 @@
 // Sending work: DICOM upload with its report, a volume protocol for a ready series, and a phantom simulated
 // and reconstructed. Also the page of one series (its facts, slices and the protocol form).
 
-import { api } from './api.js';
+import { api, limits } from './api.js';
 import { clear, errorBox, fmtNum, h } from './dom.js';
 import {
-  ALGORITHMS_2D, ALGORITHMS_3D, PHANTOM_FIELDS, PROTOCOLS, phantomRequests,
+  ALGORITHMS_2D, ALGORITHMS_3D, PHANTOM_FIELDS, PROTOCOLS, fieldOfPointer, limitAt, phantomRequests,
 } from './protocols.js';
 import { SliceViewer } from './slices.js';
 import { dropZone } from './upload.js';
-
-/** Words of the API's problems that name each phantom form field. */
-const ALIASES = {
-  table: ['table'], scale_mm: ['scale_mm', 'phantom'], views: ['angles', 'views', 'count'],
-  det_count: ['det_count', 'detector count', 'nu'], det_spacing_mm: ['spacing_mm', 'det_spacing', 'du_mm'],
-  dso_mm: ['dso', 'source-to-isocentre', 'source-to-centre'], dsd_mm: ['dsd', 'source-to-detector'],
-  nv: ['nv'], noise: ['incident_photons', 'noise'], algorithm: ['algorithm'], filter: ['filter'],
-  iterations: ['iterations'], size: ['grid', 'nx', 'ny', 'nz', 'job_too_large', 'memory'], pixel_mm: ['dx_mm', 'pixel'],
-};
 
 /** The volume protocol form for a series (or a succeeded job) id. */
 export function protocolForm(input) {
@@ -62,15 +53,20 @@ function seriesActions(series) {
     protocolForm(series.id));
 }
 
-/** The phantom form: simulate, then reconstruct; the server's problem goes next to the field it names. */
-function phantomForm() {
+/**
+ * The phantom form: simulate, then reconstruct. Maximums are the server's (`GET /v1/limits`); each field
+ * the server's problem names by JSON Pointer gets the message next to it.
+ */
+function phantomForm(bounds) {
   const inputs = {};
   const errs = {};
   const labels = {};
   const fields = PHANTOM_FIELDS.map(([name, label, kind, def, c]) => {
     const input = kind === 'select'
       ? h('select', { name }, c.options.map((o) => h('option', { value: o, selected: o === def }, o)))
-      : h('input', { name, type: 'number', value: String(def), min: c.min, max: c.max, step: c.step, required: true });
+      : h('input', {
+        name, type: 'number', value: String(def), min: c.min, max: limitAt(bounds, c.max), step: c.step, required: true,
+      });
     inputs[name] = input;
     errs[name] = h('span.field-error', { dataset: { field: name } });
     labels[name] = h('label', { dataset: { field: name } }, label, input, errs[name]);
@@ -95,24 +91,17 @@ function phantomForm() {
   const submit = h('button.primary', { type: 'submit' }, 'Simulate and reconstruct');
   const form = h('form#phantom-form', { novalidate: true }, h('div.form-grid', fields), h('div.row', submit), formErr);
   const place = (e) => {
-    const text = `${e.detail || ''}`.toLowerCase();
-    // The visible field named earliest in the problem's detail gets the message. Names count only between
-    // non-alphanumerics ("nv" is not the one in "invalid"; "dso" is the one in "dso_mm").
-    let hit = null;
-    let at = Infinity;
-    for (const [name, words] of Object.entries(ALIASES)) {
-      if (labels[name].hidden) continue;
-      for (const w of words) {
-        const found = new RegExp(`(^|[^a-z0-9])${w.replace(/[.*+?^${}()|[\]\\-]/g, '\\$&')}(?![a-z0-9])`).exec(text);
-        const k = found ? found.index + found[1].length : -1;
-        if (k >= 0 && k < at) {
-          at = k;
-          hit = name;
-        }
+    // Each field the problem points at gets its own detail; a pointer to no visible field, or a problem
+    // without pointers, goes under the form.
+    let placed = false;
+    for (const f of e.errors || []) {
+      const name = fieldOfPointer(f.pointer);
+      if (name && !labels[name].hidden) {
+        errs[name].append(errorBox({ title: e.title, detail: f.detail, code: e.code, pointer: f.pointer }));
+        placed = true;
       }
     }
-    if (hit) errs[hit].append(errorBox(e));
-    else formErr.append(errorBox(e));
+    if (!placed) formErr.append(errorBox(e));
   };
   form.addEventListener('submit', async (ev) => {
     ev.preventDefault();
@@ -145,7 +134,7 @@ function phantomForm() {
 export async function showSend(main) {
   main.append(
     h('section.panel#send-dicom', h('h1', 'DICOM series'), dropZone(seriesActions)),
-    h('section.panel#send-phantom', h('h2', 'Phantom: simulate and reconstruct'), phantomForm()),
+    h('section.panel#send-phantom', h('h2', 'Phantom: simulate and reconstruct'), phantomForm(await limits())),
   );
 }
 

@@ -116,7 +116,7 @@ async fn insert(
 fn limits(st: &AppState) -> StreamLimits {
     StreamLimits {
         max_file_bytes: st.settings.max_upload_bytes,
-        max_elements: st.settings.memory_budget_bytes / 4,
+        max_elements: crate::app::limits::max_array_values(&st.settings),
     }
 }
 
@@ -134,7 +134,7 @@ pub async fn post_simulation(
         return Ok(r);
     }
     let req = body.value;
-    let views = admit_simulation(&req, st.settings.memory_budget_bytes / 4)?;
+    let views = admit_simulation(&req, crate::app::limits::max_array_values(&st.settings))?;
     let id = DatasetId::generate();
     let store = st.store.clone();
     let request = req.clone();

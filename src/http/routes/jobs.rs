@@ -173,6 +173,13 @@ pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
     serde_json::Value::Object(m)
 }
 
+/// The summary view of a job, as `GET /v1/jobs` lists it.
+pub fn summary_view(job: &JobSummary) -> serde_json::Value {
+    let mut m = serde_json::Map::new();
+    summary_fields(&mut m, job, FieldSet::SUMMARY);
+    serde_json::Value::Object(m)
+}
+
 /// The fields of `set` that a summary holds.
 fn summary_fields(
     m: &mut serde_json::Map<String, serde_json::Value>,

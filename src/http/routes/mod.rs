@@ -3,8 +3,10 @@
 pub mod datasets;
 pub mod dicomweb;
 pub mod events;
+pub mod feed;
 pub mod health;
 pub mod jobs;
+pub mod limits;
 pub mod results;
 pub mod rules;
 pub mod series;

@@ -25,7 +25,7 @@ mod tables;
 
 pub use ellipse::{Ellipse, Phantom2};
 pub use ellipsoid::{Ellipsoid, Phantom3, euler_matrix, seed_grid};
-pub use noise::poisson_noise;
+pub use noise::{MAX_INCIDENT_PHOTONS, poisson_noise};
 pub use spec::{PhantomSpec, TableName};
 pub use tables::{Table2, Table3};
 
