@@ -751,7 +751,8 @@ async fn a_derived_result_is_found_next_to_its_source_and_the_index_outlives_its
     assert_eq!(found[0][&SERIES_UID], a.series_uid);
     assert_eq!(found[1][&0x0020_0011], "900");
     assert_eq!(found[1][&0x0008_0060], "CT");
-    assert_eq!(found[1][&0x0008_103E], "ctrecon query test");
+    // The derived series carries the labels of the exported files a delivery sends.
+    assert_eq!(found[1][&0x0008_103E], "ctrecon volume query test");
     assert_eq!(
         found[1][&0x0020_1209], "5",
         "one derived slice per source slice"

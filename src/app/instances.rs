@@ -366,14 +366,25 @@ impl App {
     /// them once the upload is recorded.
     ///
     /// [`index_staged`]: App::index_staged
-    pub async fn stage_uploaded(&self, files: &[UploadFile]) -> AppResult<StagedInstances> {
+    pub async fn stage_uploaded(
+        &self,
+        files: &[UploadFile],
+        rejected: &[crate::jobs::ingest::RejectedFile],
+    ) -> AppResult<StagedInstances> {
         let store = self.store.clone();
         let limits = self.ingest_options(None).zip;
         let files = files.to_vec();
+        // What the ingest refused is not an instance: it is neither read again nor indexed (a refused file may
+        // be as large as the upload limit).
+        let refused: std::collections::HashSet<String> =
+            rejected.iter().map(|r| r.file.clone()).collect();
         let staged = tokio::task::spawn_blocking(move || -> std::io::Result<StagedInstances> {
             let scratch = store.scratch()?;
             let mut unpacked = Unpacked::default();
             for (k, f) in files.into_iter().enumerate() {
+                if refused.contains(&f.label) {
+                    continue;
+                }
                 let copy = scratch.path().join(format!("part-{k:06}"));
                 if std::fs::hard_link(&f.path, &copy).is_err() {
                     std::fs::copy(&f.path, &copy)?;
@@ -388,7 +399,12 @@ impl App {
                 }
             }
             Ok(StagedInstances {
-                files: unpacked.files.into_iter().map(|f| f.path).collect(),
+                files: unpacked
+                    .files
+                    .into_iter()
+                    .filter(|f| !refused.contains(&f.label))
+                    .map(|f| f.path)
+                    .collect(),
                 scratch: Some(scratch),
             })
         })
@@ -431,6 +447,11 @@ impl App {
     /// Index each volume job's results as it succeeds, and those missed while the service was down; runs
     /// as long as the runtime.
     pub fn spawn_result_indexer(&self) {
+        if let Err(e) = self.db.node_tables() {
+            // The index has no PostgreSQL twin yet: nothing to index into, and no export to make for it.
+            tracing::info!(reason = %e, "derived results are not indexed");
+            return;
+        }
         let app = self.clone();
         let mut events = self.engine.subscribe();
         tokio::spawn(async move {

@@ -305,7 +305,7 @@ pub async fn post_series(
                     path: f.file.temp.path().to_path_buf(),
                 })
                 .collect();
-            st.stage_uploaded(&on_disk).await.ok()
+            st.stage_uploaded(&on_disk, &ingested.rejected).await.ok()
         }
         _ => None,
     };
@@ -575,7 +575,7 @@ pub async fn complete_upload(
         Err(e) => Err(e.into()),
     };
     commit_series(&st, staged, recorded).await?;
-    if let Ok(kept) = st.stage_uploaded(&files).await {
+    if let Ok(kept) = st.stage_uploaded(&files, &ingested.rejected).await {
         index_upload(&st, id, kept, &records).await;
     }
     st.fire_rules(&ingested, None).await;
