@@ -1,0 +1,50 @@
+//! Whole `.npy` files as arrays: decoding to f32 (float64 rounds, uint16 converts exactly) and encoding a
+//! float32 array (format 1.0, C order, data aligned to 64 bytes).
+
+use ndarray::{ArrayD, ArrayView, Dimension, IxDyn};
+
+use super::MAGIC;
+use super::header::{NpyError, malformed, parse_header};
+
+/// Decode a whole `.npy` file as an f32 array (float64 rounds, uint16 converts exactly).
+pub fn decode_f32(bytes: &[u8]) -> Result<ArrayD<f32>, NpyError> {
+    let h = parse_header(bytes)?.ok_or_else(|| malformed("the file ends inside its header"))?;
+    let expected = h
+        .file_bytes()
+        .ok_or_else(|| malformed("the declared size overflows"))?;
+    if bytes.len() as u64 != expected {
+        return Err(NpyError::Length {
+            expected,
+            got: bytes.len() as u64,
+        });
+    }
+    let item = h.dtype.item_bytes();
+    let values: Vec<f32> = bytes[h.data_offset..]
+        .chunks_exact(item)
+        .map(|e| h.value(e))
+        .collect();
+    ArrayD::from_shape_vec(IxDyn(&h.shape), values).map_err(|e| malformed(e.to_string()))
+}
+
+/// Encode `array` as a little-endian float32 `.npy` (format 1.0, C order).
+pub fn encode_f32<D: Dimension>(array: ArrayView<'_, f32, D>) -> Vec<u8> {
+    let dims: Vec<String> = array.shape().iter().map(|n| n.to_string()).collect();
+    let shape = match dims.len() {
+        1 => format!("({},)", dims[0]),
+        _ => format!("({})", dims.join(", ")),
+    };
+    let mut dict = format!("{{'descr': '<f4', 'fortran_order': False, 'shape': {shape}, }}");
+    // Pad so that magic (6) + version (2) + length (2) + dict + '\n' is a multiple of 64.
+    let unpadded = 10 + dict.len() + 1;
+    dict.push_str(&" ".repeat((64 - unpadded % 64) % 64));
+    dict.push('\n');
+    let mut out = Vec::with_capacity(10 + dict.len() + array.len() * 4);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&[1, 0]);
+    out.extend_from_slice(&(dict.len() as u16).to_le_bytes());
+    out.extend_from_slice(dict.as_bytes());
+    for v in array.iter() {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out
+}
