@@ -16,6 +16,10 @@ use crate::recon::error::ReconError;
 use crate::volume::Volume;
 
 mod assemble;
+mod hu;
+mod layout;
+mod stack;
+mod vector;
 pub use assemble::assemble;
 
 /// HU given to pixels marked as padding (outside the scanned field).
