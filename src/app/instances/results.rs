@@ -1,0 +1,256 @@
+//! The DICOM results of volume jobs in the index: a derived CT series of the job's volume, in the study of
+//! its source series, and its products as exported for delivery (derived CT stacks, Secondary Capture MIPs,
+//! reformats and renderings, Encapsulated STL — the same files and UIDs a delivery sends); indexed as each
+//! job succeeds, and at start for those missed while the service was down.
+
+use std::path::PathBuf;
+
+use ndarray::Ix3;
+
+use super::{DERIVED_SERIES_NUMBER, indexed, storage};
+use crate::app::{App, AppResult};
+use crate::dicom::{SeriesMeta, header_of, read_header, write_ct_series};
+use crate::error_code::Problem;
+use crate::jobs::JobStatus;
+use crate::jobs::export::export_dir;
+use crate::jobs::repo::NewInstance;
+use crate::storage::npy::decode_f32;
+use crate::storage::{InstanceId, InstanceOwner, JobId, ResultName};
+use crate::volume::{Volume, mu_to_hu};
+
+impl App {
+    /// Index the DICOM results of job `id` once it succeeded: its products as exported for delivery, and
+    /// the derived CT series of its volume (unless the export holds it already), in the study and frame of
+    /// reference of its source series. A job without a source series (no patient) is marked indexed with
+    /// no instance. A job indexed before is left as it is. Returns the instances indexed.
+    pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
+        if self.db.node_tables()?.job_indexed(id).await? {
+            return Ok(0);
+        }
+        let Some(job) = self.db.get_job(id).await? else {
+            return Ok(0);
+        };
+        if job.status != JobStatus::Succeeded {
+            return Ok(0);
+        }
+        let Some(result) = job.result.filter(|r| r.source_series.is_some()) else {
+            self.db.node_tables()?.mark_job_indexed(id).await?;
+            return Ok(0);
+        };
+        let exported = self.exported_instances(id).await;
+        let volume_exported = exported
+            .iter()
+            .any(|(_, r)| r.instance.series_number == Some(DERIVED_SERIES_NUMBER.into()));
+        let written = if volume_exported {
+            Vec::new()
+        } else {
+            self.write_volume_series(id, result).await?
+        };
+        let owner = InstanceOwner::Job(id);
+        let rows: Vec<NewInstance> = written
+            .iter()
+            .map(|(r, _)| r.clone())
+            .chain(exported.iter().map(|(_, r)| r.clone()))
+            .collect();
+        self.db
+            .node_tables()?
+            .insert_instances(owner, &rows)
+            .await?;
+        for (row, temp) in written {
+            self.store
+                .commit_async(temp, self.store.instance_path(owner, row.id))
+                .await
+                .map_err(|e| storage("keeping a derived instance failed", e))?;
+        }
+        let store = self.store.clone();
+        let links: Vec<(PathBuf, PathBuf)> = exported
+            .into_iter()
+            .map(|(from, r)| (from, store.instance_path(owner, r.id)))
+            .collect();
+        tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+            for (from, to) in links {
+                if let Some(dir) = to.parent() {
+                    std::fs::create_dir_all(dir)?;
+                }
+                // The exported file is never written again: a hard link shares it.
+                if std::fs::hard_link(&from, &to).is_err() {
+                    std::fs::copy(&from, &to)?;
+                }
+            }
+            Ok(())
+        })
+        .await
+        .map_err(|e| storage("indexing exported results failed", std::io::Error::other(e)))?
+        .map_err(|e| storage("indexing exported results failed", e))?;
+        tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
+        Ok(rows.len())
+    }
+
+    /// The job's exported DICOM results with their index rows; none (logged) when they cannot be exported,
+    /// so that the volume is indexed all the same.
+    async fn exported_instances(&self, id: JobId) -> Vec<(PathBuf, NewInstance)> {
+        let files = match self.export_results(id).await {
+            Ok(f) => f,
+            Err(p) => {
+                tracing::warn!(job_id = %id, code = p.code.code(), detail = %p.detail, "the job's products are not indexed");
+                return Vec::new();
+            }
+        };
+        let dir = export_dir(&self.store, id);
+        let max = self
+            .settings
+            .dicom
+            .max_instance_bytes
+            .saturating_add(64 << 10);
+        tokio::task::spawn_blocking(move || {
+            files
+                .into_iter()
+                .filter_map(|f| {
+                    let path = dir.join(&f.file);
+                    let bytes = std::fs::metadata(&path).ok()?.len();
+                    match read_header(&path, max) {
+                        Ok(h) => Some((
+                            path,
+                            NewInstance {
+                                id: InstanceId::generate(),
+                                series_id: None,
+                                instance: indexed(&h, bytes),
+                            },
+                        )),
+                        Err(e) => {
+                            tracing::warn!(error = %e, "an exported instance is not indexed");
+                            None
+                        }
+                    }
+                })
+                .collect()
+        })
+        .await
+        .unwrap_or_default()
+    }
+
+    /// Write the derived CT series of job `id`'s volume as temporary files with their index rows.
+    async fn write_volume_series(
+        &self,
+        id: JobId,
+        result: crate::jobs::model::JobResult,
+    ) -> AppResult<Vec<(NewInstance, crate::storage::TempBlob)>> {
+        let source = match result.source_series {
+            Some(s) => self.db.get_series(s).await?,
+            None => None,
+        };
+        let meta = SeriesMeta {
+            study_uid: source.as_ref().and_then(|s| s.study_uid.clone()),
+            frame_of_reference_uid: source
+                .as_ref()
+                .and_then(|s| s.frame_of_reference_uid.clone()),
+            patient_name: source.as_ref().and_then(|s| s.patient_name.clone()),
+            patient_id: source.as_ref().and_then(|s| s.patient_id.clone()),
+            series_description: format!(
+                "ctrecon {}",
+                source
+                    .as_ref()
+                    .and_then(|s| s.description.as_deref())
+                    .unwrap_or("derived")
+            )
+            .chars()
+            .take(64)
+            .collect(),
+            series_number: DERIVED_SERIES_NUMBER,
+            source_series_uid: source.as_ref().map(|s| s.series_uid.clone()),
+            derivation_description: Some(
+                "Volume reconstructed by ctrecon from the referenced series".into(),
+            ),
+        };
+        let (store, mu_water) = (self.store.clone(), self.settings.mu_water_per_mm);
+        let volume_path = store.result_path(id, &ResultName::Volume);
+        Ok(self
+            .engine
+            .compute(move || {
+                let bytes = store
+                    .local(&volume_path)
+                    .and_then(std::fs::read)
+                    .map_err(|e| storage("reading a job's volume failed", e))?;
+                let data = decode_f32(&bytes)
+                    .ok()
+                    .and_then(|a| a.into_dimensionality::<Ix3>().ok())
+                    .ok_or_else(Problem::internal)?;
+                let data = match result.units {
+                    crate::jobs::model::VolumeUnits::Hu => data,
+                    crate::jobs::model::VolumeUnits::MuPerMm => {
+                        data.mapv(|v| mu_to_hu(v, mu_water))
+                    }
+                };
+                let vol = Volume {
+                    data,
+                    frame: result.frame(),
+                };
+                let series = write_ct_series(&vol, &meta)
+                    .map_err(|e| crate::jobs::ingest::dicom_problem(&e))?;
+                let mut out = Vec::with_capacity(series.files.len());
+                for (name, bytes) in &series.files {
+                    let h = header_of(name, bytes)
+                        .map_err(|e| crate::jobs::ingest::dicom_problem(&e))?;
+                    let temp = store
+                        .write_temp(bytes)
+                        .map_err(|e| storage("writing a derived instance failed", e))?;
+                    let row = NewInstance {
+                        id: InstanceId::generate(),
+                        series_id: None,
+                        instance: indexed(&h, bytes.len() as u64),
+                    };
+                    out.push((row, temp));
+                }
+                Ok(out)
+            })
+            .await?)
+    }
+
+    /// Index the results of every succeeded volume job not indexed yet (after a restart).
+    pub async fn index_pending_jobs(&self) -> AppResult<usize> {
+        let mut n = 0;
+        for id in self.db.node_tables()?.jobs_to_index().await? {
+            n += self.index_job(id).await?;
+        }
+        Ok(n)
+    }
+
+    /// Index each volume job's results as it succeeds, and those missed while the service was down; runs
+    /// as long as the runtime.
+    pub fn spawn_result_indexer(&self) {
+        if let Err(e) = self.db.node_tables() {
+            // The index has no PostgreSQL twin yet: nothing to index into, and no export to make for it.
+            tracing::info!(reason = %e, "derived results are not indexed");
+            return;
+        }
+        let app = self.clone();
+        let mut events = self.engine.subscribe();
+        tokio::spawn(async move {
+            if let Err(e) = app.index_pending_jobs().await {
+                tracing::error!(error = %e, "indexing job results at start failed");
+            }
+            loop {
+                match events.recv().await {
+                    Ok(ev) if ev.status == JobStatus::Succeeded => {
+                        let kind = match app.db.get_job(ev.id).await {
+                            Ok(Some(j)) => j.kind,
+                            _ => continue,
+                        };
+                        if kind == crate::jobs::model::KIND_VOLUME
+                            && let Err(e) = app.index_job(ev.id).await
+                        {
+                            tracing::error!(job_id = %ev.id, error = %e, "indexing job results failed");
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(tokio::sync::broadcast::error::RecvError::Lagged(_)) => {
+                        if let Err(e) = app.index_pending_jobs().await {
+                            tracing::error!(error = %e, "indexing job results failed");
+                        }
+                    }
+                    Err(tokio::sync::broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        });
+    }
+}
