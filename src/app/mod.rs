@@ -19,6 +19,7 @@ pub mod rules;
 pub mod series;
 pub mod stow;
 pub mod stow_client;
+pub mod uploads;
 pub mod wado;
 
 use std::time::Duration;

@@ -1,16 +1,21 @@
-//! DICOM series commands: decode and assemble files on disk into series (on the worker pool), and record a
-//! whole set of received instances as one completed upload — what an HTTP upload and the DICOM node share.
+//! DICOM series commands: decode and assemble files on disk into series (on the worker pool), record a
+//! whole set of received instances as one completed upload — what an HTTP upload and the DICOM node share —
+//! and fetch or delete a stored series.
 
 use serde_json::{Value, json};
 
-use super::{App, AppResult};
+use super::error::refused;
+use super::{App, AppError, AppResult};
 use crate::dicom::{ReadLimits, UploadFile, ZipLimits};
+use crate::error_code::ErrorCode;
 use crate::jobs::SeriesRecord;
 use crate::jobs::ingest::{IngestOptions, Ingested, Staged, ingest};
 use crate::jobs::model::rfc3339;
+use crate::jobs::repo::Deleted;
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
-use crate::storage::UploadId;
+use crate::storage::sweep::BlobKind;
+use crate::storage::{SeriesId, UploadId};
 
 /// The JSON document of a stored series (also part of an upload's outcome).
 pub fn series_view(r: &SeriesRecord) -> Value {
@@ -52,6 +57,17 @@ pub fn outcome_view(id: UploadId, instances: u32, bytes: u64, ingested: &Ingeste
         "series": series,
         "rejected": ingested.rejected,
     })
+}
+
+/// A stored series and whether its volume is still there (the start-up sweep marks a lost one).
+#[derive(Debug, Clone)]
+pub struct StoredSeries {
+    pub record: SeriesRecord,
+    pub available: bool,
+}
+
+fn series_not_found(id: SeriesId) -> AppError {
+    refused(ErrorCode::SeriesNotFound, format!("no series {id}"))
 }
 
 /// A set of instances received whole (by the DICOM node) and what became of it.
@@ -145,5 +161,74 @@ impl App {
             upload_id: id,
             ingested,
         })
+    }
+
+    /// The series `id` and whether its volume is available.
+    pub async fn get_series(&self, id: SeriesId) -> AppResult<StoredSeries> {
+        let record = self
+            .db
+            .get_series(id)
+            .await?
+            .ok_or_else(|| series_not_found(id))?;
+        let missing = self
+            .db
+            .blob_missing(BlobKind::Series, &record.id.to_string())
+            .await?;
+        Ok(StoredSeries {
+            record,
+            available: !missing,
+        })
+    }
+
+    /// The series `id` whose volume is to be read: refused (`file_missing`) when the start-up sweep found the
+    /// volume missing.
+    pub async fn series_with_volume(&self, id: SeriesId) -> AppResult<SeriesRecord> {
+        let record = self
+            .db
+            .get_series(id)
+            .await?
+            .ok_or_else(|| series_not_found(id))?;
+        if self
+            .db
+            .blob_missing(BlobKind::Series, &record.id.to_string())
+            .await?
+        {
+            return Err(refused(
+                ErrorCode::FileMissing,
+                format!(
+                    "the volume of series {} was lost; upload the series again",
+                    record.id
+                ),
+            ));
+        }
+        Ok(record)
+    }
+
+    /// Delete the series `id`: the row, then its volume and the folder of its indexed instances; refused
+    /// while a queued or running job reads it.
+    pub async fn delete_series(&self, id: SeriesId) -> AppResult<()> {
+        match self.db.delete_series(id).await? {
+            Deleted::Done => {
+                // A crash before this removal leaves an orphan file, which the start-up sweep removes.
+                if let Err(e) = self
+                    .store
+                    .remove_blob_async(&self.store.series_path(id))
+                    .await
+                {
+                    tracing::warn!(error = %e, series_id = %id, "removing a deleted series' volume failed");
+                }
+                // Its indexed instances went with its row; their folder goes once no row names it.
+                if let Err(e) = self.sweep_instances().await {
+                    tracing::warn!(error = %e, series_id = %id, "removing a deleted series' instances failed");
+                }
+                tracing::info!(series_id = %id, "series deleted");
+                Ok(())
+            }
+            Deleted::InUse => Err(refused(
+                ErrorCode::ResourceInUse,
+                format!("series {id} is the input of a queued or running job; cancel it or wait"),
+            )),
+            Deleted::NotFound => Err(series_not_found(id)),
+        }
     }
 }

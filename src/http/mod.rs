@@ -45,7 +45,7 @@ use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
 use routes::{
-    datasets, dicomweb, events, feed, health, jobs, limits, results, rules, series, stow,
+    datasets, dicomweb, events, feed, health, jobs, limits, results, rules, series, stow, uploads,
 };
 
 /// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
@@ -264,7 +264,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             "/v1/jobs/{id}/result/products/{index}",
             get(results::product),
         )
-        .route("/v1/uploads/{id}", get(series::get_upload))
+        .route("/v1/uploads/{id}", get(uploads::get_upload))
         .route(
             "/v1/series/{id}",
             get(series::get_series).delete(series::delete_series),
@@ -295,8 +295,8 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .layer(timeout(upload_timeout));
     let uploads = Router::new()
         .route("/v1/sinograms", post(datasets::post_sinogram))
-        .route("/v1/series", post(series::post_series))
-        .route("/v1/uploads/{id}/complete", post(series::complete_upload))
+        .route("/v1/series", post(uploads::post_series))
+        .route("/v1/uploads/{id}/complete", post(uploads::complete_upload))
         .route("/dicom-web/studies", post(stow::store_instances))
         .route(
             "/dicom-web/studies/{study}",

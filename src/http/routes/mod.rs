@@ -11,3 +11,4 @@ pub mod results;
 pub mod rules;
 pub mod series;
 pub mod stow;
+pub mod uploads;

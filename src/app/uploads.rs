@@ -1,0 +1,413 @@
+//! DICOM uploads as application commands: a whole upload received in one request (files or ZIPs, already on
+//! disk as temporary files), one instance appended to an open upload, the completion of an open upload, and
+//! the upload's JSON view.
+//!
+//! Received files are decoded on the worker pool, split by SeriesInstanceUID and assembled into HU volumes;
+//! a file or member that cannot be read is listed as rejected with its reason and the others go on.
+//! Instances of an open upload are stored under their SHA-256 as they arrive (so re-sending one is harmless)
+//! and assembled on completion; a completion that fails (say, a missing slice) leaves the upload open, so the
+//! missing instance can still be sent. Volumes are renamed into place only after their rows are committed,
+//! and the instances of a recorded upload are indexed.
+
+use serde_json::{Value, json};
+
+use super::error::refused;
+use super::idempotency::settle;
+use super::instances::StagedInstances;
+use super::series::outcome_view;
+use super::{App, AppError, AppResult, Replay};
+use crate::dicom::{ReadLimits, UploadFile, read_upload_file};
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::ingest::{Staged, dicom_problem};
+use crate::jobs::model::rfc3339;
+use crate::jobs::{Appended, Completed, IdempotencyKey, SeriesRecord, UploadRecord};
+use crate::series::UnevenPolicy;
+use crate::storage::{TempBlob, UploadId};
+
+/// A file of an upload as received: streamed to a temporary file, with the name the client gave it (for
+/// messages only; never a path).
+#[derive(Debug)]
+pub struct ReceivedFile {
+    pub label: String,
+    pub temp: TempBlob,
+}
+
+/// What a command that may create an upload answers.
+#[derive(Debug)]
+pub enum UploadAnswer {
+    /// This request created upload `id`; `view` is its outcome (series made, files refused).
+    Created { id: UploadId, view: Value },
+    /// An earlier request with the same Idempotency-Key created this upload (or won a race for the key).
+    Replayed(UploadRecord),
+}
+
+/// What appending an instance answers.
+#[derive(Debug)]
+pub enum AppendAnswer {
+    /// Appended (or already there): the upload's view with `appended`, and whether this request opened it.
+    Appended {
+        id: UploadId,
+        view: Value,
+        opened: bool,
+    },
+    /// An earlier request with the same Idempotency-Key opened this upload (or won a race for the key).
+    Replayed(UploadRecord),
+}
+
+/// The JSON document of an upload: its outcome once completed, else its state and links.
+pub fn upload_view(u: &UploadRecord) -> Value {
+    if let Some(outcome) = &u.outcome {
+        return outcome.clone();
+    }
+    json!({
+        "upload": {
+            "id": u.id,
+            "status": if u.open { "open" } else { "completed" },
+            "instances": u.instances,
+            "bytes": u.bytes,
+            "created_at": rfc3339(u.created_us),
+            "links": {
+                "self": format!("/v1/uploads/{}", u.id),
+                "append": format!("/v1/series?upload={}", u.id),
+                "complete": format!("/v1/uploads/{}/complete", u.id),
+            }
+        }
+    })
+}
+
+fn upload_not_found(id: UploadId) -> AppError {
+    refused(ErrorCode::UploadNotFound, format!("no upload {id}"))
+}
+
+fn on_disk(files: &[ReceivedFile]) -> Vec<UploadFile> {
+    files
+        .iter()
+        .map(|f| UploadFile {
+            label: f.label.clone(),
+            path: f.temp.path().to_path_buf(),
+        })
+        .collect()
+}
+
+async fn discard(files: Vec<ReceivedFile>) {
+    for f in files {
+        f.temp.discard().await;
+    }
+}
+
+impl App {
+    /// The upload `id`.
+    pub async fn upload(&self, id: UploadId) -> AppResult<UploadRecord> {
+        self.db
+            .get_upload(id)
+            .await?
+            .ok_or_else(|| upload_not_found(id))
+    }
+
+    /// The upload recorded under the id a replayed key names.
+    async fn recorded_upload(&self, id: &str) -> AppResult<UploadRecord> {
+        let id = UploadId::parse(id).map_err(|e| refused(ErrorCode::InvalidId, e.to_string()))?;
+        self.upload(id).await
+    }
+
+    /// The upload an earlier request with the same Idempotency-Key created; `None` when the key is new (or
+    /// absent); refused when that request differed.
+    async fn replayed_upload(
+        &self,
+        key: Option<&IdempotencyKey>,
+    ) -> AppResult<Option<UploadRecord>> {
+        match self.replay(key).await? {
+            Replay::New => Ok(None),
+            Replay::Existing(id) => self.recorded_upload(&id).await.map(Some),
+        }
+    }
+
+    /// Refuse appending to upload `id` unless it exists and is open.
+    pub async fn check_open_upload(&self, id: UploadId) -> AppResult<()> {
+        match self.db.get_upload(id).await? {
+            None => Err(upload_not_found(id)),
+            Some(u) if !u.open => Err(refused(
+                ErrorCode::UploadClosed,
+                format!("upload {id} is completed; start a new one"),
+            )),
+            Some(_) => Ok(()),
+        }
+    }
+
+    /// Ingest `files` (`bytes` in all) as one upload completed at once: replayed when `key` was used by an
+    /// identical request; refused when no series could be assembled; otherwise recorded with its series
+    /// (rows, then volumes in place), its instances indexed and the processing rules fired. The received
+    /// files are removed whatever the answer.
+    pub async fn upload_files(
+        &self,
+        files: Vec<ReceivedFile>,
+        bytes: u64,
+        uneven: Option<UnevenPolicy>,
+        key: Option<IdempotencyKey>,
+    ) -> AppResult<UploadAnswer> {
+        let id = UploadId::generate();
+        let on_disk = on_disk(&files);
+        let outcome = match self.replayed_upload(key.as_ref()).await {
+            Ok(None) => self.ingest_files(id, on_disk.clone(), uneven).await.map(Ok),
+            Ok(Some(u)) => Ok(Err(u)),
+            Err(e) => Err(e),
+        };
+        // Kept aside for the instance index before the received files go; indexed once the upload is recorded.
+        let kept = match &outcome {
+            Ok(Ok((ingested, _))) if ingested.ready().next().is_some() => {
+                self.stage_uploaded(&on_disk, &ingested.rejected).await.ok()
+            }
+            _ => None,
+        };
+        discard(files).await;
+        let (ingested, staged) = match outcome? {
+            Ok(done) => done,
+            Err(replayed) => return Ok(UploadAnswer::Replayed(replayed)),
+        };
+        // Instances (ZIP entries included), not request parts.
+        let instances = ingested.files() as u32;
+        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        if records.is_empty() {
+            staged.discard().await;
+            return Err(ingested.failure().into());
+        }
+        let view = outcome_view(id, instances, bytes, &ingested);
+        let recorded = self
+            .record_upload(id, (instances, bytes), &view, &records, key.as_ref())
+            .await;
+        if let Some(winner) = self.commit_series(staged, recorded).await? {
+            return Ok(UploadAnswer::Replayed(winner));
+        }
+        if let Some(kept) = kept {
+            self.index_upload(id, kept, &records).await;
+        }
+        self.fire_rules(&ingested, None).await;
+        tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
+        Ok(UploadAnswer::Created { id, view })
+    }
+
+    /// Record an upload completed in one request with its series: `None` when recorded, or the upload of
+    /// the request that won a race for the same Idempotency-Key.
+    async fn record_upload(
+        &self,
+        id: UploadId,
+        (instances, bytes): (u32, u64),
+        view: &Value,
+        records: &[SeriesRecord],
+        key: Option<&IdempotencyKey>,
+    ) -> AppResult<Option<UploadRecord>> {
+        let inserted = self
+            .db
+            .insert_completed_upload(id, instances, bytes, view, records, key)
+            .await?;
+        match settle(inserted, key)? {
+            Replay::New => Ok(None),
+            Replay::Existing(id) => self.recorded_upload(&id).await.map(Some),
+        }
+    }
+
+    /// After the series rows were recorded (`Ok(None)`), move their volumes into place; otherwise (the
+    /// winner of a race, or an error) remove them, so that nothing is left behind.
+    async fn commit_series<T>(
+        &self,
+        staged: Staged,
+        recorded: AppResult<Option<T>>,
+    ) -> AppResult<Option<T>> {
+        match recorded {
+            Ok(None) => {
+                staged.commit(&self.store).await?;
+                Ok(None)
+            }
+            other => {
+                staged.discard().await;
+                other
+            }
+        }
+    }
+
+    /// Index the instances of recorded upload `id` (the upload stands whether or not they could be indexed;
+    /// with a PostgreSQL job database there is no instance index).
+    async fn index_upload(&self, id: UploadId, kept: StagedInstances, records: &[SeriesRecord]) {
+        if let Err(e) = self.index_staged(id, kept, records).await {
+            tracing::warn!(upload_id = %id, error = %e, "the upload's instances are not indexed");
+        }
+    }
+
+    /// Append one instance (`body`: a temporary file of `bytes` bytes whose SHA-256 is `sha`, hex) to the open
+    /// upload `existing`, or to a new one (under `key`, replayed when an identical request used it). The
+    /// instance is decoded first, so that a broken file is refused at once and never reaches the upload.
+    pub async fn append_instance(
+        &self,
+        existing: Option<UploadId>,
+        key: Option<IdempotencyKey>,
+        body: TempBlob,
+        sha: &str,
+        bytes: u64,
+    ) -> AppResult<AppendAnswer> {
+        match self.replayed_upload(key.as_ref()).await {
+            Ok(None) => {}
+            Ok(Some(u)) => {
+                body.discard().await;
+                return Ok(AppendAnswer::Replayed(u));
+            }
+            Err(e) => {
+                body.discard().await;
+                return Err(e);
+            }
+        }
+        let (series_uid, name) = match self.decode_instance(&body).await {
+            Ok(v) => v,
+            Err(e) => {
+                body.discard().await;
+                return Err(e);
+            }
+        };
+        let (id, opened) = match existing {
+            Some(id) => (id, false),
+            None => {
+                let id = UploadId::generate();
+                let inserted = self.db.insert_open_upload(id, key.as_ref()).await?;
+                if let Replay::Existing(winner) = settle(inserted, key.as_ref())? {
+                    // Lost a race with the same key: answer the winner.
+                    return Ok(AppendAnswer::Replayed(self.recorded_upload(&winner).await?));
+                }
+                (id, true)
+            }
+        };
+        // Temporary file → row → rename: a crash between the last two leaves a row the completion reports.
+        let path = self.store.upload_file(id, sha);
+        let outcome = self
+            .db
+            .append_upload_file(
+                id,
+                sha,
+                &name,
+                bytes,
+                &series_uid,
+                self.settings.max_upload_bytes,
+            )
+            .await;
+        let (instances, duplicate) = match outcome {
+            Ok(Appended::Added(n)) => {
+                body.sync().await?;
+                self.store.commit_async(body, path).await?;
+                (n, false)
+            }
+            Ok(Appended::Duplicate(n)) => {
+                body.discard().await;
+                (n, true)
+            }
+            Ok(other) => {
+                body.discard().await;
+                return Err(match other {
+                    Appended::Closed => refused(
+                        ErrorCode::UploadClosed,
+                        format!("upload {id} was completed meanwhile"),
+                    ),
+                    Appended::TooLarge(limit) => refused(
+                        ErrorCode::BodyTooLarge,
+                        format!("the upload would exceed its limit of {limit} bytes"),
+                    ),
+                    _ => upload_not_found(id),
+                });
+            }
+            Err(e) => {
+                body.discard().await;
+                return Err(e.into());
+            }
+        };
+        tracing::info!(upload_id = %id, instances, duplicate, "instance appended");
+        let mut view = upload_view(&self.upload(id).await?);
+        view["appended"] = json!({"file": name, "series_uid": series_uid, "duplicate": duplicate});
+        Ok(AppendAnswer::Appended { id, view, opened })
+    }
+
+    /// The SeriesInstanceUID of the instance in `body` and its name in messages: its SOP Instance UID (a
+    /// body has no file name).
+    async fn decode_instance(&self, body: &TempBlob) -> AppResult<(String, String)> {
+        let file = UploadFile {
+            label: "the instance".to_string(),
+            path: body.path().to_path_buf(),
+        };
+        Ok(self
+            .engine
+            .compute(move || {
+                read_upload_file(&file, &ReadLimits::default())
+                    .map(|inst| {
+                        let name = if inst.sop_instance_uid.is_empty() {
+                            "an instance without a SOP Instance UID".to_string()
+                        } else {
+                            inst.sop_instance_uid
+                        };
+                        (inst.series_uid, name)
+                    })
+                    .map_err(|e| dicom_problem(&e))
+            })
+            .await?)
+    }
+
+    /// Complete the open upload `id`: assemble its instances (refused, the upload left open, when no series
+    /// could be made), record its series, index its instances, fire the processing rules and remove the
+    /// instances it kept. Returns the upload's outcome.
+    pub async fn complete_upload(
+        &self,
+        id: UploadId,
+        uneven: Option<UnevenPolicy>,
+    ) -> AppResult<Value> {
+        if !self.upload(id).await?.open {
+            return Err(refused(
+                ErrorCode::UploadClosed,
+                format!("upload {id} is already completed"),
+            ));
+        }
+        let listed = self.db.upload_files(id).await?;
+        let instances = listed.len() as u32;
+        let mut files = Vec::with_capacity(listed.len());
+        let mut bytes = 0u64;
+        for (sha, name) in listed {
+            if sha.len() != 64 || !sha.bytes().all(|b| b.is_ascii_hexdigit()) {
+                tracing::error!(upload_id = %id, "an upload file has a malformed hash");
+                return Err(Problem::internal().into());
+            }
+            let path = self.store.upload_file(id, &sha);
+            bytes += tokio::fs::metadata(&path).await?.len();
+            files.push(UploadFile { label: name, path });
+        }
+        let (ingested, staged) = self.ingest_files(id, files.clone(), uneven).await?;
+        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        if records.is_empty() {
+            // The upload stays open: a missing instance can still be appended.
+            staged.discard().await;
+            return Err(ingested.failure().into());
+        }
+        let view = outcome_view(id, instances, bytes, &ingested);
+        let recorded = match self
+            .db
+            .complete_upload(id, instances, &view, &records)
+            .await
+        {
+            Ok(Completed::Done) => Ok(None::<()>),
+            Ok(Completed::Changed) => Err(refused(
+                ErrorCode::UploadChanged,
+                "instances arrived while the upload was being completed; complete it again",
+            )),
+            Ok(Completed::Closed) => Err(refused(
+                ErrorCode::UploadClosed,
+                format!("upload {id} was completed meanwhile"),
+            )),
+            Err(e) => Err(e.into()),
+        };
+        self.commit_series(staged, recorded).await?;
+        if let Ok(kept) = self.stage_uploaded(&files, &ingested.rejected).await {
+            self.index_upload(id, kept, &records).await;
+        }
+        self.fire_rules(&ingested, None).await;
+        let store = self.store.clone();
+        let removed = tokio::task::spawn_blocking(move || store.remove_upload(id)).await;
+        if let Ok(Err(e)) = removed {
+            tracing::warn!(error = %e, upload_id = %id, "removing the instances of a completed upload failed");
+        }
+        tracing::info!(upload_id = %id, series = records.len(), "upload completed");
+        Ok(view)
+    }
+}
