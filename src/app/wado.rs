@@ -1,12 +1,16 @@
 //! What WADO-RS sends of a stored instance beside its file as it is: the file re-encoded in explicit VR little
-//! endian, its attributes in the DICOM JSON model (`/metadata`), and a frame rendered to PNG through a window
-//! (`/rendered`). Decoding and encoding run on the engine's pool, never on the async threads.
+//! endian when the retrieval's transfer syntax asks for it, its attributes in the DICOM JSON model
+//! (`/metadata`), and a frame rendered to PNG through a window (`/rendered`). Decoding and encoding run on
+//! the engine's pool, never on the async threads.
 
 use ndarray::Array2;
 use serde_json::Value;
 
 use super::{App, AppResult};
-use crate::dicom::{ReadLimits, explicit_le_bytes, instance_json, read_path};
+use crate::dicom::{
+    EXPLICIT_LE, ReadLimits, explicit_le_bytes, instance_json, read_path,
+    transcodable_to_explicit_le,
+};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::repo::StoredInstance;
 use crate::jobs::views::volume_problem;
@@ -40,7 +44,68 @@ impl RenderWindow {
     }
 }
 
+/// The transfer syntax each instance of a retrieval is sent in.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RetrieveSyntax {
+    /// As stored, except implicit VR little endian, re-encoded in explicit VR little endian (no parameter).
+    Default,
+    /// As stored (`transfer-syntax=*`).
+    Stored,
+    /// Explicit VR little endian, or refused.
+    ExplicitLe,
+}
+
+impl RetrieveSyntax {
+    /// Whether an instance stored in `ts` is re-encoded.
+    fn transcodes(self, ts: &str) -> bool {
+        match self {
+            RetrieveSyntax::Stored => false,
+            RetrieveSyntax::Default => transcodable_to_explicit_le(ts) && ts != EXPLICIT_LE,
+            RetrieveSyntax::ExplicitLe => ts != EXPLICIT_LE,
+        }
+    }
+
+    /// Refuse (`not_acceptable`) a retrieval in explicit VR little endian of instances stored in a syntax
+    /// that is not re-encoded (compressed ones), naming the first.
+    pub fn check(self, instances: &[StoredInstance]) -> Result<(), Problem> {
+        if self != RetrieveSyntax::ExplicitLe {
+            return Ok(());
+        }
+        match instances
+            .iter()
+            .find(|i| !transcodable_to_explicit_le(&i.instance.transfer_syntax))
+        {
+            Some(i) => Err(Problem::new(
+                ErrorCode::NotAcceptable,
+                format!(
+                    "instance {} is stored in {}, which is not re-encoded: ask for transfer-syntax=*",
+                    i.instance.sop_instance_uid, i.instance.transfer_syntax
+                ),
+            )),
+            None => Ok(()),
+        }
+    }
+}
+
 impl App {
+    /// The bytes and the transfer syntax the stored instance `i` is retrieved with in `syntax`: `None` when
+    /// its file is sent as it is (streamed by the caller).
+    pub async fn retrieved_instance(
+        &self,
+        i: &StoredInstance,
+        syntax: RetrieveSyntax,
+    ) -> AppResult<(Option<Vec<u8>>, String)> {
+        let ts = i.instance.transfer_syntax.as_str();
+        if syntax.transcodes(ts) {
+            Ok((
+                Some(self.instance_explicit_le(i).await?),
+                EXPLICIT_LE.into(),
+            ))
+        } else {
+            Ok((None, ts.to_string()))
+        }
+    }
+
     fn instance_limit(&self) -> u64 {
         self.settings
             .dicom
