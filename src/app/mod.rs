@@ -13,6 +13,7 @@ pub mod idempotency;
 pub mod instances;
 pub mod jobs;
 pub mod limits;
+pub mod local;
 pub mod matching;
 pub mod query;
 pub mod rules;

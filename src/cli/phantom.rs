@@ -1,13 +1,14 @@
-//! `ctrecon phantom`: write an analytic phantom, or its exact projections, as float32 `.npy`.
+//! `ctrecon phantom`: write an analytic phantom, or its exact projections, as float32 `.npy`. The
+//! projections are admitted and computed as `POST /v1/simulations` does them (`app::local`).
 
 use std::path::PathBuf;
 
 use clap::ValueEnum;
 
 use super::files::{CliResult, read_geometry, sidecar, write_geometry, write_npy};
-use crate::recon::geometry::Views;
-use crate::recon::grid::{ImageGrid, VolumeGrid};
-use crate::recon::phantom::{PhantomSpec, TableName, poisson_noise};
+use crate::app::local::{Local, Raster};
+use crate::jobs::model::NoiseSpec;
+use crate::recon::phantom::{PhantomSpec, TableName};
 
 /// Built-in phantom tables.
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -78,38 +79,26 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
             scale_mm: args.fov_mm / 2.0,
         },
     };
+    let local = Local::default();
     let out = match &args.geometry {
         Some(path) => {
             let geometry = read_geometry(path)?;
-            let mut data = match geometry.to_views()? {
-                Views::D2(v) => spec.phantom2()?.project(&v).into_dyn(),
-                Views::D3(v) => spec.phantom3()?.project(&v).into_dyn(),
-            };
-            if let Some(photons) = args.photons {
-                poisson_noise(data.view_mut(), photons, args.seed)?;
-            }
+            let noise = args.photons.map(|incident_photons| NoiseSpec {
+                incident_photons,
+                seed: args.seed,
+            });
+            let data = local.simulate(spec, geometry.clone(), noise)?;
             write_geometry(&sidecar(&args.out), &geometry)?;
             data
         }
-        None => {
-            if args.supersample == 0 || args.supersample > 16 {
-                return Err("--supersample must be in 1..=16".into());
-            }
-            let pixel = spec.scale_mm * 2.0 / args.size as f64;
-            if args.dims == 2 {
-                let grid = ImageGrid::square(args.size, pixel);
-                grid.validate()?;
-                spec.phantom2()?
-                    .rasterize(&grid, args.supersample)
-                    .into_dyn()
-            } else {
-                let grid = VolumeGrid::cube(args.size, pixel);
-                grid.validate()?;
-                spec.phantom3()?
-                    .rasterize(&grid, args.supersample)
-                    .into_dyn()
-            }
-        }
+        None => local.rasterize(
+            &spec,
+            Raster {
+                size: args.size,
+                volume: args.dims == 3,
+                supersample: args.supersample,
+            },
+        )?,
     };
     write_npy(&args.out, &out)?;
     eprintln!("wrote {} {:?}", args.out.display(), out.shape());

@@ -1,5 +1,6 @@
 //! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, write the
-//! result as float32 `.npy` and optionally a PNG of one slice with window/level.
+//! result as float32 `.npy` and optionally a PNG of one slice with window/level. Admission, the
+//! reconstruction and its errors are the application's (`app::local`), as for a job submitted to the API.
 
 use std::path::{Path, PathBuf};
 
@@ -9,10 +10,10 @@ use serde_json::{Map, Value};
 
 use super::files::{CliResult, read_geometry, read_npy, sidecar, write_npy};
 use super::progress::Bar;
-use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window, reconstruct};
-use crate::recon::control::{Cancel, Control};
-use crate::recon::geometry::Views;
-use crate::recon::grid::{ImageGrid, Limits, VolumeGrid};
+use crate::app::local::{DEFAULT_BUDGET_BYTES, Local, Reconstruction};
+use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window};
+use crate::recon::control::Cancel;
+use crate::recon::geometry::Geometry;
 
 /// Ramp-filter windows (FBP and FDK).
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -68,7 +69,7 @@ pub struct ReconArgs {
     #[arg(long, conflicts_with_all = ["size", "pixel_mm"])]
     pub grid: Option<PathBuf>,
     /// Most bytes the reconstruction may allocate.
-    #[arg(long, default_value_t = 8 << 30)]
+    #[arg(long, default_value_t = DEFAULT_BUDGET_BYTES)]
     pub max_bytes: u64,
     /// Output `.npy` (float32, `[y][x]` or `[z][y][x]`).
     #[arg(long, visible_alias = "out")]
@@ -109,7 +110,7 @@ pub fn algorithm_spec(args: &ReconArgs) -> CliResult<AlgorithmSpec> {
         .map_err(|e| format!("algorithm `{}`: {e}", args.algorithm).into())
 }
 
-fn output_grid(args: &ReconArgs, views: &Views) -> CliResult<OutputGrid> {
+fn output_grid(args: &ReconArgs, local: &Local, geometry: &Geometry) -> CliResult<OutputGrid> {
     if let Some(path) = &args.grid {
         let text = std::fs::read_to_string(path)
             .map_err(|e| format!("reading {}: {e}", path.display()))?;
@@ -117,10 +118,7 @@ fn output_grid(args: &ReconArgs, views: &Views) -> CliResult<OutputGrid> {
             serde_json::from_str(&text).map_err(|e| format!("grid {}: {e}", path.display()))?
         );
     }
-    Ok(match views {
-        Views::D2(_) => OutputGrid::Image(ImageGrid::square(args.size, args.pixel_mm)),
-        Views::D3(_) => OutputGrid::Volume(VolumeGrid::cube(args.size, args.pixel_mm)),
-    })
+    Ok(local.square_grid(geometry, args.size, args.pixel_mm)?)
 }
 
 pub fn run(args: ReconArgs) -> CliResult<()> {
@@ -129,23 +127,18 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
         .clone()
         .unwrap_or_else(|| sidecar(&args.input));
     let geometry = read_geometry(&geometry_path)?;
-    let views = geometry.to_views()?;
-    let spec = algorithm_spec(&args)?;
-    let grid = output_grid(&args, &views)?;
+    let local = Local::new(args.max_bytes);
+    let grid = output_grid(&args, &local, &geometry)?;
+    let algorithm = algorithm_spec(&args)?;
+    let admitted = local.admit_reconstruction(Reconstruction {
+        geometry,
+        algorithm,
+        grid,
+    })?;
     let data = read_npy(&args.input)?;
-    let limits = Limits {
-        max_bytes: args.max_bytes,
-    };
     let cancel = Cancel::new();
     let bar = Bar::new();
-    let out = reconstruct(
-        &spec,
-        &views,
-        data.view(),
-        &grid,
-        &limits,
-        Control::new(&cancel, &bar),
-    );
+    let out = local.reconstruct(&admitted, data.view(), &bar, &cancel);
     bar.finish();
     let out = out?;
     write_npy(&args.output, &out)?;

@@ -4,7 +4,7 @@
 
 use crate::error_code::{ErrorCode, Problem, field_pointer};
 use crate::recon::algorithm::{AlgorithmSpec, FbpParams, OutputGrid, check_grid, estimate_bytes};
-use crate::recon::geometry::Views;
+use crate::recon::geometry::{Geometry, Views};
 use crate::recon::grid::Limits;
 use crate::recon::iterative::params::InitialImage;
 use crate::recon::phantom::{MAX_BODIES, MAX_INCIDENT_PHOTONS};
@@ -121,29 +121,7 @@ fn grid_radius_mm(grid: &OutputGrid) -> f64 {
 
 /// Check a job against its input and the memory budget; returns the bytes it will need.
 pub fn admit_job(req: &JobRequest, dataset: &Dataset, budget_bytes: u64) -> Result<u64, Problem> {
-    // The geometry is the input dataset's: its problems point at `input`.
-    let views = dataset
-        .geometry
-        .to_views()
-        .map_err(|e| recon_problem(&e.into()).at("/input"))?;
-    check_grid(&views, &req.grid).map_err(|e| {
-        let pointer = recon_problem_at(&e, "/grid")
-            .errors
-            .pop()
-            .map_or_else(|| "/grid".to_string(), |f| f.pointer);
-        Problem::new(ErrorCode::InvalidParameter, format!("grid: {e}")).at(pointer)
-    })?;
-    dataset
-        .geometry
-        .check_fov(grid_radius_mm(&req.grid))
-        .map_err(|e| recon_problem(&e.into()).at("/grid"))?;
-    check_algorithm(&req.algorithm, &views).map_err(|e| match &e {
-        ReconError::Geometry(_) => recon_problem(&e).at("/input"),
-        ReconError::InvalidParameter { name, .. } if *name == "geometry" => {
-            recon_problem(&e).at("/input")
-        }
-        _ => recon_problem_at(&e, "/algorithm"),
-    })?;
+    let views = check_reconstruction(&dataset.geometry, &req.grid, &req.algorithm)?;
     if req.wants_metrics() && dataset.kind != DatasetKind::Simulation {
         return Err(Problem::new(
             ErrorCode::InvalidParameter,
@@ -151,10 +129,63 @@ pub fn admit_job(req: &JobRequest, dataset: &Dataset, budget_bytes: u64) -> Resu
         )
         .at("/outputs"));
     }
-    let input = Limits::f32_bytes(dataset.shape.iter().product::<usize>() as u64);
-    let voxels = Limits::f32_bytes(grid_voxels(&req.grid));
-    let truth = if req.wants_metrics() { voxels } else { 0 };
-    let need = estimate_bytes(&req.algorithm, &views, &req.grid)
+    let input = dataset.shape.iter().product::<usize>() as u64;
+    reconstruction_bytes(
+        &req.algorithm,
+        &views,
+        &req.grid,
+        input,
+        req.wants_metrics(),
+        budget_bytes,
+    )
+}
+
+/// Check a reconstruction of data acquired with `geometry` onto `grid` by `algorithm`: the geometry, the grid
+/// and its field of view, the algorithm's parameters against the views. Returns the views. Problems about the
+/// geometry point at `/input` (a job's geometry is its dataset's), the others at `/grid` or `/algorithm`.
+pub fn check_reconstruction(
+    geometry: &Geometry,
+    grid: &OutputGrid,
+    algorithm: &AlgorithmSpec,
+) -> Result<Views, Problem> {
+    let views = geometry
+        .to_views()
+        .map_err(|e| recon_problem(&e.into()).at("/input"))?;
+    check_grid(&views, grid).map_err(|e| {
+        let pointer = recon_problem_at(&e, "/grid")
+            .errors
+            .pop()
+            .map_or_else(|| "/grid".to_string(), |f| f.pointer);
+        Problem::new(ErrorCode::InvalidParameter, format!("grid: {e}")).at(pointer)
+    })?;
+    geometry
+        .check_fov(grid_radius_mm(grid))
+        .map_err(|e| recon_problem(&e.into()).at("/grid"))?;
+    check_algorithm(algorithm, &views).map_err(|e| match &e {
+        ReconError::Geometry(_) => recon_problem(&e).at("/input"),
+        ReconError::InvalidParameter { name, .. } if *name == "geometry" => {
+            recon_problem(&e).at("/input")
+        }
+        _ => recon_problem_at(&e, "/algorithm"),
+    })?;
+    Ok(views)
+}
+
+/// The bytes a reconstruction needs (the algorithm's working memory, its input of `input_elements` values,
+/// the output grid and, `with_truth`, the phantom rasterised for metrics); refused (`job_too_large`) above the
+/// whole `budget_bytes`.
+pub fn reconstruction_bytes(
+    algorithm: &AlgorithmSpec,
+    views: &Views,
+    grid: &OutputGrid,
+    input_elements: u64,
+    with_truth: bool,
+    budget_bytes: u64,
+) -> Result<u64, Problem> {
+    let input = Limits::f32_bytes(input_elements);
+    let voxels = Limits::f32_bytes(grid_voxels(grid));
+    let truth = if with_truth { voxels } else { 0 };
+    let need = estimate_bytes(algorithm, views, grid)
         .saturating_add(input)
         .saturating_add(voxels)
         .saturating_add(truth);
