@@ -359,6 +359,31 @@ impl From<&crate::dicom::DicomError> for ErrorCode {
     }
 }
 
+impl From<&crate::mesh::MeshError> for ErrorCode {
+    fn from(e: &crate::mesh::MeshError) -> Self {
+        use crate::mesh::MeshError as E;
+        match e {
+            E::InvalidOption { .. } => ErrorCode::InvalidMeshOptions,
+            E::Clip(_) => ErrorCode::InvalidClip,
+        }
+    }
+}
+
+impl From<&crate::render::RenderError> for ErrorCode {
+    /// A degenerate volume is the request's (its source volume), not ours: `invalid_parameter`.
+    fn from(e: &crate::render::RenderError) -> Self {
+        use crate::render::RenderError as E;
+        match e {
+            E::EmptyTransferFunction => ErrorCode::EmptyTransferFunction,
+            E::ZeroClipNormal(_) | E::BadClip(_) => ErrorCode::InvalidClip,
+            E::CameraInsideVolume => ErrorCode::CameraInsideVolume,
+            E::BadSize { .. } => ErrorCode::InvalidRenderSize,
+            E::InvalidParameter { .. } | E::BadVolume => ErrorCode::InvalidParameter,
+            E::Encode(_) => ErrorCode::EncodingFailed,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -434,5 +459,39 @@ mod tests {
         assert_eq!(ErrorCode::from(&d), ErrorCode::SeriesTooLarge);
         let z = DicomError::ZipBomb { reason: "x".into() };
         assert_eq!(ErrorCode::from(&z).code(), z.code());
+    }
+
+    #[test]
+    fn mesh_and_render_errors_map_to_the_codes_they_name_themselves() {
+        use crate::mesh::MeshError;
+        use crate::render::RenderError;
+        for e in [
+            MeshError::InvalidOption {
+                name: "iso",
+                reason: "x".into(),
+            },
+            MeshError::Clip("x".into()),
+        ] {
+            assert_eq!(ErrorCode::from(&e).code(), e.code(), "{e}");
+        }
+        for e in [
+            RenderError::EmptyTransferFunction,
+            RenderError::ZeroClipNormal(0),
+            RenderError::BadClip("x".into()),
+            RenderError::CameraInsideVolume,
+            RenderError::BadSize {
+                width: 0,
+                height: 1,
+                max: 2,
+            },
+            RenderError::InvalidParameter {
+                name: "x",
+                reason: "y".into(),
+            },
+            RenderError::BadVolume,
+            RenderError::Encode("x".into()),
+        ] {
+            assert_eq!(ErrorCode::from(&e).code(), e.code(), "{e}");
+        }
     }
 }

@@ -299,12 +299,8 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
             ))
         }
         ProductSpec::Mesh(m) => {
-            m.validate().map_err(|e| {
-                Problem::new(
-                    ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidMeshOptions),
-                    format!("products[{i}]: {e}"),
-                )
-            })?;
+            m.validate()
+                .map_err(|e| Problem::new(ErrorCode::from(&e), format!("products[{i}]: {e}")))?;
             if let Some(max) = shape.max_value.filter(|&max| m.iso > max) {
                 return Err(Problem::new(
                     ErrorCode::IsoOutOfRange,

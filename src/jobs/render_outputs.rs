@@ -91,10 +91,7 @@ pub fn decode_rgb_npy(bytes: &[u8]) -> Result<Vec<RgbImage>, Problem> {
 }
 
 fn render_problem(e: &RenderError) -> Problem {
-    Problem::new(
-        ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidParameter),
-        e.to_string(),
-    )
+    Problem::new(ErrorCode::from(e), e.to_string())
 }
 
 /// True for products stored as RGB renderings.

@@ -235,10 +235,7 @@ fn to_volume_units(v: f64, given: ValueUnits, volume: VolumeUnits, mu_water: f64
 }
 
 fn problem(i: usize, e: &RenderError) -> Problem {
-    Problem::new(
-        ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidParameter),
-        format!("products[{i}]: {e}"),
-    )
+    Problem::new(ErrorCode::from(e), format!("products[{i}]: {e}"))
 }
 
 /// Check a rendering product against the volume's shape (`dim`, `frame`) before anything runs; returns the

@@ -148,12 +148,7 @@ impl MeshQuery {
     pub fn validate(&self) -> Result<(), Problem> {
         mesh_options(self, 1.0, VolumeUnits::Hu)
             .validate()
-            .map_err(|e| {
-                Problem::new(
-                    ErrorCode::from_code(e.code()).unwrap_or(ErrorCode::InvalidMeshOptions),
-                    e.to_string(),
-                )
-            })
+            .map_err(|e| Problem::new(ErrorCode::from(&e), e.to_string()))
     }
 }
 
