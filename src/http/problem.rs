@@ -32,8 +32,7 @@ impl From<AppError> for ApiError {
 
 impl From<DbError> for ApiError {
     fn from(e: DbError) -> Self {
-        tracing::error!(error = %e, "database error");
-        ApiError(Problem::internal())
+        ApiError(crate::app::AppError::Db(e).into_problem())
     }
 }
 
