@@ -14,9 +14,11 @@ mod cancel;
 mod leases;
 mod progress;
 mod pulled;
+mod relay;
 mod wakeups;
 
 pub use leases::{LEASE, expiry_interval, heartbeat_interval};
+pub use relay::Remote;
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
@@ -24,7 +26,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use progress::{Latest, Sink};
 use tokio::sync::{Notify, broadcast, oneshot};
@@ -47,7 +49,7 @@ use crate::telemetry::names;
 
 /// A change of a job's status, progress or stage, as sent to event subscribers: the one progress type that
 /// the core's [`Progress`] reports become (SSE `progress` events; the CLI bar reads the same reports).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobEvent {
     pub id: JobId,
     pub status: JobStatus,
@@ -55,10 +57,10 @@ pub struct JobEvent {
     pub progress: u8,
     pub stage: String,
     /// The iteration an iterative algorithm is at, when it reports one.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub iteration: Option<usize>,
     /// The residual of that iteration (‖Ax − b‖ / ‖b‖), when the algorithm reports one.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub residual: Option<f64>,
 }
 
@@ -110,6 +112,10 @@ struct Inner {
     released: Notify,
     /// Pulls series from PACS peers for jobs whose input is one; installed by the DICOM node.
     puller: OnceLock<Arc<dyn SeriesPuller>>,
+    /// Job events to and from other processes on a shared database (`None` on SQLite).
+    relay: Option<relay::Relay>,
+    /// What other processes announced besides job events.
+    remote: broadcast::Sender<relay::Remote>,
 }
 
 /// What a job run does, with its input resolved (one per running job: its size does not matter).
@@ -152,6 +158,8 @@ impl Engine {
                 .map_err(|e| StartError::Pool(format!("removing partial results: {e}")))?;
         }
         let (events, _) = broadcast::channel(1024);
+        let (remote, _) = broadcast::channel(256);
+        let relay = relay::Relay::start(&db);
         let engine = Engine {
             inner: Arc::new(Inner {
                 db,
@@ -164,6 +172,8 @@ impl Engine {
                 stopping: AtomicBool::new(false),
                 released: Notify::new(),
                 puller: OnceLock::new(),
+                relay,
+                remote,
             }),
         };
         let scheduler = engine.clone();
@@ -235,8 +245,13 @@ impl Engine {
         self.inner.running.lock().map(|r| r.len()).unwrap_or(0)
     }
 
+    /// Tell subscribers here, and the other processes on a shared database, that `job` changed.
     pub fn publish(&self, job: &Job) {
-        let _ = self.inner.events.send(JobEvent::of(job));
+        let event = JobEvent::of(job);
+        self.relay(relay::Relayed::Job {
+            event: event.clone(),
+        });
+        let _ = self.inner.events.send(event);
     }
 
     /// Run `f` on the worker pool and await its result; a panic becomes an internal error.
@@ -415,7 +430,7 @@ impl Engine {
         let sink = Sink {
             id,
             latest: latest.clone(),
-            events: self.inner.events.clone(),
+            engine: self.clone(),
         };
         // A series pulled from a PACS takes the first part of the progress bar.
         let mut pulled = false;
