@@ -816,3 +816,55 @@ async fn series_and_datasets_are_deleted_unless_a_queued_or_running_job_reads_th
     )
     .await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_being_assembled_and_jobs_share_one_memory_budget() {
+    // Alone: the gauge is the process's, and other tests' uploads would set it too.
+    let _alone = EXCLUSIVE.write().await;
+    const BUDGET: u64 = 64 << 20;
+    let app = spawn_app_with(|s| s.memory_budget_bytes = BUDGET).await;
+    let engine = app.core.as_ref().expect("in process").engine.clone();
+    let dataset = app
+        .simulate(common::parallel_geometry(90, 48, 1.0), 20.0)
+        .await;
+
+    // While something holds the whole budget, an upload waits to be assembled and a job to start.
+    let whole = engine.reserve_memory(BUDGET).await;
+    let upload = {
+        let (client, url) = (app.client.clone(), app.url("/v1/series"));
+        tokio::spawn(async move {
+            client
+                .post(url)
+                .header("content-type", "application/zip")
+                .body(write_zip(&slices()).unwrap())
+                .send()
+                .await
+                .unwrap()
+        })
+    };
+    let job = app
+        .submit(&json!({"input": dataset, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 32, "ny": 32, "dx_mm": 1.25, "dy_mm": 1.25}}))
+        .await;
+    let id = job["id"].as_str().unwrap().to_string();
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    assert!(!upload.is_finished(), "the upload waits for memory");
+    assert_eq!(app.job(&id).await["status"], "queued");
+    let metrics = app.get("/metrics").await.text().await.unwrap();
+    assert_eq!(
+        sample(&metrics, "ctrecon_memory_reserved_bytes"),
+        BUDGET as f64
+    );
+
+    // Once it lets go, both go on.
+    drop(whole);
+    let r = tokio::time::timeout(Duration::from_secs(60), upload)
+        .await
+        .expect("the upload goes on")
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let done = app.finish(&id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let metrics = app.get("/metrics").await.text().await.unwrap();
+    assert_eq!(sample(&metrics, "ctrecon_memory_reserved_bytes"), 0.0);
+}

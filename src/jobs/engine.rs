@@ -12,17 +12,19 @@
 
 mod cancel;
 mod leases;
+mod memory;
 mod progress;
 mod pulled;
 mod relay;
 mod wakeups;
 
 pub use leases::{LEASE, expiry_interval, heartbeat_interval};
+pub use memory::Reservation;
 pub use relay::Remote;
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
@@ -108,6 +110,8 @@ struct Inner {
     events: broadcast::Sender<JobEvent>,
     /// Set by a graceful stop: no job starts any more, running ones are handed back.
     stopping: AtomicBool,
+    /// Bytes of the budget held outside jobs (`memory::Reservation`).
+    reserved: AtomicU64,
     /// Notified each time a running job is released.
     released: Notify,
     /// Pulls series from PACS peers for jobs whose input is one; installed by the DICOM node.
@@ -170,6 +174,7 @@ impl Engine {
                 wake: Notify::new(),
                 events,
                 stopping: AtomicBool::new(false),
+                reserved: AtomicU64::new(0),
                 released: Notify::new(),
                 puller: OnceLock::new(),
                 relay,
@@ -303,7 +308,7 @@ impl Engine {
                 if running.contains_key(&id) {
                     continue;
                 }
-                let used: u64 = running.values().map(|r| r.estimate).sum();
+                let used = self.memory_in_use(running.values().map(|r| r.estimate).sum());
                 if running.len() >= cfg.max_concurrent_jobs
                     || used.saturating_add(estimate) > cfg.memory_budget_bytes
                 {
