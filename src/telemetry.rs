@@ -55,4 +55,6 @@ pub mod names {
     /// Jobs this process runs now (`ctrecon_jobs{status="running"}` counts those of every process);
     /// with `ctrecon_jobs_finished_total`, the per-worker figures of a scaled-out site.
     pub const RUNNING_HERE: &str = "ctrecon_jobs_running_here";
+    /// Bytes of the memory budget that uploads being assembled hold now (beside the running jobs').
+    pub const MEMORY_RESERVED: &str = "ctrecon_memory_reserved_bytes";
 }

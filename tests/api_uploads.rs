@@ -555,6 +555,34 @@ async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
     assert_eq!(r.status(), 201);
     let dataset: Value = r.json().await.unwrap();
     let dataset = dataset["id"].as_str().unwrap().to_string();
+    // A finished job: its results folder has its row.
+    let r = client
+        .post(format!("{base}/v1/jobs"))
+        .json(&json!({"input": dataset, "algorithm": {"name": "fbp"},
+                      "grid": {"nx": 16, "ny": 16, "dx_mm": 1.25, "dy_mm": 1.25}}))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 202);
+    let job: Value = r.json().await.unwrap();
+    let job = job["id"].as_str().unwrap().to_string();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+    loop {
+        let j: Value = client
+            .get(format!("{base}/v1/jobs/{job}"))
+            .send()
+            .await
+            .unwrap()
+            .json()
+            .await
+            .unwrap();
+        if j["status"] != "queued" && j["status"] != "running" {
+            assert_eq!(j["status"], "succeeded", "{j}");
+            break;
+        }
+        assert!(std::time::Instant::now() < deadline, "{j}");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
     let _ = stop.send(());
     served.await.unwrap().unwrap();
 
@@ -577,6 +605,10 @@ async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
     std::fs::create_dir_all(&upload_dir).unwrap();
     std::fs::write(upload_dir.join("a.dcm"), b"orphan").unwrap();
     std::fs::write(root.join("tmp").join("half-written.part"), b"x").unwrap();
+    // A job's results whose row was deleted before its folder was.
+    let results_dir = root.join("results").join(fresh());
+    std::fs::create_dir_all(&results_dir).unwrap();
+    std::fs::write(results_dir.join("volume.npy"), b"orphan").unwrap();
     std::fs::remove_file(root.join("series").join(format!("{}.npy", series_ids[1]))).unwrap();
 
     // The second run sweeps before it serves.
@@ -598,6 +630,7 @@ async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
     assert_eq!(names("datasets"), [format!("{dataset}.npy")]);
     assert!(names("uploads").is_empty());
     assert!(names("tmp").is_empty());
+    assert_eq!(names("results"), [job.as_str()]);
     let metrics = client
         .get(format!("{base}/metrics"))
         .send()
@@ -613,8 +646,13 @@ async fn start_up_removes_orphan_files_and_marks_rows_whose_file_is_missing() {
         )
     };
     assert_eq!(
-        (orphans("series"), orphans("dataset"), orphans("upload")),
-        (2.0, 1.0, 1.0),
+        (
+            orphans("series"),
+            orphans("dataset"),
+            orphans("upload"),
+            orphans("results")
+        ),
+        (2.0, 1.0, 1.0, 1.0),
         "{metrics}"
     );
     assert_eq!(
@@ -777,4 +815,56 @@ async fn series_and_datasets_are_deleted_unless_a_queued_or_running_job_reads_th
         "invalid_id",
     )
     .await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn uploads_being_assembled_and_jobs_share_one_memory_budget() {
+    // Alone: the gauge is the process's, and other tests' uploads would set it too.
+    let _alone = EXCLUSIVE.write().await;
+    const BUDGET: u64 = 64 << 20;
+    let app = spawn_app_with(|s| s.memory_budget_bytes = BUDGET).await;
+    let engine = app.core.as_ref().expect("in process").engine.clone();
+    let dataset = app
+        .simulate(common::parallel_geometry(90, 48, 1.0), 20.0)
+        .await;
+
+    // While something holds the whole budget, an upload waits to be assembled and a job to start.
+    let whole = engine.reserve_memory(BUDGET).await;
+    let upload = {
+        let (client, url) = (app.client.clone(), app.url("/v1/series"));
+        tokio::spawn(async move {
+            client
+                .post(url)
+                .header("content-type", "application/zip")
+                .body(write_zip(&slices()).unwrap())
+                .send()
+                .await
+                .unwrap()
+        })
+    };
+    let job = app
+        .submit(&json!({"input": dataset, "algorithm": {"name": "fbp"},
+                        "grid": {"nx": 32, "ny": 32, "dx_mm": 1.25, "dy_mm": 1.25}}))
+        .await;
+    let id = job["id"].as_str().unwrap().to_string();
+    tokio::time::sleep(Duration::from_secs(1)).await;
+    assert!(!upload.is_finished(), "the upload waits for memory");
+    assert_eq!(app.job(&id).await["status"], "queued");
+    let metrics = app.get("/metrics").await.text().await.unwrap();
+    assert_eq!(
+        sample(&metrics, "ctrecon_memory_reserved_bytes"),
+        BUDGET as f64
+    );
+
+    // Once it lets go, both go on.
+    drop(whole);
+    let r = tokio::time::timeout(Duration::from_secs(60), upload)
+        .await
+        .expect("the upload goes on")
+        .unwrap();
+    assert_eq!(r.status(), 201);
+    let done = app.finish(&id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let metrics = app.get("/metrics").await.text().await.unwrap();
+    assert_eq!(sample(&metrics, "ctrecon_memory_reserved_bytes"), 0.0);
 }

@@ -5,8 +5,8 @@
 //! `Last-Event-ID` and asks for a reload when it cannot.
 
 mod common;
-
-use std::time::{Duration, Instant};
+#[path = "common/sse.rs"]
+mod sse;
 
 use serde_json::{Value, json};
 
@@ -18,6 +18,7 @@ use ctrecon::recon::grid::MAX_AXIS;
 use ctrecon::recon::iterative::params::{MAX_ITERATIONS, MAX_TV_ITERATIONS};
 use ctrecon::recon::phantom::{MAX_BODIES, MAX_INCIDENT_PHOTONS};
 use ctrecon::volume::MAX_SIDE;
+use sse::{Ev, Sse};
 
 const BUDGET: u64 = 3 << 28;
 
@@ -250,90 +251,6 @@ async fn refusals_name_their_fields_on_the_simulation_job_and_rule_routes() {
     refused_at(r, 422, "unknown_peer", "/destinations/0").await;
 }
 
-/// A Server-Sent Events reader over a streaming response.
-struct Sse {
-    resp: reqwest::Response,
-    buf: String,
-}
-
-/// One event: name, id (empty when none) and data.
-#[derive(Debug, Clone)]
-struct Ev {
-    name: String,
-    id: String,
-    data: Value,
-}
-
-impl Sse {
-    async fn open(app: &TestApp, last_id: Option<&str>) -> Sse {
-        let mut req = app
-            .client
-            .get(app.url("/v1/events"))
-            .header("accept", "text/event-stream");
-        if let Some(id) = last_id {
-            req = req.header("last-event-id", id);
-        }
-        let resp = req.send().await.expect("request");
-        assert_eq!(resp.status(), 200);
-        assert_eq!(resp.headers()["content-type"], "text/event-stream");
-        Sse {
-            resp,
-            buf: String::new(),
-        }
-    }
-
-    /// The next event (comments skipped), within `secs` seconds.
-    async fn next(&mut self, secs: u64) -> Ev {
-        let deadline = Instant::now() + Duration::from_secs(secs);
-        loop {
-            if let Some(cut) = self.buf.find("\n\n") {
-                let block: String = self.buf.drain(..cut + 2).collect();
-                let mut ev = Ev {
-                    name: "message".into(),
-                    id: String::new(),
-                    data: Value::Null,
-                };
-                let mut data = String::new();
-                for line in block.lines() {
-                    if let Some(v) = line.strip_prefix("event:") {
-                        ev.name = v.trim().into();
-                    } else if let Some(v) = line.strip_prefix("id:") {
-                        ev.id = v.trim().into();
-                    } else if let Some(v) = line.strip_prefix("data:") {
-                        data.push_str(v.trim_start());
-                    }
-                }
-                if data.is_empty() {
-                    continue;
-                }
-                ev.data = serde_json::from_str(&data).expect("json data");
-                return ev;
-            }
-            let left = deadline.saturating_duration_since(Instant::now());
-            let chunk = tokio::time::timeout(left, self.resp.chunk())
-                .await
-                .expect("an event in time")
-                .expect("stream")
-                .expect("the stream stays open");
-            self.buf
-                .push_str(&String::from_utf8_lossy(&chunk).replace("\r\n", "\n"));
-        }
-    }
-
-    /// Events until `done` holds for one (included).
-    async fn until(&mut self, secs: u64, done: impl Fn(&Ev) -> bool) -> Vec<Ev> {
-        let mut out = Vec::new();
-        loop {
-            let e = self.next(secs).await;
-            let stop = done(&e);
-            out.push(e);
-            if stop {
-                return out;
-            }
-        }
-    }
-}
-
 fn seq(id: &str) -> u64 {
     id.rsplit('-')
         .next()
@@ -345,7 +262,7 @@ fn seq(id: &str) -> u64 {
 async fn one_stream_tells_every_jobs_creation_status_progress_and_deletion_in_order() {
     let app = spawn_app_with(|s| s.max_concurrent_jobs = 1).await;
     let input = app.simulate(parallel_geometry(60, 64, 1.0), 28.0).await;
-    let mut sse = Sse::open(&app, None).await;
+    let mut sse = Sse::open(&app.client, &app.url("/v1/events"), None).await;
     let ready = sse.next(10).await;
     assert_eq!(ready.name, "ready");
 
@@ -463,7 +380,7 @@ async fn one_stream_tells_every_jobs_creation_status_progress_and_deletion_in_or
     after.push(deleted);
 
     // Resuming after the `created` of the queued job replays what followed it, in the same order.
-    let mut again = Sse::open(&app, Some(&created.id)).await;
+    let mut again = Sse::open(&app.client, &app.url("/v1/events"), Some(&created.id)).await;
     let replay = again.until(10, |e| e.name == "deleted").await;
     let names = |v: &[Ev]| {
         v.iter()
@@ -473,6 +390,6 @@ async fn one_stream_tells_every_jobs_creation_status_progress_and_deletion_in_or
     assert_eq!(names(&replay), names(&after));
     assert_eq!(seq(&replay[0].id), seq(&created.id) + 1);
     // An id from another process is not resumed: the client is told to reload.
-    let mut stranger = Sse::open(&app, Some("1-1")).await;
+    let mut stranger = Sse::open(&app.client, &app.url("/v1/events"), Some("1-1")).await;
     assert_eq!(stranger.next(10).await.name, "resync");
 }

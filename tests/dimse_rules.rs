@@ -525,6 +525,62 @@ async fn a_delivery_to_a_peer_that_is_down_is_retried_with_backoff_and_succeeds_
     assert_eq!(o.instances().await.len(), 1);
 }
 
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_silent_peer_holds_up_only_its_own_deliveries() {
+    if !orthanc_present() {
+        return;
+    }
+    // SILENT accepts connections and never answers: each attempt waits for the DIMSE timeout (10 s).
+    let silent = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let silent_port = silent.local_addr().unwrap().port();
+    std::thread::spawn(move || {
+        let mut held = Vec::new();
+        for c in silent.incoming().flatten() {
+            held.push(c);
+        }
+    });
+    let o = Orthanc::start(OrthancOptions::default()).await;
+    let app = ctrecon(o.dicom_port, |s| {
+        s.dicom.peers.push(peer("SILENT", silent_port));
+    })
+    .await;
+    // SILENT first: its delivery is queued (and claimed) before ORTHANC's.
+    post_rule(
+        &app,
+        json!({"name": "both", "job": {"products": [{"type": "projection", "axis": "coronal"}]},
+               "destinations": ["SILENT", "ORTHANC"]}),
+    )
+    .await;
+    let dir = tempfile::tempdir().unwrap();
+    let src = synthetic(dir.path(), 12, 0.0, None);
+    upload(&app, &src.files).await;
+    let list = until(&app, "/v1/deliveries?rule=both", 60, |v| {
+        v["deliveries"].as_array().is_some_and(|d| {
+            d.iter()
+                .any(|d| d["destination"] == "ORTHANC" && d["state"] == "succeeded")
+        })
+    })
+    .await;
+    let of = |dest: &str| {
+        list["deliveries"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|d| d["destination"] == dest)
+            .cloned()
+            .unwrap()
+    };
+    // ORTHANC got its instance while SILENT's first attempt was still waiting for an answer.
+    assert_eq!(o.instances().await.len(), 1);
+    let s = of("SILENT");
+    assert_eq!(
+        (s["state"].as_str(), s["attempts"].as_u64()),
+        (Some("sending"), Some(1)),
+        "{s}"
+    );
+    assert_eq!(of("ORTHANC")["attempts"], 1);
+}
+
 /// The rule `mixed`: an axial MIP (Secondary Capture) and the volume (derived CT), sent to `dest`.
 async fn mixed_rule_delivered(app: &TestApp, dest: &str, slices: usize) -> Value {
     post_rule(

@@ -1,6 +1,6 @@
-//! Every example in README.md and docs/**/*.md runs as written. ```json blocks parse, and geometries (an object
-//! with a `type`) are accepted by the parser the server uses, down to per-view vectors; so are the geometry
-//! files under docs/. ```sh blocks are run by bash (`set -euo pipefail`, and `curl` answering an HTTP error
+//! Every example in README.md and docs/**/*.md runs as written. ```json blocks parse; geometries (an object
+//! with a `type`) are accepted by the parser the server uses, down to per-view vectors, and so are the geometry
+//! files under docs/; configuration files (```json config) load and validate as `serve --config` loads them. ```sh blocks are run by bash (`set -euo pipefail`, and `curl` answering an HTTP error
 //! with a failure) in a fresh directory against a real `ctrecon serve` on a random port, with `ctrecon` on
 //! the PATH and `docs/` and `.testdata/` reachable; `localhost:8080` becomes that port. Outputs shown as
 //! `# {…}` comment lines must have their keys in what the block printed, in order. Set-up commands that build
@@ -15,6 +15,7 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::Instant;
 
+use ctrecon::config::Settings;
 use ctrecon::recon::geometry::Geometry;
 use serde_json::Value;
 
@@ -84,18 +85,59 @@ fn check_geometry(v: Value, at: &str) {
     g.to_views().unwrap_or_else(|e| panic!("{at}: {e}"));
 }
 
+/// A ctrecon configuration file, loaded as `ctrecon serve --config` loads it (unknown keys refused) and
+/// validated as at start.
+fn check_config(text: &str, at: &str) {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("ctrecon.json");
+    std::fs::write(&path, text).expect("config written");
+    let settings =
+        Settings::load(Some(&path), std::iter::empty()).unwrap_or_else(|e| panic!("{at}: {e}"));
+    settings.validate().unwrap_or_else(|e| panic!("{at}: {e}"));
+}
+
+/// What every ```json block is: a geometry (an object with a `type`), a ctrecon configuration file (```json
+/// config, or ```json pacs-config for the one the PACS walkthrough runs), or an Orthanc configuration (```json
+/// orthanc). A block that is none of them fails, so no example escapes its check.
 #[test]
-fn every_json_example_parses_and_every_geometry_is_accepted() {
-    let mut geometries = 0;
-    for b in blocks().iter().filter(|b| b.lang == "json") {
+fn every_json_example_parses_and_every_geometry_and_configuration_is_accepted() {
+    let (mut geometries, mut configs, mut orthanc) = (0, 0, 0);
+    for b in blocks().iter().filter(|b| b.lang.starts_with("json")) {
         let v: Value = serde_json::from_str(&b.text).unwrap_or_else(|e| panic!("{}: {e}", b.at));
-        if v.get("type").is_some() {
-            check_geometry(v, &b.at);
-            geometries += 1;
+        match b.lang.as_str() {
+            "json" if v.get("type").is_some() => {
+                check_geometry(v, &b.at);
+                geometries += 1;
+            }
+            "json config" | "json pacs-config" => {
+                check_config(&b.text, &b.at);
+                configs += 1;
+            }
+            "json orthanc" => {
+                assert!(
+                    v.get("DicomWeb").is_some() || v.get("DicomModalities").is_some(),
+                    "{}: an Orthanc configuration names its DicomWeb or DicomModalities",
+                    b.at
+                );
+                orthanc += 1;
+            }
+            other => panic!(
+                "{}: a ```{other} block that is neither a geometry nor tagged `json config` or \
+                 `json orthanc`",
+                b.at
+            ),
         }
     }
-    // The README shows parallel, fan (arc and flat), cone and fan_matlab geometries.
+    // The README shows parallel, fan (arc and flat), cone and fan_matlab geometries, the object-storage,
+    // DICOM node and web-peer configurations, and Orthanc's DICOMweb client entry.
     assert!(geometries >= 5, "only {geometries} geometry examples found");
+    assert!(configs >= 3, "only {configs} configuration examples found");
+    assert!(orthanc >= 1, "no Orthanc configuration example found");
+    // A key a configuration does not know is refused, as `serve --config` refuses it.
+    let dir = tempfile::tempdir().expect("temp dir");
+    let path = dir.path().join("bad.json");
+    std::fs::write(&path, r#"{"storage": {"url": "s3://b/p", "colour": 1}}"#).expect("written");
+    assert!(Settings::load(Some(&path), std::iter::empty()).is_err());
     let dir = root().join("docs/geometries");
     let mut files = 0;
     for e in std::fs::read_dir(&dir).expect("docs/geometries").flatten() {
@@ -125,12 +167,16 @@ impl Drop for Server {
 }
 
 /// Start the binary on a random port with `env`; returns once it prints the line it listens on.
+/// The server's log (stderr) goes to `<data_dir>.log`, so that a failing example can show what the
+/// server answered.
 fn serve(data_dir: &Path, env: &[(&str, &str)]) -> Server {
+    let log = std::fs::File::create(data_dir.with_extension("log")).expect("a log file");
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_ctrecon"));
     cmd.args(["serve", "--bind", "127.0.0.1:0", "--data-dir"])
         .arg(data_dir)
+        .env("CTRECON_LOG_FORMAT", "json")
         .stdout(Stdio::piped())
-        .stderr(Stdio::null());
+        .stderr(log);
     for (k, v) in env {
         cmd.env(k, v);
     }
@@ -280,6 +326,22 @@ fn every_shell_example_runs_against_a_real_server() {
             b.at,
             started.elapsed().as_secs_f64()
         );
+        if !out.status.success() {
+            // What the server answered last: the requests that ended with an error, and its warnings.
+            let log = std::fs::read_to_string(dir.path().join("data.log")).unwrap_or_default();
+            let tail: Vec<&str> = log
+                .lines()
+                .filter(|l| {
+                    ["\"WARN\"", "\"ERROR\"", "request refused"]
+                        .iter()
+                        .any(|s| l.contains(s))
+                })
+                .collect();
+            println!(
+                "server log, warnings, errors and refused requests (last 40):\n{}",
+                tail[tail.len().saturating_sub(40)..].join("\n")
+            );
+        }
         assert!(
             out.status.success(),
             "{} failed ({}):\n{stdout}\n{}",

@@ -195,6 +195,15 @@ async fn postgres_runs_the_service_end_to_end_and_two_api_processes_share_idempo
     // with the overlapping ellipses of 0.1) lies within its value range.
     let centre = values[(32 * 64 + 32) * 64 + 32];
     assert!((0.0..=1.05).contains(&centre), "{centre}");
+
+    // The DICOM node's rules and deliveries keep their tables in SQLite: on PostgreSQL they say so (501).
+    for path in ["/v1/rules", "/v1/deliveries"] {
+        common::assert_problem(a.get(path).await, 501, "needs_sqlite").await;
+    }
+    let r = a
+        .post_json("/v1/rules", &json!({"name": "spine", "protocol": "spine"}))
+        .await;
+    common::assert_problem(r, 501, "needs_sqlite").await;
 }
 
 /// `ctrecon serve` as a child process; killed when dropped.

@@ -10,6 +10,8 @@
 #[path = "common/postgres.rs"]
 mod cluster;
 mod common;
+#[path = "common/sse.rs"]
+mod sse;
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;
@@ -18,6 +20,7 @@ use std::time::{Duration, Instant};
 
 use common::{TestApp, cone_geometry, parallel_geometry};
 use serde_json::{Value, json};
+use sse::Sse;
 
 /// A `ctrecon` child process (`serve` or `worker`); killed when dropped.
 struct Process {
@@ -295,6 +298,98 @@ async fn postgres_an_api_process_and_three_workers_run_every_job_exactly_once_th
     let done = client.finish(&id).await;
     assert_eq!(done["status"], "succeeded", "{done}");
     assert_eq!(done["attempts"], 1, "a hand-back spends no attempt: {done}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn postgres_event_streams_of_every_api_process_follow_the_jobs_a_worker_runs() {
+    let Some(url) = cluster::database_url("postgres_event_streams") else {
+        return;
+    };
+    let dir = tempfile::tempdir().expect("temp dir");
+    // Two API processes that run nothing and one worker: every event of the job comes from elsewhere.
+    let (a, b) = (api(dir.path(), &url), api(dir.path(), &url));
+    let _w = worker(dir.path(), &url);
+    let (ca, cb) = (common::attach(&a.base), common::attach(&b.base));
+    let mut feed = Sse::open(&ca.client, &ca.url("/v1/events"), None).await;
+    assert_eq!(feed.next(10).await.name, "ready");
+
+    // A job submitted through B, long enough to report progress on the way.
+    let flat = cb.simulate(parallel_geometry(180, 96, 1.0), 28.0).await;
+    let job = cb
+        .submit(
+            &json!({"input": flat, "algorithm": {"name": "sirt", "iterations": 200},
+                        "grid": {"nx": 96, "ny": 96, "dx_mm": 1.0, "dy_mm": 1.0},
+                        "outputs": ["volume"]}),
+        )
+        .await;
+    let id = job["id"].as_str().expect("id").to_string();
+
+    // A's stream of the job: running with progress and residuals, then the final job as stored.
+    let mut one = Sse::open(&ca.client, &ca.url(&format!("/v1/jobs/{id}/events")), None).await;
+    let seen = one.until(120, |e| e.name == "final").await;
+    let running: Vec<&sse::Ev> = seen
+        .iter()
+        .filter(|e| e.name == "progress" && e.data["status"] == "running")
+        .collect();
+    assert!(
+        running.len() >= 3,
+        "progress of a job run elsewhere reaches A's stream: {seen:?}"
+    );
+    assert!(
+        running
+            .iter()
+            .any(|e| e.data["progress"].as_u64() > Some(0))
+    );
+    assert!(
+        running
+            .iter()
+            .any(|e| e.data["residual"].as_f64().is_some()),
+        "residuals travel too: {seen:?}"
+    );
+    let last = seen.last().expect("final");
+    assert_eq!(last.data["status"], "succeeded", "{last:?}");
+    assert_eq!(last.data["id"], id.as_str());
+
+    // A's list feed: B's submission, the worker's start and finish, in that order.
+    let names: Vec<(String, String)> = feed
+        .until(30, |e| {
+            e.name == "status" && e.data["status"] == "succeeded" && e.data["id"] == id.as_str()
+        })
+        .await
+        .into_iter()
+        .filter(|e| e.data["id"] == id.as_str())
+        .map(|e| {
+            (
+                e.name,
+                e.data["status"].as_str().unwrap_or_default().to_string(),
+            )
+        })
+        .collect();
+    let at = |what: (&str, &str)| {
+        names
+            .iter()
+            .position(|(n, s)| (n.as_str(), s.as_str()) == what)
+            .unwrap_or_else(|| panic!("no {what:?} in {names:?}"))
+    };
+    assert!(
+        at(("created", "queued")) < at(("status", "running")),
+        "{names:?}"
+    );
+    assert!(
+        at(("status", "running")) < at(("status", "succeeded")),
+        "{names:?}"
+    );
+
+    // Deleted through B: A's feed says so.
+    let r = cb
+        .client
+        .delete(cb.url(&format!("/v1/jobs/{id}")))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(r.status(), 204);
+    let gone = feed.until(30, |e| e.name == "deleted").await;
+    assert_eq!(gone.last().expect("deleted").data["id"], id.as_str());
 }
 
 #[test]

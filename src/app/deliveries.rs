@@ -4,7 +4,9 @@
 //! to queued with exponential backoff while the peer is unreachable); the wire is a port,
 //! [`DicomCaller`], that the DICOM front door installs ([`App::start_deliveries`]), so that the
 //! application imports no front door. One worker task makes the deliveries of finished rule jobs and
-//! sends whatever is due; deliveries left `sending` by a stop are queued again at start. A destination
+//! starts whatever is due, up to [`PARALLEL_DELIVERIES`] at once and one per destination at a time, so a
+//! slow or silent peer holds up only its own deliveries; deliveries left `sending` by a stop are queued
+//! again at start. A destination
 //! that names a DICOMweb origin (`dicom.web_peers`) is sent to by STOW-RS instead
 //! ([`stow_client`](super::stow_client)), with the same states, per-instance outcomes and backoff.
 
@@ -15,7 +17,7 @@ use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
 
 use serde_json::{Value, json};
-use tokio::sync::Notify;
+use tokio::sync::{Notify, Semaphore};
 
 use super::App;
 use super::error::{AppError, AppResult, refused};
@@ -59,14 +61,30 @@ pub trait DicomCaller: Send + Sync + 'static {
     ) -> CallFuture<'a, Result<Vec<SentInstance>, CallError>>;
 }
 
-/// The installed caller and the worker's wake-up.
-#[derive(Clone, Default)]
+/// Deliveries sent at once (each to a different destination).
+pub const PARALLEL_DELIVERIES: usize = 4;
+
+/// The installed caller, the worker's wake-up and the slots of deliveries in flight.
+#[derive(Clone)]
 pub struct Outbound {
     caller: Arc<OnceLock<Arc<dyn DicomCaller>>>,
     wake: Arc<Notify>,
+    slots: Arc<Semaphore>,
     /// The HTTP client of STOW-RS deliveries, made at the first one.
     #[cfg(feature = "dicomweb-client")]
     pub(super) web: Arc<OnceLock<super::stow_client::StowClient>>,
+}
+
+impl Default for Outbound {
+    fn default() -> Self {
+        Self {
+            caller: Arc::default(),
+            wake: Arc::default(),
+            slots: Arc::new(Semaphore::new(PARALLEL_DELIVERIES)),
+            #[cfg(feature = "dicomweb-client")]
+            web: Arc::default(),
+        }
+    }
 }
 
 impl std::fmt::Debug for Outbound {
@@ -279,11 +297,23 @@ impl App {
         for (run, status) in self.db.node_tables()?.runs_with_finished_jobs().await? {
             self.settle_run(&run, status).await?;
         }
-        while let Some(d) = self.db.node_tables()?.claim_due_delivery(now_us()).await? {
+        // Each attempt runs on its own task holding a slot; the claim skips destinations with one in flight.
+        while let Ok(slot) = self.outbound.slots.clone().try_acquire_owned() {
+            let Some(d) = self.db.node_tables()?.claim_due_delivery(now_us()).await? else {
+                break;
+            };
             let span = tracing::info_span!("delivery", delivery_id = %d.id, job_id = %d.job_id, destination = %d.destination);
-            if let Err(e) = tracing::Instrument::instrument(self.attempt(d), span).await {
-                tracing::error!(error = %e, "recording a delivery attempt failed");
-            }
+            let app = self.clone();
+            tokio::spawn(tracing::Instrument::instrument(
+                async move {
+                    if let Err(e) = app.attempt(d).await {
+                        tracing::error!(error = %e, "recording a delivery attempt failed");
+                    }
+                    drop(slot);
+                    app.outbound.wake.notify_one();
+                },
+                span,
+            ));
         }
         Ok(())
     }

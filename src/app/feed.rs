@@ -9,15 +9,16 @@
 //!
 //! Sequence numbers start at 1 in each process; an event id is `{boot}-{seq}`, where `boot` names the
 //! process, so a `Last-Event-ID` from another process (or an earlier run) is recognised as unknown.
-//! Events are those of this process: with a shared PostgreSQL database, jobs that another process runs
-//! report their status changes only in that process's feed.
+//! With a shared PostgreSQL database the engine also hears what the other processes relay (their jobs'
+//! status and progress, jobs submitted and deleted through them; `jobs::engine::relay`), so the feed of any
+//! process covers every job; a notification lost on the way becomes `Resync`.
 
 use std::collections::{HashMap, VecDeque};
 use std::sync::{Arc, Mutex};
 
 use tokio::sync::{broadcast, watch};
 
-use crate::jobs::{Job, JobEvent, JobStatus, JobSummary};
+use crate::jobs::{Job, JobEvent, JobStatus, JobSummary, Remote};
 use crate::storage::JobId;
 
 /// Events the ring keeps; a reader further behind than this gets `Resync`.
@@ -131,10 +132,17 @@ impl Feed {
 
     /// Record a submitted job (before the engine hears of it).
     pub fn created(&self, job: &Job) {
+        self.created_elsewhere(JobSummary::of(job));
+    }
+
+    /// Record a job submitted through another process, by the summary it relayed.
+    pub fn created_elsewhere(&self, summary: JobSummary) {
         let mut ring = self.lock();
-        ring.seen
-            .insert(job.id, (job.status, job.progress, job.stage.clone()));
-        self.push(&mut ring, FeedItem::Created(JobSummary::of(job)));
+        ring.seen.insert(
+            summary.id,
+            (summary.status, summary.progress, summary.stage.clone()),
+        );
+        self.push(&mut ring, FeedItem::Created(summary));
     }
 
     /// Record a deleted job.
@@ -178,6 +186,22 @@ impl Feed {
         }
         let skip = (after + 1 - oldest) as usize;
         Since::Items(ring.items.iter().skip(skip).take(max).cloned().collect())
+    }
+
+    /// Forward what other processes announce (submissions, deletions, lost notifications) into the feed
+    /// until the engine's channel closes.
+    pub fn spawn_remote_forwarder(&self, mut remote: broadcast::Receiver<Remote>) {
+        let feed = self.clone();
+        tokio::spawn(async move {
+            loop {
+                match remote.recv().await {
+                    Ok(Remote::Created(summary)) => feed.created_elsewhere(summary),
+                    Ok(Remote::Deleted(id)) => feed.deleted(id),
+                    Ok(Remote::Lost) | Err(broadcast::error::RecvError::Lagged(_)) => feed.lost(),
+                    Err(broadcast::error::RecvError::Closed) => return,
+                }
+            }
+        });
     }
 
     /// Forward the engine's events into the feed until the engine's channel closes.

@@ -173,7 +173,7 @@ impl App {
                 };
                 tracing::info!(job_id = %job.id, kind = %job.kind, what, "job queued");
                 self.feed.created(&job);
-                self.engine.publish(&job);
+                self.engine.publish_created(&job);
                 self.engine.wake();
                 Ok(Submitted { job, created: true })
             }
@@ -245,6 +245,7 @@ impl App {
             ));
         }
         self.feed.deleted(id);
+        self.engine.announce_deleted(id);
         let store = self.store.clone();
         tokio::task::spawn_blocking(move || store.delete_results(id))
             .await

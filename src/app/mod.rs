@@ -131,6 +131,7 @@ impl App {
         .await?;
         let feed = feed::Feed::new();
         feed.spawn_forwarder(engine.subscribe());
+        feed.spawn_remote_forwarder(engine.subscribe_remote());
         let app = Self {
             db,
             store,

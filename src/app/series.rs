@@ -2,6 +2,8 @@
 //! whole set of received instances as one completed upload — what an HTTP upload and the DICOM node share —
 //! and fetch or delete a stored series.
 
+use std::path::PathBuf;
+
 use serde_json::{Value, json};
 
 use super::error::refused;
@@ -108,6 +110,19 @@ impl App {
     ) -> AppResult<(Ingested, Staged)> {
         let store = self.store.clone();
         let opts = self.ingest_options(uneven);
+        // The stored slices and the f32 volume are held while assembling: about three times the bytes of
+        // uncompressed 16-bit slices (a compressed series may hold more than this estimate).
+        let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
+        let on_disk = tokio::task::spawn_blocking(move || {
+            paths
+                .iter()
+                .filter_map(|p| std::fs::metadata(p).ok())
+                .map(|m| m.len())
+                .sum::<u64>()
+        })
+        .await
+        .unwrap_or(0);
+        let _held = self.engine.reserve_memory(on_disk.saturating_mul(3)).await;
         Ok(self
             .engine
             .compute(move || {

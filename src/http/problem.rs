@@ -32,8 +32,7 @@ impl From<AppError> for ApiError {
 
 impl From<DbError> for ApiError {
     fn from(e: DbError) -> Self {
-        tracing::error!(error = %e, "database error");
-        ApiError(Problem::internal())
+        ApiError(crate::app::AppError::Db(e).into_problem())
     }
 }
 
@@ -58,8 +57,11 @@ pub fn problem_response(p: &Problem) -> Response {
 
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
-        if self.0.code.status() >= 500 && !self.0.detail.is_empty() {
+        let status = self.0.code.status();
+        if status >= 500 && !self.0.detail.is_empty() {
             tracing::error!(detail = %self.0.detail, code = self.0.code.code(), "server error");
+        } else if status < 500 {
+            tracing::info!(status, code = self.0.code.code(), detail = %self.0.detail, "request refused");
         }
         problem_response(&self.0)
     }

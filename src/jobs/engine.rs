@@ -12,19 +12,23 @@
 
 mod cancel;
 mod leases;
+mod memory;
 mod progress;
 mod pulled;
+mod relay;
 mod wakeups;
 
 pub use leases::{LEASE, expiry_interval, heartbeat_interval};
+pub use memory::Reservation;
+pub use relay::Remote;
 
 use std::collections::HashMap;
 use std::panic::AssertUnwindSafe;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
 use std::time::{Duration, Instant};
 
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 
 use progress::{Latest, Sink};
 use tokio::sync::{Notify, broadcast, oneshot};
@@ -47,7 +51,7 @@ use crate::telemetry::names;
 
 /// A change of a job's status, progress or stage, as sent to event subscribers: the one progress type that
 /// the core's [`Progress`] reports become (SSE `progress` events; the CLI bar reads the same reports).
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobEvent {
     pub id: JobId,
     pub status: JobStatus,
@@ -55,10 +59,10 @@ pub struct JobEvent {
     pub progress: u8,
     pub stage: String,
     /// The iteration an iterative algorithm is at, when it reports one.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub iteration: Option<usize>,
     /// The residual of that iteration (‖Ax − b‖ / ‖b‖), when the algorithm reports one.
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub residual: Option<f64>,
 }
 
@@ -106,10 +110,16 @@ struct Inner {
     events: broadcast::Sender<JobEvent>,
     /// Set by a graceful stop: no job starts any more, running ones are handed back.
     stopping: AtomicBool,
+    /// Bytes of the budget held outside jobs (`memory::Reservation`).
+    reserved: AtomicU64,
     /// Notified each time a running job is released.
     released: Notify,
     /// Pulls series from PACS peers for jobs whose input is one; installed by the DICOM node.
     puller: OnceLock<Arc<dyn SeriesPuller>>,
+    /// Job events to and from other processes on a shared database (`None` on SQLite).
+    relay: Option<relay::Relay>,
+    /// What other processes announced besides job events.
+    remote: broadcast::Sender<relay::Remote>,
 }
 
 /// What a job run does, with its input resolved (one per running job: its size does not matter).
@@ -152,6 +162,8 @@ impl Engine {
                 .map_err(|e| StartError::Pool(format!("removing partial results: {e}")))?;
         }
         let (events, _) = broadcast::channel(1024);
+        let (remote, _) = broadcast::channel(256);
+        let relay = relay::Relay::start(&db);
         let engine = Engine {
             inner: Arc::new(Inner {
                 db,
@@ -162,8 +174,11 @@ impl Engine {
                 wake: Notify::new(),
                 events,
                 stopping: AtomicBool::new(false),
+                reserved: AtomicU64::new(0),
                 released: Notify::new(),
                 puller: OnceLock::new(),
+                relay,
+                remote,
             }),
         };
         let scheduler = engine.clone();
@@ -235,8 +250,13 @@ impl Engine {
         self.inner.running.lock().map(|r| r.len()).unwrap_or(0)
     }
 
+    /// Tell subscribers here, and the other processes on a shared database, that `job` changed.
     pub fn publish(&self, job: &Job) {
-        let _ = self.inner.events.send(JobEvent::of(job));
+        let event = JobEvent::of(job);
+        self.relay(relay::Relayed::Job {
+            event: event.clone(),
+        });
+        let _ = self.inner.events.send(event);
     }
 
     /// Run `f` on the worker pool and await its result; a panic becomes an internal error.
@@ -288,7 +308,7 @@ impl Engine {
                 if running.contains_key(&id) {
                     continue;
                 }
-                let used: u64 = running.values().map(|r| r.estimate).sum();
+                let used = self.memory_in_use(running.values().map(|r| r.estimate).sum());
                 if running.len() >= cfg.max_concurrent_jobs
                     || used.saturating_add(estimate) > cfg.memory_budget_bytes
                 {
@@ -415,7 +435,7 @@ impl Engine {
         let sink = Sink {
             id,
             latest: latest.clone(),
-            events: self.inner.events.clone(),
+            engine: self.clone(),
         };
         // A series pulled from a PACS takes the first part of the progress bar.
         let mut pulled = false;

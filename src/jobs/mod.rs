@@ -29,7 +29,7 @@ pub mod views;
 pub mod volume_spec;
 
 pub use database::Database;
-pub use engine::{CancelError, Engine, EngineConfig, JobEvent, StartError};
+pub use engine::{CancelError, Engine, EngineConfig, JobEvent, Remote, StartError};
 pub use lifecycle::{IllegalTransition, JobState, Lease, Outcome, Transition};
 pub use model::{
     Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,

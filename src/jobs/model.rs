@@ -164,7 +164,7 @@ pub struct Job {
 }
 
 /// What a job list shows of a job: its state and timestamps, and what its result links need.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct JobSummary {
     pub id: JobId,
     pub kind: String,

@@ -33,6 +33,9 @@ use crate::storage::{DatasetId, JobId};
 pub const QUEUED_CHANNEL: &str = "ctrecon_queued";
 /// The channel on which a request to cancel a running job is announced (payload: the job id).
 pub const CANCEL_CHANNEL: &str = "ctrecon_cancel";
+/// The channel on which each process relays its job events to the others (payload: JSON, see
+/// `jobs::engine::relay`).
+pub const EVENTS_CHANNEL: &str = "ctrecon_job_events";
 
 /// Connections each process keeps at most.
 const MAX_CONNECTIONS: u32 = 8;
@@ -437,6 +440,18 @@ fn redacted(url: &str) -> String {
 
 /// Announce `id` on `channel` when `tx` commits (a notification is delivered only if its transaction
 /// commits, and only once).
+impl PgDb {
+    /// Send `payload` on [`EVENTS_CHANNEL`] (PostgreSQL refuses payloads of 8000 bytes or more).
+    pub async fn notify_event(&self, payload: &str) -> Result<(), DbError> {
+        sqlx::query("SELECT pg_notify($1, $2)")
+            .bind(EVENTS_CHANNEL)
+            .bind(payload)
+            .execute(&self.pool)
+            .await?;
+        Ok(())
+    }
+}
+
 async fn notify(tx: &mut sqlx::PgConnection, channel: &str, id: JobId) -> Result<(), DbError> {
     sqlx::query("SELECT pg_notify($1, $2)")
         .bind(channel)

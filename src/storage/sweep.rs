@@ -16,10 +16,23 @@ pub enum BlobKind {
     Dataset,
     /// `uploads/<id>/` (the instances of an open upload).
     Upload,
+    /// `results/<job>/` (the files a job wrote; the job's row owns them).
+    Results,
 }
 
 impl BlobKind {
-    pub const ALL: [BlobKind; 3] = [BlobKind::Series, BlobKind::Dataset, BlobKind::Upload];
+    pub const ALL: [BlobKind; 4] = [
+        BlobKind::Series,
+        BlobKind::Dataset,
+        BlobKind::Upload,
+        BlobKind::Results,
+    ];
+
+    /// Whether every row of this kind has its file, so a row without one is marked missing (an upload's
+    /// folder or a job's results folder may rightly not exist yet).
+    pub fn row_needs_file(self) -> bool {
+        matches!(self, BlobKind::Series | BlobKind::Dataset)
+    }
 
     /// The label of metrics and logs.
     pub fn as_str(self) -> &'static str {
@@ -27,6 +40,7 @@ impl BlobKind {
             BlobKind::Series => "series",
             BlobKind::Dataset => "dataset",
             BlobKind::Upload => "upload",
+            BlobKind::Results => "results",
         }
     }
 
@@ -35,12 +49,13 @@ impl BlobKind {
             BlobKind::Series => "series",
             BlobKind::Dataset => "datasets",
             BlobKind::Upload => "uploads",
+            BlobKind::Results => "results",
         }
     }
 }
 
 /// An entry of a blob directory: its path and, when its name is `<canonical id>.npy` (a directory named by
-/// the id for uploads), the id. An entry without an id is never the service's own.
+/// the id for uploads and results), the id. An entry without an id is never the service's own.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct BlobEntry {
     pub path: PathBuf,
@@ -56,7 +71,7 @@ impl BlobStore {
             let name = entry.file_name();
             let name = name.to_string_lossy();
             let stem = match kind {
-                BlobKind::Upload => Some(name.as_ref()),
+                BlobKind::Upload | BlobKind::Results => Some(name.as_ref()),
                 _ => name.strip_suffix(".npy"),
             };
             let id = stem.filter(|s| AnyId::parse(s).is_ok()).map(str::to_string);

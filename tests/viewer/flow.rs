@@ -43,6 +43,12 @@ pub async fn token_and_server_down(token: &str) {
 
     enter_token(&b, token).await;
     b.wait_for("#jobs-table", 20).await;
+    // The list is filled once its event stream is open: wait for the answer, not for the table.
+    b.until(
+        "document.querySelector('#jobs-table tbody')?.textContent.trim() === 'No jobs.'",
+        20,
+    )
+    .await;
     assert_eq!(b.text("#jobs-table tbody").await, "No jobs.");
     assert!(
         b.find("#banner")

@@ -52,10 +52,9 @@ impl App {
             .map(|(r, _)| r.clone())
             .chain(exported.iter().map(|(_, r)| r.clone()))
             .collect();
-        self.db
-            .node_tables()?
-            .insert_instances(owner, &rows)
-            .await?;
+        // Files first, rows second: a row is what QIDO-RS and C-FIND answer, so its file must already be
+        // there when a client asks for it. The files live under the job's results folder, so a crash in
+        // between leaves nothing the job's deletion does not remove.
         for (row, temp) in written {
             self.store
                 .commit_async(temp, self.store.instance_path(owner, row.id))
@@ -82,6 +81,10 @@ impl App {
         .await
         .map_err(|e| storage("indexing exported results failed", std::io::Error::other(e)))?
         .map_err(|e| storage("indexing exported results failed", e))?;
+        self.db
+            .node_tables()?
+            .insert_instances(owner, &rows)
+            .await?;
         tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
         Ok(rows.len())
     }

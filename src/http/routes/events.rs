@@ -18,6 +18,9 @@ use crate::error_code::ErrorCode;
 use crate::jobs::{Job, JobEvent};
 use crate::storage::JobId;
 
+/// How long a stream of a job on a shared database waits without an event before reading the job again.
+const REREAD_AFTER: Duration = Duration::from_secs(3);
+
 fn progress_event(e: &JobEvent) -> Event {
     Event::default()
         .event("progress")
@@ -66,27 +69,39 @@ async fn follow(
         let _ = tx.send(final_event(&job)).await;
         return;
     }
-    if tx.send(progress_event(&snapshot(&job))).await.is_err() {
+    let mut last = snapshot(&job);
+    if tx.send(progress_event(&last)).await.is_err() {
         return;
     }
     let mut shutdown = st.shutdown.clone();
+    // On a shared database the job may run in another process, whose events come as notifications that
+    // can be lost: the database is read again after a quiet spell, so the stream never waits forever.
+    let shared = st.db.is_shared();
+    let mut quiet = tokio::time::interval(REREAD_AFTER);
+    quiet.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    quiet.reset();
     loop {
         let changed = tokio::select! {
-            r = sub.recv() => r,
+            r = sub.recv() => Some(r),
+            _ = quiet.tick(), if shared => None,
             _ = shutdown.changed() => return,
             _ = tx.closed() => return,
         };
         let reread = match changed {
-            Ok(e) if e.id != id => continue,
-            Ok(e) if !e.status.is_terminal() => {
-                if tx.send(progress_event(&e)).await.is_err() {
-                    return;
+            Some(Ok(e)) if e.id != id => continue,
+            Some(Ok(e)) if !e.status.is_terminal() => {
+                quiet.reset();
+                if e != last {
+                    last = e.clone();
+                    if tx.send(progress_event(&e)).await.is_err() {
+                        return;
+                    }
                 }
                 continue;
             }
-            // Terminal, or missed events: the database has the truth.
-            Ok(_) | Err(broadcast::error::RecvError::Lagged(_)) => true,
-            Err(broadcast::error::RecvError::Closed) => return,
+            // Terminal, missed events or a quiet spell: the database has the truth.
+            Some(Ok(_)) | Some(Err(broadcast::error::RecvError::Lagged(_))) | None => true,
+            Some(Err(broadcast::error::RecvError::Closed)) => return,
         };
         if reread {
             match st.db.get_job(id).await {
@@ -95,8 +110,15 @@ async fn follow(
                     return;
                 }
                 Ok(Some(job)) => {
-                    if tx.send(progress_event(&snapshot(&job))).await.is_err() {
-                        return;
+                    let now = snapshot(&job);
+                    if now.status != last.status
+                        || now.progress != last.progress
+                        || now.stage != last.stage
+                    {
+                        last = now.clone();
+                        if tx.send(progress_event(&now)).await.is_err() {
+                            return;
+                        }
                     }
                 }
                 _ => return,

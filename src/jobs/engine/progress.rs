@@ -3,8 +3,7 @@
 
 use std::sync::{Arc, Mutex};
 
-use tokio::sync::broadcast;
-
+use super::relay::Relayed;
 use super::{Engine, JobEvent};
 use crate::jobs::model::JobStatus;
 use crate::jobs::store::JobStore;
@@ -25,7 +24,8 @@ pub(super) struct Latest {
 pub(super) struct Sink {
     pub(super) id: JobId,
     pub(super) latest: Arc<Mutex<Latest>>,
-    pub(super) events: broadcast::Sender<JobEvent>,
+    /// Where the changes go: this process's subscribers and, on a shared database, the others.
+    pub(super) engine: Engine,
 }
 
 impl Progress for Sink {
@@ -48,14 +48,19 @@ impl Progress for Sink {
             l.stage = stage.to_string();
         }
         l.dirty = true;
-        let _ = self.events.send(JobEvent {
+        let event = JobEvent {
             id: self.id,
             status: JobStatus::Running,
             progress: pct,
             stage: l.stage.clone(),
             iteration,
             residual,
+        };
+        drop(l);
+        self.engine.relay(Relayed::Job {
+            event: event.clone(),
         });
+        let _ = self.engine.inner.events.send(event);
     }
 }
 

@@ -1,6 +1,7 @@
 //! Wake-ups from other processes on a shared (PostgreSQL) database: a job queued anywhere starts an idle
-//! worker here at once, and a cancel posted to any process stops the job here at once (the heartbeat also
-//! carries it, within a second, should a notification be lost).
+//! worker here at once, a cancel posted to any process stops the job here at once (the heartbeat also
+//! carries it, within a second, should a notification be lost), and the job events other processes relay
+//! reach this process's event streams (`relay`).
 
 use std::time::Duration;
 
@@ -24,11 +25,13 @@ impl Engine {
                     continue;
                 }
             };
-            // Anything queued while nobody listened.
+            // Anything queued while nobody listened, and any event relayed meanwhile.
             self.wake();
+            self.notifications_lost();
             while !self.is_stopping() {
                 match listener.next().await {
                     Ok(Wakeup::Queued(_)) => self.wake(),
+                    Ok(Wakeup::Relayed(payload)) => self.heard(&payload),
                     Ok(Wakeup::Cancel(id)) => {
                         if let Some(flag) = self.cancel_flag(id) {
                             tracing::info!(job_id = %id, "cancel requested through another process");

@@ -15,12 +15,13 @@ const ACTIVE_INPUT: &str =
     "EXISTS (SELECT 1 FROM jobs WHERE dataset_id = $1 AND status IN ('queued', 'running'))";
 
 impl PgDb {
-    /// The ids of the rows that own a file of `kind` (for uploads: the open ones).
+    /// The ids of the rows that own a file of `kind` (for uploads: the open ones; for results: every job).
     pub(crate) async fn owner_ids(&self, kind: BlobKind) -> Result<HashSet<String>, DbError> {
         let sql = match kind {
             BlobKind::Series => "SELECT id FROM series",
             BlobKind::Dataset => "SELECT id FROM datasets",
             BlobKind::Upload => "SELECT id FROM uploads WHERE status = 'open'",
+            BlobKind::Results => "SELECT id FROM jobs",
         };
         let rows = sqlx::query(sql).fetch_all(&self.pool).await?;
         rows.iter()

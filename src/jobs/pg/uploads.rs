@@ -110,10 +110,14 @@ impl PgDb {
         max_bytes: u64,
     ) -> Result<Appended, DbError> {
         let mut tx = self.pool.begin().await?;
-        let Some(row) = sqlx::query("SELECT status, instances, bytes FROM uploads WHERE id = $1")
-            .bind(id.to_string())
-            .fetch_optional(&mut *tx)
-            .await?
+        // The row stays locked to the end: an append and a completion through two processes take turns, so
+        // the completion either sees this instance counted (and refuses a changed upload) or this append
+        // sees the upload closed; an instance is never acknowledged into an upload already assembled.
+        let Some(row) =
+            sqlx::query("SELECT status, instances, bytes FROM uploads WHERE id = $1 FOR UPDATE")
+                .bind(id.to_string())
+                .fetch_optional(&mut *tx)
+                .await?
         else {
             return Ok(Appended::NotFound);
         };
@@ -147,7 +151,8 @@ impl PgDb {
         .execute(&mut *tx)
         .await?;
         sqlx::query(
-            "UPDATE uploads SET instances = instances + 1, bytes = bytes + $1 WHERE id = $2",
+            "UPDATE uploads SET instances = instances + 1, bytes = bytes + $1
+             WHERE id = $2 AND status = 'open'",
         )
         .bind(bytes as i64)
         .bind(id.to_string())

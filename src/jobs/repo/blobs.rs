@@ -37,12 +37,13 @@ const ACTIVE_INPUT: &str =
     "EXISTS (SELECT 1 FROM jobs WHERE dataset_id = ? AND status IN ('queued', 'running'))";
 
 impl Db {
-    /// The ids of the rows that own a file of `kind` (for uploads: the open ones).
+    /// The ids of the rows that own a file of `kind` (for uploads: the open ones; for results: every job).
     pub(crate) async fn owner_ids(&self, kind: BlobKind) -> Result<HashSet<String>, DbError> {
         let sql = match kind {
             BlobKind::Series => "SELECT id FROM series",
             BlobKind::Dataset => "SELECT id FROM datasets",
             BlobKind::Upload => "SELECT id FROM uploads WHERE status = 'open'",
+            BlobKind::Results => "SELECT id FROM jobs",
         };
         let rows = sqlx::query(sql).fetch_all(&self.pool).await?;
         rows.iter()
@@ -122,8 +123,8 @@ impl Db {
     }
 }
 
-/// Pair blob files with rows: remove every entry of `series/`, `datasets/` and `uploads/` without a row (or
-/// not named by an id), and mark series and dataset rows whose file is missing. Logged and counted by kind.
+/// Pair blob files with rows: remove every entry of `series/`, `datasets/`, `uploads/` and `results/` without
+/// a row (or not named by an id), and mark series and dataset rows whose file is missing. Logged and counted by kind.
 /// On a shared job database only entries untouched for [`SHARED_IDLE`](crate::storage::SHARED_IDLE) go,
 /// and no row is marked (another process may be between its row and its rename).
 pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport, DbError> {
@@ -186,7 +187,7 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
         }
         let mut missing = 0u64;
         // A shared directory: another process may be between inserting a row and renaming its file into place.
-        if kind != BlobKind::Upload && idle.is_zero() {
+        if kind.row_needs_file() && idle.is_zero() {
             for id in owners.difference(&on_disk) {
                 let path = match kind {
                     BlobKind::Series => SeriesId::parse(id).map(|i| store.series_path(i)),
@@ -206,7 +207,7 @@ pub async fn sweep_blobs(db: &Database, store: &BlobStore) -> Result<SweepReport
             }
         }
         metrics::counter!(ORPHANS_REMOVED, "kind" => kind.as_str()).increment(removed);
-        if kind != BlobKind::Upload {
+        if kind.row_needs_file() {
             metrics::counter!(MISSING_FILES, "kind" => kind.as_str()).increment(missing);
         }
         report.orphans_removed.push((kind, removed));

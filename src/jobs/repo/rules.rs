@@ -341,11 +341,13 @@ impl Db {
             .collect()
     }
 
-    /// Claim the next due queued delivery (`queued → sending`, one more attempt).
+    /// Claim the next due queued delivery (`queued → sending`, one more attempt) to a destination that has
+    /// none in flight.
     pub async fn claim_due_delivery(&self, now: i64) -> Result<Option<Delivery>, DbError> {
         let row = sqlx::query(
             "UPDATE deliveries SET state = 'sending', attempts = attempts + 1, updated_us = ?
              WHERE id = (SELECT id FROM deliveries WHERE state = 'queued' AND next_attempt_us <= ?
+                           AND destination NOT IN (SELECT destination FROM deliveries WHERE state = 'sending')
                          ORDER BY next_attempt_us, id LIMIT 1)
                AND state = 'queued'
              RETURNING id",
