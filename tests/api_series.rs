@@ -343,6 +343,14 @@ async fn an_open_upload_collects_instances_and_stays_open_until_it_completes() {
         }
         let r = post_bytes(&app, &append, "application/dicom", file.clone()).await;
         assert_eq!(r.status(), 200);
+        if k == 1 {
+            // An instance is named by its SOP Instance UID, not by a hash of its bytes.
+            let v: Value = r.json().await.unwrap();
+            let sop = ctrecon::dicom::read_bytes("x", file, &Default::default())
+                .unwrap()
+                .sop_instance_uid;
+            assert_eq!(v["appended"]["file"], sop.as_str(), "{v}");
+        }
     }
     // Re-sending an instance changes nothing.
     let r = post_bytes(&app, &append, "application/dicom", files[0].1.clone()).await;

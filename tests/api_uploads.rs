@@ -166,6 +166,8 @@ async fn bad_files_in_a_zip_or_a_form_are_refused_one_by_one_and_the_good_slices
     let mut files = good.clone();
     files.push(("broken.dcm".into(), truncated));
     files.push(("notes.txt".into(), b"this is not DICOM".to_vec()));
+    // Cut inside its meta group (preamble, `DICM` and part of the group): once a 500 for the whole upload.
+    files.push(("cut-meta.dcm".into(), good[1].1[..150].to_vec()));
 
     // A ZIP: N slices stored, the two bad files listed with their reasons.
     let r = post(
@@ -181,15 +183,19 @@ async fn bad_files_in_a_zip_or_a_form_are_refused_one_by_one_and_the_good_slices
     assert_eq!(v["series"][0]["status"], "ready");
     assert_eq!(v["series"][0]["series"]["instances"], n);
     assert_eq!(v["series"][0]["series"]["shape"], json!([n, 32, 32]));
-    assert_eq!(v["upload"]["instances"], n + 2);
+    assert_eq!(v["upload"]["instances"], n + 3);
     let refused = rejected(&v);
-    assert_eq!(refused.len(), 2, "{v}");
+    assert_eq!(refused.len(), 3, "{v}");
     assert_eq!(refused[0].0, "broken.dcm");
     assert!(
         ["dicom_parse_error", "dicom_pixel_data_short"].contains(&refused[0].1.as_str()),
         "{refused:?}"
     );
-    assert_eq!(refused[1], ("notes.txt".into(), "dicom_not_dicom".into()));
+    assert_eq!(
+        refused[1],
+        ("cut-meta.dcm".into(), "dicom_parse_error".into())
+    );
+    assert_eq!(refused[2], ("notes.txt".into(), "dicom_not_dicom".into()));
     // The stored series answers with its slices.
     let id = v["series"][0]["series"]["id"].as_str().unwrap();
     let s: Value = app
@@ -211,7 +217,7 @@ async fn bad_files_in_a_zip_or_a_form_are_refused_one_by_one_and_the_good_slices
     assert_eq!(r.status(), 201);
     let v: Value = r.json().await.unwrap();
     assert_eq!(v["series"][0]["series"]["instances"], n);
-    assert_eq!(rejected(&v).len(), 2);
+    assert_eq!(rejected(&v).len(), 3);
 
     // A member whose bytes were damaged in the archive (CRC mismatch) is refused alone.
     let mut zip = zip::ZipWriter::new(std::io::Cursor::new(Vec::new()));
@@ -332,6 +338,42 @@ async fn a_64_mb_upload_streams_to_disk_and_a_too_large_one_is_refused_while_str
     assert!(
         peak < 16 * MIB,
         "a 64 MB instance peaked at {} MiB",
+        peak / MIB
+    );
+    assert_eq!(tmp_entries(&app), 0);
+
+    // A 64 MiB sinogram (.npy, 2048 views of 8192 samples) in a form streams to disk as well.
+    let (views, det) = (2048usize, 8192usize);
+    let header = common::npy("<f4", &format!("({views}, {det})"), &[]);
+    let data = views * det * 4;
+    let chunks = std::iter::once(Ok::<_, std::io::Error>(header.clone()))
+        .chain((0..data / (64 << 10)).map(|_| Ok::<_, std::io::Error>(vec![0u8; 64 << 10])));
+    let form = reqwest::multipart::Form::new()
+        .text(
+            "geometry",
+            common::parallel_geometry(views, det, 0.1).to_string(),
+        )
+        .part(
+            "data",
+            reqwest::multipart::Part::stream_with_length(
+                reqwest::Body::wrap_stream(futures_util::stream::iter(chunks)),
+                (header.len() + data) as u64,
+            )
+            .file_name("s.npy"),
+        );
+    let req = app.client.post(app.url("/v1/sinograms")).multipart(form);
+    let (r, peak) = peak_delta(async { req.send().await.unwrap() }).await;
+    let status = r.status();
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(status, 201, "{v}");
+    assert_eq!(v["shape"], json!([views, det]), "{v}");
+    eprintln!(
+        "64 MiB sinogram: allocation peak {:.2} MiB",
+        peak as f64 / MIB as f64
+    );
+    assert!(
+        peak < 16 * MIB,
+        "a 64 MiB sinogram peaked at {} MiB",
         peak / MIB
     );
     assert_eq!(tmp_entries(&app), 0);

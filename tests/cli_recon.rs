@@ -179,3 +179,86 @@ fn bad_input_fails_with_a_message() {
     assert!(!run.status.success());
     assert!(String::from_utf8_lossy(&run.stderr).contains("cutof"));
 }
+
+/// `CTRECON_SIMD` caps the kernels of every command: `phantom` and `recon` under each cap give the same
+/// images within f32 rounding, and `worker` takes the variable too (it stops for want of a shared database,
+/// not for an unknown setting).
+#[test]
+fn every_command_takes_the_simd_cap_and_the_results_agree_within_rounding() {
+    let dir = tempfile::tempdir().unwrap();
+    let geometry = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/geometries/parallel.json");
+    let s = |p: &Path| p.to_str().unwrap().to_string();
+    let run = |simd: Option<&str>, args: &[&str]| {
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_ctrecon"));
+        cmd.args(args)
+            .env_remove("CTRECON_SIMD")
+            .env_remove("CTRECON_DATABASE_URL")
+            .env("CTRECON_DATA_DIR", dir.path().join("data"));
+        if let Some(v) = simd {
+            cmd.env("CTRECON_SIMD", v);
+        }
+        let out = cmd.output().expect("run the ctrecon binary");
+        (
+            out.status.success(),
+            String::from_utf8_lossy(&out.stderr).to_string(),
+        )
+    };
+    let mut images = Vec::new();
+    for simd in [None, Some("avx2"), Some("scalar")] {
+        let tag = simd.unwrap_or("native");
+        let sino = dir.path().join(format!("sino-{tag}.npy"));
+        let out = dir.path().join(format!("recon-{tag}.npy"));
+        let (ok, err) = run(
+            simd,
+            &[
+                "phantom",
+                "--geometry",
+                geometry,
+                "--fov-mm",
+                "256",
+                "--out",
+                &s(&sino),
+            ],
+        );
+        assert!(ok, "phantom with CTRECON_SIMD={tag}: {err}");
+        let (ok, err) = run(
+            simd,
+            &[
+                "recon",
+                "--input",
+                &s(&sino),
+                "--algorithm",
+                "fbp",
+                "--size",
+                "128",
+                "--pixel-mm",
+                "2",
+                "--output",
+                &s(&out),
+            ],
+        );
+        assert!(ok, "recon with CTRECON_SIMD={tag}: {err}");
+        images.push((tag, read(&sino), read(&out)));
+    }
+    let (_, sino0, image0) = &images[0];
+    let peak = image0.iter().fold(0f32, |m, v| m.max(v.abs()));
+    for (tag, sino, image) in &images[1..] {
+        let worst = |a: &ArrayD<f32>, b: &ArrayD<f32>| {
+            a.iter().zip(b).fold(0f32, |m, (x, y)| m.max((x - y).abs()))
+        };
+        assert_eq!(sino.shape(), sino0.shape());
+        assert!(
+            worst(sino, sino0) <= 1e-5,
+            "{tag}: the phantom's sinogram differs"
+        );
+        assert!(
+            worst(image, image0) <= 1e-4 * peak.max(1.0),
+            "{tag}: FBP differs by {} (peak {peak})",
+            worst(image, image0)
+        );
+    }
+    let (ok, err) = run(Some("avx2"), &["worker", "--health-bind", "127.0.0.1:0"]);
+    assert!(!ok, "a worker without a shared database does not start");
+    assert!(!err.contains("unknown setting"), "{err}");
+    assert!(err.contains("needs a shared job database"), "{err}");
+}

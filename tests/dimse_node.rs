@@ -279,11 +279,13 @@ async fn undecodable_transfer_syntaxes_and_foreign_sop_classes_are_not_accepted(
             ("1.2.840.10008.5.1.4.1.1.4", EXPLICIT_LE),
             (CT, EXPLICIT_LE),
             (CT, "1.2.840.10008.1.2.4.90"),
+            // MPEG-2 video: a syntax the reader cannot decode.
+            (CT, "1.2.840.10008.1.2.4.100"),
         ],
     )
     .await;
     // Only the CT contexts are accepted, each in a syntax the reader decodes (JPEG-LS included); not MR
-    // Image Storage.
+    // Image Storage, and not CT in MPEG-2 (context 9).
     let accepted: Vec<(u8, String, String)> = assoc
         .presentation_contexts()
         .iter()

@@ -126,10 +126,14 @@ impl App {
             return Ok(outcomes);
         }
         let bytes: u64 = accepted.iter().map(|(_, _, b)| b).sum();
+        // Each instance is named by its SOP Instance UID in the upload's report, as HTTP uploads name theirs.
         let files: Vec<UploadFile> = accepted
             .iter()
             .map(|(i, p, _)| UploadFile {
-                label: format!("part {}", i + 1),
+                label: outcomes[*i]
+                    .sop_instance_uid
+                    .clone()
+                    .unwrap_or_else(|| format!("part {}", i + 1)),
                 path: p.clone(),
             })
             .collect();
