@@ -751,10 +751,19 @@ fn make_product(
             height,
             pixel_mm,
         } => {
-            // Columns follow the curve from its first point to its last; rows run `down`.
+            // Columns follow the curve from its first point to its last; rows run `down`. Labels name unit
+            // directions: a component counts when it is above a tenth of the whole.
             let (a, b) = (points[0], points[points.len() - 1]);
-            let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-            let down = down.unwrap_or([0.0, 0.0, -1.0]);
+            let unit = |v: [f64; 3]| {
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                if n > 0.0 && n.is_finite() {
+                    v.map(|c| c / n)
+                } else {
+                    v
+                }
+            };
+            let along = unit([b[0] - a[0], b[1] - a[1], b[2] - a[2]]);
+            let down = unit(down.unwrap_or([0.0, 0.0, -1.0]));
             let neg = |v: [f64; 3]| v.map(|c| -c);
             sides = Some(if patient {
                 ScreenSides {
