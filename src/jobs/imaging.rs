@@ -30,7 +30,7 @@ use crate::storage::{AnyId, BlobStore, JobId, ResultName, SeriesId};
 use crate::volume::{
     Axis, DisplayGrid, Frame, ImagePlane, MAX_SIDE, Plane, ProjectionKind, ScreenSides, Slab,
     Volume, curved, direction_label, gaussian, isotropic_grid, median3, oriented_projection,
-    reformat, resample_isotropic, rotating_projection, slab_series,
+    reformat, resample_isotropic, rotating_axes, rotating_projection, slab_series,
 };
 
 /// Shape and placement of a volume, known before any data is read.
@@ -790,7 +790,7 @@ fn make_product(
             // The first frame looks from anterior, as a coronal image.
             let front = ImagePlane {
                 first_pixel_mm: [0.0; 3],
-                row_direction: [1.0, 0.0, 0.0],
+                row_direction: rotating_axes(angles.first().copied().unwrap_or(0.0)).1,
                 column_direction: [0.0, 0.0, -1.0],
                 pixel_mm: [1.0; 2],
             };

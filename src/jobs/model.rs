@@ -323,6 +323,26 @@ impl ProductResult {
         self.mesh.is_some()
     }
 
+    /// The screen sides of frame `k`: the frames of a rotating projection are seen from 360° k / frames about
+    /// the superior axis ([`crate::volume::rotating_axes`]), so each has its own; every other stack keeps the
+    /// sides of its first frame. `patient` as for [`ImagePlane::sides_for`].
+    pub fn frame_sides(&self, k: usize, patient: bool) -> Option<ScreenSides> {
+        let frames = self.shape.map_or(1, |s| s[0]).max(1);
+        if self.kind != "rotating" || self.orientation.is_none() {
+            return self.orientation.clone();
+        }
+        let (_, right) = crate::volume::rotating_axes(360.0 * k as f64 / frames as f64);
+        Some(
+            ImagePlane {
+                first_pixel_mm: [0.0; 3],
+                row_direction: right,
+                column_direction: [0.0, 0.0, -1.0],
+                pixel_mm: [1.0; 2],
+            }
+            .sides_for(patient),
+        )
+    }
+
     /// Where frame `k` of a planar stack lies.
     pub fn frame_plane(&self, k: usize) -> Option<ImagePlane> {
         let p = self.plane?;

@@ -25,7 +25,7 @@ pub use orient::{
     to_closest_canonical,
 };
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
-pub use rotating::rotating_projection;
+pub use rotating::{rotating_axes, rotating_projection};
 pub use window::{
     BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_apng_annotated,
     encode_png, encode_png_annotated, mu_to_hu,

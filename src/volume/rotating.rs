@@ -122,8 +122,18 @@ fn rotating_axis_aligned(
         .collect()
 }
 
+/// The viewing direction and the screen right (LPS unit vectors) of the frame seen from `angle_deg` about the
+/// superior axis; screen down is inferior. At 0° the viewer stands anterior and looks along +y with the
+/// patient's left on the right (a coronal image); at 90° from the patient's left, looking along −x with
+/// posterior on the right (a sagittal image); at 180° from behind; at 270° from the patient's right.
+pub fn rotating_axes(angle_deg: f64) -> (V3, V3) {
+    let t = angle_deg.to_radians();
+    ([-t.sin(), t.cos(), 0.0], [t.cos(), t.sin(), 0.0])
+}
+
 /// Maximum (or other) projections seen from `angles_deg` around the superior (z) axis through the volume
-/// centre; angle 0 looks from anterior to posterior (a coronal MIP), 90° from the patient's left.
+/// centre; angle 0 looks from anterior to posterior (a coronal MIP), 90° from the patient's left
+/// ([`rotating_axes`]).
 pub fn rotating_projection(
     vol: &Volume,
     angles_deg: &[f64],
@@ -165,11 +175,6 @@ pub fn rotating_projection(
             .map(|k| (k as f64 - (n as f64 - 1.0) / 2.0) * pixel)
             .collect()
     };
-    let view_of = |a: f64| {
-        let t = a.to_radians();
-        // Looking along +y at 0°: the viewer stands anterior; columns run to the patient's left.
-        ([-t.sin(), t.cos(), 0.0], [t.cos(), t.sin(), 0.0])
-    };
     let rays = RotatingRays {
         centre,
         pixel,
@@ -177,7 +182,7 @@ pub fn rotating_projection(
         height,
         offsets: &offsets,
     };
-    let views: Vec<_> = angles_deg.iter().map(|&a| view_of(a)).collect();
+    let views: Vec<_> = angles_deg.iter().map(|&a| rotating_axes(a)).collect();
     Ok(if is_axis_aligned(f) {
         rotating_axis_aligned(vol, &rays, &views, kind, fill)
     } else {
