@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::display::ProjectionKind;
 use super::error::VolumeError;
 use super::frame::Volume;
-use super::mpr::{Combine, MAX_SIDE, V3, axpy, render, smallest_spacing};
+use super::mpr::{Combine, MAX_SIDE, V3, axpy, render, smallest_spacing, whole_ceil};
 
 /// The rays of a rotating projection: image geometry and the sample offsets along each ray.
 struct RotatingRays<'a> {
@@ -166,9 +166,9 @@ pub fn rotating_projection(
     ];
     let pixel = smallest_spacing(vol).max(0.5);
     let radius = half[0].hypot(half[1]);
-    let half_width = (radius / pixel).ceil() as usize;
+    let half_width = whole_ceil(radius / pixel) as usize;
     let width = (2 * half_width + 1).clamp(1, MAX_SIDE);
-    let height = ((2.0 * half[2] / pixel).ceil() as usize + 1).clamp(1, MAX_SIDE);
+    let height = (whole_ceil(2.0 * half[2] / pixel) as usize + 1).clamp(1, MAX_SIDE);
     let offsets: Vec<f64> = {
         let n = 2 * half_width + 1;
         (0..n)
