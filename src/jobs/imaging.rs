@@ -700,6 +700,7 @@ fn make_product(
                 orientation: None,
                 plane: None,
                 frame_spacing_mm: None,
+                frame_orientations: Vec::new(),
                 description: None,
                 file,
             });
@@ -828,6 +829,7 @@ fn make_product(
         orientation: placed.map(|(p, _)| p.sides_for(patient)).or(sides),
         plane: placed.map(|(p, _)| p),
         frame_spacing_mm: placed.and_then(|(_, step)| step),
+        frame_orientations: Vec::new(),
         description: None,
         file,
     })
