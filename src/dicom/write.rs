@@ -10,7 +10,7 @@ use dicom_object::{FileMetaTableBuilder, InMemDicomObject};
 use rayon::prelude::*;
 
 use super::error::DicomError;
-use crate::volume::Volume;
+use crate::volume::{ImagePlane, Volume};
 
 mod capture;
 mod rgb;
@@ -302,6 +302,15 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
         f.direction[1][1],
         f.direction[1][2],
     ];
+    // Patient Orientation (General Image; optional where the plane is given, but what viewers without
+    // plane geometry label the image by): the directions of the rows and of the columns.
+    let patient_orientation = ImagePlane {
+        first_pixel_mm: f.origin_mm,
+        row_direction: f.direction[0],
+        column_direction: f.direction[1],
+        pixel_mm: [f.spacing_mm[1], f.spacing_mm[0]],
+    }
+    .patient_orientation();
     let thickness = normal_spacing(vol);
     let files = (0..nz)
         .into_par_iter()
@@ -332,6 +341,7 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
                 &f.position(k as f64, 0.0, 0.0),
             )
             .dss(tags::IMAGE_ORIENTATION_PATIENT, &orientation)
+            .strs(tags::PATIENT_ORIENTATION, VR::CS, &patient_orientation)
             .dss(tags::SLICE_THICKNESS, &[thickness])
             .dss(tags::SPACING_BETWEEN_SLICES, &[thickness])
             .dss(tags::PIXEL_SPACING, &[f.spacing_mm[1], f.spacing_mm[0]])

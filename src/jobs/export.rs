@@ -291,8 +291,7 @@ fn export_product(
             None => Window::auto(img.view()),
         };
         let placement = p
-            .orientation
-            .clone()
+            .frame_sides(k, ctx.patient)
             .filter(|_| ctx.patient)
             .map(|sides| ScOrientation {
                 sides,

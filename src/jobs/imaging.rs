@@ -30,7 +30,8 @@ use crate::storage::{AnyId, BlobStore, JobId, ResultName, SeriesId};
 use crate::volume::{
     Axis, DisplayGrid, Frame, ImagePlane, MAX_SIDE, Plane, ProjectionKind, ScreenSides, Slab,
     Volume, curved, direction_label, gaussian, isotropic_grid, median3, oriented_projection,
-    reformat, resample_isotropic, rotating_projection, slab_series,
+    reformat, resample_isotropic, rotating_axes, rotating_projection, series_count, slab_series,
+    whole_ceil,
 };
 
 /// Shape and placement of a volume, known before any data is read.
@@ -156,7 +157,7 @@ fn plan_mpr(s: &MprSpec, shape: &VolumeShape, i: usize) -> Result<(Planned, u64)
         Some(sz) => sz,
         None => {
             let side = |d: [f64; 3]| {
-                let n = (2.0 * shape.half_extent(centre, d) / pixel).ceil() + 1.0;
+                let n = whole_ceil(2.0 * shape.half_extent(centre, d) / pixel) + 1.0;
                 n.clamp(1.0, MAX_SIDE as f64) as usize
             };
             [side(probe.u), side(probe.v)]
@@ -193,7 +194,7 @@ fn plan_mpr(s: &MprSpec, shape: &VolumeShape, i: usize) -> Result<(Planned, u64)
             Some((sp, ext))
         }
     };
-    let count = series.map_or(1, |(sp, ext)| (2.0 * ext / sp).floor() as u64 + 1);
+    let count = series.map_or(1, |(sp, ext)| series_count(sp, ext) as u64);
     let bytes = count * (size[0] as u64) * (size[1] as u64) * 4;
     Ok((
         Planned::Mpr {
@@ -288,8 +289,8 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
             // Frames are about (volume diagonal in the axial plane) × (height) at the finest spacing.
             let px = shape.smallest_spacing().max(0.5);
             let sp = shape.frame.spacing_mm;
-            let w = ((nx as f64 * sp[0]).hypot(ny as f64 * sp[1]) / px).ceil() + 2.0;
-            let h = (nz as f64 * sp[2] / px).ceil() + 1.0;
+            let w = whole_ceil((nx as f64 * sp[0]).hypot(ny as f64 * sp[1]) / px) + 2.0;
+            let h = whole_ceil(nz as f64 * sp[2] / px) + 1.0;
             Ok((
                 Planned::Rotating {
                     angles,
@@ -695,6 +696,7 @@ fn make_product(
                 orientation: None,
                 plane: None,
                 frame_spacing_mm: None,
+                frame_orientations: Vec::new(),
                 description: None,
                 file,
             });
@@ -747,10 +749,19 @@ fn make_product(
             height,
             pixel_mm,
         } => {
-            // Columns follow the curve from its first point to its last; rows run `down`.
+            // Columns follow the curve from its first point to its last; rows run `down`. Labels name unit
+            // directions: a component counts when it is above a tenth of the whole.
             let (a, b) = (points[0], points[points.len() - 1]);
-            let along = [b[0] - a[0], b[1] - a[1], b[2] - a[2]];
-            let down = down.unwrap_or([0.0, 0.0, -1.0]);
+            let unit = |v: [f64; 3]| {
+                let n = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                if n > 0.0 && n.is_finite() {
+                    v.map(|c| c / n)
+                } else {
+                    v
+                }
+            };
+            let along = unit([b[0] - a[0], b[1] - a[1], b[2] - a[2]]);
+            let down = unit(down.unwrap_or([0.0, 0.0, -1.0]));
             let neg = |v: [f64; 3]| v.map(|c| -c);
             sides = Some(if patient {
                 ScreenSides {
@@ -777,7 +788,7 @@ fn make_product(
             // The first frame looks from anterior, as a coronal image.
             let front = ImagePlane {
                 first_pixel_mm: [0.0; 3],
-                row_direction: [1.0, 0.0, 0.0],
+                row_direction: rotating_axes(angles.first().copied().unwrap_or(0.0)).1,
                 column_direction: [0.0, 0.0, -1.0],
                 pixel_mm: [1.0; 2],
             };
@@ -814,6 +825,7 @@ fn make_product(
         orientation: placed.map(|(p, _)| p.sides_for(patient)).or(sides),
         plane: placed.map(|(p, _)| p),
         frame_spacing_mm: placed.and_then(|(_, step)| step),
+        frame_orientations: Vec::new(),
         description: None,
         file,
     })
@@ -889,6 +901,57 @@ mod tests {
             Planned::Mpr { series, .. } => assert_eq!(*series, Some((4.0, 19.0))),
             other => panic!("{other:?}"),
         }
+    }
+
+    #[test]
+    fn rounding_noise_in_the_frame_changes_no_default_size() {
+        // The same patient read from another acquisition: its spacing and origin derived from slice
+        // positions, a few ulps off.
+        let exact = VolumeShape {
+            dim: (10, 14, 18),
+            frame: Frame {
+                spacing_mm: [0.8, 1.0, 2.0],
+                origin_mm: [-7.0, -5.0, 40.0],
+                direction: Frame::AXIS_ALIGNED,
+            },
+            max_value: None,
+        };
+        let mut noisy = exact;
+        noisy.frame.spacing_mm[0] = 0.7999999999999998;
+        noisy.frame.origin_mm[0] = -6.999999999999999;
+        let r = request(
+            r#"{"kind": "volume", "input": "0192d1f2-7a3b-7c4d-8e5f-60718293a4b5",
+                "products": [{"type": "mpr", "plane": "coronal", "centre_mm": [-4.6, -2, 44]},
+                             {"type": "mpr", "plane": "sagittal", "centre_mm": [-0.6, 1, 50], "spacing_mm": 0.8}]}"#,
+        );
+        let (a, b) = (
+            plan(&r, exact, 1 << 30).unwrap(),
+            plan(&r, noisy, 1 << 30).unwrap(),
+        );
+        for (x, y) in a.products.iter().zip(&b.products) {
+            match (x, y) {
+                (
+                    Planned::Mpr {
+                        plane: p,
+                        series: s,
+                        ..
+                    },
+                    Planned::Mpr {
+                        plane: q,
+                        series: t,
+                        ..
+                    },
+                ) => {
+                    assert_eq!(p.size, q.size);
+                    let count = |s: &Option<(f64, f64)>| s.map(|(sp, ext)| series_count(sp, ext));
+                    assert_eq!(count(s), count(t));
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        assert_eq!(whole_ceil(36.00000000000001), 36.0);
+        assert_eq!(whole_ceil(36.01), 37.0);
+        assert_eq!(series_count(0.8, 6.3999999999999995), 17);
     }
 
     #[test]

@@ -311,6 +311,10 @@ pub struct ProductResult {
     /// `row_direction × column_direction`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame_spacing_mm: Option<f64>,
+    /// Renderings of several frames (a sequence turning about the camera's up axis): the screen sides of
+    /// every frame, the first being `orientation`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub frame_orientations: Vec<ScreenSides>,
     /// Renderings: what the picture shows (preset or surfaces, camera), as written to DICOM
     /// DerivationDescription.
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -321,6 +325,39 @@ pub struct ProductResult {
 impl ProductResult {
     pub fn is_mesh(&self) -> bool {
         self.mesh.is_some()
+    }
+
+    /// The screen sides of frame `k`: the frames of a rotating projection are seen from 360° k / frames about
+    /// the superior axis ([`crate::volume::rotating_axes`]) and those of a turning rendering are listed in
+    /// `frame_orientations`, so each has its own; every other stack keeps the sides of its first frame.
+    /// `patient` as for [`ImagePlane::sides_for`].
+    pub fn frame_sides(&self, k: usize, patient: bool) -> Option<ScreenSides> {
+        if let Some(sides) = self.frame_orientations.get(k) {
+            return Some(sides.clone());
+        }
+        let frames = self.shape.map_or(1, |s| s[0]).max(1);
+        if self.kind != "rotating" || self.orientation.is_none() {
+            return self.orientation.clone();
+        }
+        let (_, right) = crate::volume::rotating_axes(360.0 * k as f64 / frames as f64);
+        Some(
+            ImagePlane {
+                first_pixel_mm: [0.0; 3],
+                row_direction: right,
+                column_direction: [0.0, 0.0, -1.0],
+                pixel_mm: [1.0; 2],
+            }
+            .sides_for(patient),
+        )
+    }
+
+    /// The screen sides every frame shares: the first frame's, unless a frame has others.
+    pub fn shared_sides(&self, patient: bool) -> Option<ScreenSides> {
+        let frames = self.shape.map_or(1, |s| s[0]).max(1);
+        let first = self.frame_sides(0, patient)?;
+        (1..frames)
+            .all(|k| self.frame_sides(k, patient).as_ref() == Some(&first))
+            .then_some(first)
     }
 
     /// Where frame `k` of a planar stack lies.

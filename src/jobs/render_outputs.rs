@@ -119,20 +119,25 @@ pub fn render_rgb_product(
         })
     };
     let description = p.description.clone().unwrap_or_default();
-    let mut text = vec![("Description".to_string(), description.clone())];
-    if let Some(o) = &p.orientation {
-        text.push((
-            "Orientation".to_string(),
-            serde_json::to_string(o).unwrap_or_default(),
-        ));
-    }
+    // PNG text of frame `k`: what the picture shows and the screen sides of that frame.
+    let text = |k: usize| {
+        let mut text = vec![("Description".to_string(), description.clone())];
+        if let Some(o) = p.frame_sides(k, ctx.patient) {
+            text.push((
+                "Orientation".to_string(),
+                serde_json::to_string(&o).unwrap_or_default(),
+            ));
+        }
+        text
+    };
     let delay = q.delay_ms.unwrap_or(100);
     match format {
         ProductFormat::Png => {
-            encode_rgb_png(pick(q.frame.unwrap_or(0))?, &text).map_err(|e| render_problem(&e))
+            let k = q.frame.unwrap_or(0);
+            encode_rgb_png(pick(k)?, &text(k)).map_err(|e| render_problem(&e))
         }
         ProductFormat::Apng => {
-            encode_rgb_apng(&frames, delay, &text).map_err(|e| render_problem(&e))
+            encode_rgb_apng(&frames, delay, &text(0)).map_err(|e| render_problem(&e))
         }
         ProductFormat::Dicom => {
             let chosen: Vec<&RgbImage> = match q.frame {
@@ -141,7 +146,12 @@ pub fn render_rgb_product(
             };
             let first = chosen.first().ok_or_else(Problem::internal)?;
             let data: Vec<&[u8]> = chosen.iter().map(|f| f.rgb.as_slice()).collect();
-            let sides = p.orientation.as_ref().filter(|_| ctx.patient);
+            // One instance of every frame names the sides only when the frames share them.
+            let sides = match q.frame {
+                Some(k) => p.frame_sides(k, ctx.patient),
+                None => p.shared_sides(ctx.patient),
+            }
+            .filter(|_| ctx.patient);
             write_secondary_capture_rgb(
                 &RgbFrames {
                     rows: first.height,
@@ -151,7 +161,7 @@ pub fn render_rgb_product(
                 },
                 &ctx.meta,
                 &description,
-                sides,
+                sides.as_ref(),
             )
             .map(|(_, b)| b)
             .map_err(|e| dicom_problem(&e))

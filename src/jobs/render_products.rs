@@ -330,6 +330,7 @@ pub fn make_render_product(
     let scene = Scene::new(vol).map_err(fail)?;
     let [w, h] = spec.size();
     let mut frames: Vec<RgbImage> = Vec::with_capacity(spec.frames());
+    let mut sides = Vec::with_capacity(spec.frames());
     let mut first = None;
     for k in 0..spec.frames() {
         let rays = spec
@@ -337,6 +338,7 @@ pub fn make_render_product(
             .rays(&vol.frame, vol.data.dim(), w, h, DEFAULT_MAX_SIDE)
             .map_err(fail)?;
         first.get_or_insert(rays);
+        sides.push(rays.screen_plane().sides_for(patient));
         frames.push(
             match spec {
                 RenderSpec::Volume(s) => volume_render(
@@ -374,6 +376,8 @@ pub fn make_render_product(
         orientation: Some(plane.sides_for(patient)),
         plane: None,
         frame_spacing_mm: None,
+        // Each frame of a turning sequence is seen from its own side.
+        frame_orientations: if sides.len() > 1 { sides } else { Vec::new() },
         description: Some(spec.describe()),
         file,
     })

@@ -636,7 +636,7 @@ pub fn render_product(
     };
     let k = q.frame.unwrap_or(n / 2);
     let placement = |k: usize| {
-        p.orientation.clone().map(|sides| ScOrientation {
+        p.frame_sides(k, ctx.patient).map(|sides| ScOrientation {
             sides,
             plane: p.frame_plane(k),
         })

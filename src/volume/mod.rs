@@ -18,14 +18,14 @@ pub use display::{Axis, ProjectionKind, project, slice};
 pub use error::VolumeError;
 pub use filter::{gaussian, largest_component, median3, threshold};
 pub use frame::{Frame, IndexMap, Volume};
-pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, slab_series};
+pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, series_count, slab_series, whole_ceil};
 pub use orient::{
     AXIS_ALIGNED_TOLERANCE, DisplayGrid, ImagePlane, Reorientation, ScreenSides, closest_canonical,
     direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice,
     to_closest_canonical,
 };
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
-pub use rotating::rotating_projection;
+pub use rotating::{rotating_axes, rotating_projection};
 pub use window::{
     BitDepth, MU_WATER_PER_MM, Window, WindowPreset, encode_apng, encode_apng_annotated,
     encode_png, encode_png_annotated, mu_to_hu,

@@ -43,6 +43,27 @@ pub struct Plane {
 /// Largest image side any reformat produces.
 pub const MAX_SIDE: usize = 8192;
 
+/// Tolerance of [`whole_ceil`] and [`whole_floor`].
+const WHOLE: f64 = 1e-6;
+
+/// `x.ceil()` for a count of pixels or planes measured in millimetres: a value within 10⁻⁶ above a whole
+/// number counts as that number, so that the rounding noise of a frame (a spacing of 0.7999999999999998
+/// derived from slice positions) does not add a pixel, and with it move every pixel by half a pixel.
+pub fn whole_ceil(x: f64) -> f64 {
+    (x - WHOLE).ceil()
+}
+
+/// `x.floor()` for a count of pixels or planes measured in millimetres: a value within 10⁻⁶ below a whole
+/// number counts as that number ([`whole_ceil`]).
+fn whole_floor(x: f64) -> f64 {
+    (x + WHOLE).floor()
+}
+
+/// Number of planes of a series every `spacing_mm` covering ±`extent_mm`.
+pub fn series_count(spacing_mm: f64, extent_mm: f64) -> usize {
+    whole_floor(2.0 * extent_mm / spacing_mm) as usize + 1
+}
+
 impl Plane {
     /// A plane through `centre_mm` perpendicular to `normal`, rows pointing as close to inferior (−z) as the
     /// normal allows (so superior is at the top), or posterior for axial-like planes.
@@ -241,7 +262,7 @@ fn slab_offsets(thickness_mm: f64, step_mm: f64) -> Result<Vec<f64>, VolumeError
             reason: format!("must be finite and non-negative, got {thickness_mm}"),
         });
     }
-    let n = (thickness_mm / step_mm).floor() as usize + 1;
+    let n = whole_floor(thickness_mm / step_mm) as usize + 1;
     if n > 4 * MAX_SIDE {
         return Err(VolumeError::InvalidParameter {
             name: "thickness_mm",
@@ -295,7 +316,7 @@ pub fn slab_series(
             reason: "spacing must be positive and extent non-negative".into(),
         });
     }
-    let count = (2.0 * extent_mm / spacing_mm).floor() as usize + 1;
+    let count = series_count(spacing_mm, extent_mm);
     if count > MAX_SIDE {
         return Err(VolumeError::InvalidParameter {
             name: "spacing_mm",

@@ -7,7 +7,7 @@ use rayon::prelude::*;
 use super::display::ProjectionKind;
 use super::error::VolumeError;
 use super::frame::Volume;
-use super::mpr::{Combine, MAX_SIDE, V3, axpy, render, smallest_spacing};
+use super::mpr::{Combine, MAX_SIDE, V3, axpy, render, smallest_spacing, whole_ceil};
 
 /// The rays of a rotating projection: image geometry and the sample offsets along each ray.
 struct RotatingRays<'a> {
@@ -122,8 +122,18 @@ fn rotating_axis_aligned(
         .collect()
 }
 
+/// The viewing direction and the screen right (LPS unit vectors) of the frame seen from `angle_deg` about the
+/// superior axis; screen down is inferior. At 0° the viewer stands anterior and looks along +y with the
+/// patient's left on the right (a coronal image); at 90° from the patient's left, looking along −x with
+/// posterior on the right (a sagittal image); at 180° from behind; at 270° from the patient's right.
+pub fn rotating_axes(angle_deg: f64) -> (V3, V3) {
+    let t = angle_deg.to_radians();
+    ([-t.sin(), t.cos(), 0.0], [t.cos(), t.sin(), 0.0])
+}
+
 /// Maximum (or other) projections seen from `angles_deg` around the superior (z) axis through the volume
-/// centre; angle 0 looks from anterior to posterior (a coronal MIP), 90° from the patient's left.
+/// centre; angle 0 looks from anterior to posterior (a coronal MIP), 90° from the patient's left
+/// ([`rotating_axes`]).
 pub fn rotating_projection(
     vol: &Volume,
     angles_deg: &[f64],
@@ -156,19 +166,14 @@ pub fn rotating_projection(
     ];
     let pixel = smallest_spacing(vol).max(0.5);
     let radius = half[0].hypot(half[1]);
-    let half_width = (radius / pixel).ceil() as usize;
+    let half_width = whole_ceil(radius / pixel) as usize;
     let width = (2 * half_width + 1).clamp(1, MAX_SIDE);
-    let height = ((2.0 * half[2] / pixel).ceil() as usize + 1).clamp(1, MAX_SIDE);
+    let height = (whole_ceil(2.0 * half[2] / pixel) as usize + 1).clamp(1, MAX_SIDE);
     let offsets: Vec<f64> = {
         let n = 2 * half_width + 1;
         (0..n)
             .map(|k| (k as f64 - (n as f64 - 1.0) / 2.0) * pixel)
             .collect()
-    };
-    let view_of = |a: f64| {
-        let t = a.to_radians();
-        // Looking along +y at 0°: the viewer stands anterior; columns run to the patient's left.
-        ([-t.sin(), t.cos(), 0.0], [t.cos(), t.sin(), 0.0])
     };
     let rays = RotatingRays {
         centre,
@@ -177,7 +182,7 @@ pub fn rotating_projection(
         height,
         offsets: &offsets,
     };
-    let views: Vec<_> = angles_deg.iter().map(|&a| view_of(a)).collect();
+    let views: Vec<_> = angles_deg.iter().map(|&a| rotating_axes(a)).collect();
     Ok(if is_axis_aligned(f) {
         rotating_axis_aligned(vol, &rays, &views, kind, fill)
     } else {
