@@ -23,7 +23,7 @@ use crate::dicom::{
     write_secondary_capture_placed, write_zip,
 };
 use crate::error_code::{ErrorCode, Problem};
-use crate::mesh::{MeshOptions, extract};
+use crate::mesh::{MeshOptions, SURFACE_REVISION, extract};
 use crate::render::Clip;
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::volume::{
@@ -196,9 +196,14 @@ struct Display {
 }
 
 impl ViewRequest {
-    /// Hex SHA-256 of the parameters (and μ_water): the cache key and strong ETag of the view.
+    /// Hex SHA-256 of the parameters (and μ_water; for meshes the [`SURFACE_REVISION`]): the cache key and
+    /// strong ETag of the view.
     pub fn key(&self, mu_water: f64) -> String {
-        let text = serde_json::to_string(&(self, mu_water)).unwrap_or_default();
+        let text = match self {
+            ViewRequest::Mesh(_) => serde_json::to_string(&(self, mu_water, SURFACE_REVISION)),
+            _ => serde_json::to_string(&(self, mu_water)),
+        }
+        .unwrap_or_default();
         hex(&Sha256::digest(text.as_bytes()))
     }
 
