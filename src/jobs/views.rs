@@ -207,6 +207,11 @@ impl ViewRequest {
         hex(&Sha256::digest(text.as_bytes()))
     }
 
+    /// Whether the view can come with warnings ([`Rendered::warnings`]), kept beside the cached file.
+    pub fn warns(&self) -> bool {
+        matches!(self, ViewRequest::Mesh(_))
+    }
+
     fn display(&self) -> Option<Display> {
         match self {
             ViewRequest::Slice(q) => Some(Display {
@@ -396,7 +401,24 @@ fn encode_view(
         .map_err(|e| volume_problem(&e))
 }
 
-fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+/// A rendered view and the stable codes of what it could not honour (a mesh's
+/// [`crate::mesh::MeshWarning`] codes: `empty_surface`, `target_triangles_not_reached`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rendered {
+    pub bytes: Vec<u8>,
+    pub warnings: Vec<String>,
+}
+
+impl From<Vec<u8>> for Rendered {
+    fn from(bytes: Vec<u8>) -> Self {
+        Self {
+            bytes,
+            warnings: Vec::new(),
+        }
+    }
+}
+
+fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Rendered, Problem> {
     q.validate()?;
     let opts = mesh_options(q, ctx.mu_water, ctx.units);
     let max = vol.data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
@@ -410,13 +432,17 @@ fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>
             ),
         ));
     }
-    let (mesh, _) = extract(&vol, &opts)
+    let (mesh, stats) = extract(&vol, &opts)
         .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))?;
     let stl = mesh.to_stl_binary();
-    match q.format {
-        MeshFormat::Stl => Ok(stl),
-        MeshFormat::Dicom => encapsulate(&stl, ctx),
-    }
+    let bytes = match q.format {
+        MeshFormat::Stl => stl,
+        MeshFormat::Dicom => encapsulate(&stl, ctx)?,
+    };
+    Ok(Rendered {
+        bytes,
+        warnings: stats.warnings.into_iter().map(|w| w.code).collect(),
+    })
 }
 
 fn encapsulate(stl: &[u8], ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
@@ -454,7 +480,7 @@ pub fn render(
     volume_npy: &[u8],
     ctx: &RenderContext,
     req: &ViewRequest,
-) -> Result<Vec<u8>, Problem> {
+) -> Result<Rendered, Problem> {
     let vol = decode_volume(volume_npy)?;
     let placed = |plane: crate::volume::ImagePlane| ScOrientation {
         sides: plane.sides_for(ctx.patient),
@@ -472,7 +498,7 @@ pub fn render(
             let (img, plane) = oriented_slice(&vol, &grid, q.axis, index, fill_value(ctx.units))
                 .map_err(|e| volume_problem(&e))?;
             let d = req.display().ok_or_else(Problem::internal)?;
-            encode_view(img, Some(&placed(plane)), &d, ctx)
+            encode_view(img, Some(&placed(plane)), &d, ctx).map(Rendered::from)
         }
         ViewRequest::Projection(q) => {
             let vol = Volume {
@@ -490,7 +516,7 @@ pub fn render(
                 oriented_projection(&vol, &grid, q.axis, q.kind, slab, fill_value(ctx.units))
                     .map_err(|e| volume_problem(&e))?;
             let d = req.display().ok_or_else(Problem::internal)?;
-            encode_view(img, Some(&placed(plane)), &d, ctx)
+            encode_view(img, Some(&placed(plane)), &d, ctx).map(Rendered::from)
         }
         ViewRequest::Mesh(q) => mesh_bytes(
             Volume {
@@ -507,7 +533,8 @@ pub fn render(
             },
             q,
             ctx,
-        ),
+        )
+        .map(Rendered::from),
     }
 }
 

@@ -17,7 +17,10 @@ use crate::recon::geometry::vectors::{cross3 as cross, sub3 as sub};
 pub use clip::clipped_field;
 pub use decimate::decimate;
 pub use marching::{SNAP, marching_cubes};
-pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
+pub use pipeline::{
+    EMPTY_SURFACE, MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, MeshWarning,
+    TARGET_TRIANGLES_NOT_REACHED, extract,
+};
 pub use smooth::taubin;
 pub use stl::{StlError, parse_stl_binary};
 pub use topology::Topology;

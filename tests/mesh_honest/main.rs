@@ -2,7 +2,8 @@
 //! 2-manifold with no zero-area triangle and no two vertices at one place, and `closed`, `manifold` and the Euler
 //! characteristic are read from the final mesh. Truth: boxes and spheres of known size, a torus (χ = 0), solids
 //! touching at a corner or an edge, noisy integer volumes (`pinch`). Over HTTP (`http`): an iso-value above the
-//! data is refused before any work, and what a surface could not honour comes back as a warning.
+//! data is refused before any work, and what a surface could not honour comes back as a warning, in the mesh
+//! product and in the mesh view's `X-Ctrecon-Warnings` header.
 
 #[path = "../common/mod.rs"]
 mod common;
@@ -13,7 +14,9 @@ mod pinch;
 use std::collections::HashSet;
 use std::f64::consts::PI;
 
-use ctrecon::mesh::{Mesh, MeshOptions, SNAP, extract, marching_cubes};
+use ctrecon::mesh::{
+    EMPTY_SURFACE, Mesh, MeshOptions, SNAP, TARGET_TRIANGLES_NOT_REACHED, extract, marching_cubes,
+};
 use ctrecon::recon::VolumeGrid;
 use ctrecon::volume::{Frame, Volume};
 use ndarray::Array3;
@@ -275,7 +278,15 @@ fn an_unreachable_triangle_target_and_an_empty_surface_are_reported_as_warnings(
     assert!(mesh.triangle_count() >= 14, "{}", mesh.triangle_count());
     assert!(stats.closed && stats.manifold && stats.euler_characteristic == 0);
     assert_eq!(stats.warnings.len(), 1, "{:?}", stats.warnings);
-    assert!(stats.warnings[0].contains("target_triangles 4 not reached"));
+    assert_eq!(stats.warnings[0].code, TARGET_TRIANGLES_NOT_REACHED);
+    assert!(
+        stats.warnings[0].message.contains(&format!(
+            "target_triangles 4 not reached: decimation stopped at {} triangles",
+            mesh.triangle_count()
+        )),
+        "{:?}",
+        stats.warnings
+    );
     // A sphere can go down to a tetrahedron: no warning.
     let sphere = field(20, [1.0; 3], |x, y, z| 6.0 - (x * x + y * y + z * z).sqrt());
     let (mesh, stats) = extract(&sphere, &opts).unwrap();
@@ -290,7 +301,8 @@ fn an_unreachable_triangle_target_and_an_empty_surface_are_reported_as_warnings(
     assert_eq!(mesh.triangle_count(), 0);
     assert!(!stats.closed && !stats.manifold);
     assert_eq!(stats.warnings.len(), 1, "{:?}", stats.warnings);
-    assert!(stats.warnings[0].contains("is empty"));
+    assert_eq!(stats.warnings[0].code, EMPTY_SURFACE);
+    assert!(stats.warnings[0].message.contains("is empty"));
 }
 
 #[test]
