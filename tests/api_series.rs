@@ -948,7 +948,25 @@ async fn lidc_over_http_series_mip_and_bone_mesh() {
     assert_eq!(done["status"], "succeeded", "{done}");
     let mesh = &done["result"]["products"][1]["mesh"];
     println!("LIDC bone mesh over HTTP: {mesh}");
-    assert_eq!(mesh["closed"], true);
+    // Integer HU at an integer iso-value: a closed 2-manifold all the same (no pinched vertex), and the STL as a
+    // slicer welds it by position is that same surface.
+    assert_eq!(
+        (mesh["closed"].as_bool(), mesh["manifold"].as_bool()),
+        (Some(true), Some(true)),
+        "{mesh}"
+    );
+    let stl = bytes(
+        &app,
+        &format!("/v1/jobs/{id}/result/products/1"),
+        "model/stl",
+    )
+    .await;
+    let t = common::weld_stl(&stl).topology();
+    assert!(t.closed && t.manifold, "{t:?}");
+    assert_eq!(
+        Some(t.euler_characteristic),
+        mesh["euler_characteristic"].as_i64()
+    );
     let area_cm2 = f(&mesh["area_mm2"]) / 100.0;
     let volume_cm3 = f(&mesh["volume_mm3"]) / 1000.0;
     assert!((1500.0..15000.0).contains(&area_cm2), "{area_cm2} cm²");

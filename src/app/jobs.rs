@@ -5,7 +5,8 @@ use super::error::{AppError, AppResult, refused};
 use super::idempotency::{Replay, settle};
 use crate::error_code::ErrorCode;
 use crate::jobs::imaging::{VolumeJobRequest, VolumeShape, plan, resolve_input};
-use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, now_us};
+use crate::jobs::iso_range::refuse_surfaces_above;
+use crate::jobs::model::{KIND_RECONSTRUCTION, KIND_VOLUME, VolumeUnits, now_us};
 use crate::jobs::plan::admit_job;
 use crate::jobs::volume_spec::{PacsSeries, VolumeSource};
 use crate::jobs::{CancelError, IdempotencyKey, Job, JobFilter, JobRequest, JobSpec, JobSummary};
@@ -78,18 +79,25 @@ impl App {
                     &req,
                     self.settings.render_max_side,
                 )?;
-                let shape = match &req.input {
+                let (shape, units) = match &req.input {
                     VolumeSource::Stored(id) => {
-                        resolve_input(&self.db, &self.store, *id).await?.shape
+                        let input = resolve_input(&self.db, &self.store, *id).await?;
+                        (input.shape, input.units)
                     }
                     VolumeSource::Pacs(source) => {
                         self.check_pull(source)?;
                         // Planned against a nominal CT volume until the series has arrived; the job plans
                         // again on the series it pulled and fails if that does not fit.
-                        nominal_pulled(budget)
+                        (nominal_pulled(budget), VolumeUnits::Hu)
                     }
                 };
                 let planned = plan(&req, shape, budget)?;
+                refuse_surfaces_above(
+                    &req,
+                    planned.output.max_value,
+                    units,
+                    self.settings.mu_water_per_mm,
+                )?;
                 Ok((JobSpec::Volume(req), planned.estimate_bytes))
             }
             None | Some(KIND_RECONSTRUCTION) => {

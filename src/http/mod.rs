@@ -160,6 +160,7 @@ fn cors(origins: &[String]) -> Option<CorsLayer> {
                 header::ETAG,
                 header::CONTENT_RANGE,
                 HeaderName::from_static("x-request-id"),
+                HeaderName::from_static(routes::results::WARNINGS),
             ]),
     )
 }

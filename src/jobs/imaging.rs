@@ -306,8 +306,8 @@ fn plan_product(p: &ProductSpec, shape: &VolumeShape, i: usize) -> Result<(Plann
                 return Err(Problem::new(
                     ErrorCode::IsoOutOfRange,
                     format!(
-                        "products[{i}]: `iso` {} is above every value of the volume (at most {max}): the surface would be empty",
-                        m.iso
+                        "products[{i}]: {}",
+                        super::iso_range::above_every_value("iso", m.iso, max)
                     ),
                 )
                 .at(format!("/products/{i}/iso")));
@@ -557,6 +557,14 @@ pub fn execute_volume(
         };
     }
     ctl.check()?;
+    let (mut min, mut max, mut sum) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64);
+    for &v in vol.data.iter() {
+        min = min.min(v);
+        max = max.max(v);
+        sum += v as f64;
+    }
+    // Shaded surfaces that the steps (or a series known only once pulled) left above every value.
+    let surface_warnings = super::iso_range::warn_surfaces_above(req, max, input.units, mu_water);
     let mut products = Vec::with_capacity(plan.products.len());
     for (index, p) in plan.products.iter().enumerate() {
         ctl.check()?;
@@ -581,12 +589,6 @@ pub fn execute_volume(
     }
     ctl.check()?;
     ctl.step("writing", 0.95);
-    let (mut min, mut max, mut sum) = (f32::INFINITY, f32::NEG_INFINITY, 0.0f64);
-    for &v in vol.data.iter() {
-        min = min.min(v);
-        max = max.max(v);
-        sum += v as f64;
-    }
     let encoded = encode_f32(vol.data.view());
     let volume = file_info(&encoded);
     store
@@ -616,6 +618,7 @@ pub fn execute_volume(
                     && crate::series::stale_after_resample(&w.code))
             })
             .cloned()
+            .chain(surface_warnings)
             .collect(),
     })
 }

@@ -3,7 +3,8 @@
 //! SQLite adapter, with datasets, uploads and series), `pg` (its PostgreSQL twin), `database` (the one of
 //! them the service runs on) ← `engine` (pool, scheduling, leases, cancel, progress)
 //! → the job kinds it runs: `run` (reconstruction, simulation; admission in `plan`), `imaging` (volume
-//! jobs and their products), `views` (rendered 2D images and meshes of results), `ingest` (DICOM → series).
+//! jobs and their products; `iso_range` checks their iso-values against the data), `views` (rendered 2D images
+//! and meshes of results), `ingest` (DICOM → series).
 
 pub mod cache;
 pub mod database;
@@ -12,6 +13,7 @@ pub mod engine;
 pub mod export;
 pub mod imaging;
 pub mod ingest;
+pub mod iso_range;
 pub mod lifecycle;
 pub mod model;
 pub mod pg;

@@ -227,7 +227,12 @@ impl RenderSpec {
 }
 
 /// A value given in `given` units in the units of a `volume` (HU → μ = μ_water (1 + HU/1000)).
-fn to_volume_units(v: f64, given: ValueUnits, volume: VolumeUnits, mu_water: f64) -> f64 {
+pub(super) fn to_volume_units(
+    v: f64,
+    given: ValueUnits,
+    volume: VolumeUnits,
+    mu_water: f64,
+) -> f64 {
     match (given, volume) {
         (ValueUnits::Hu, VolumeUnits::MuPerMm) => mu_water * (1.0 + v / 1000.0),
         _ => v,

@@ -23,7 +23,7 @@ use crate::dicom::{
     write_secondary_capture_placed, write_zip,
 };
 use crate::error_code::{ErrorCode, Problem};
-use crate::mesh::{MeshOptions, extract};
+use crate::mesh::{MeshOptions, SURFACE_REVISION, extract};
 use crate::render::Clip;
 use crate::storage::npy::{decode_f32, encode_f32, hex};
 use crate::volume::{
@@ -191,10 +191,20 @@ struct Display {
 }
 
 impl ViewRequest {
-    /// Hex SHA-256 of the parameters (and μ_water): the cache key and strong ETag of the view.
+    /// Hex SHA-256 of the parameters (and μ_water; for meshes the [`SURFACE_REVISION`]): the cache key and
+    /// strong ETag of the view.
     pub fn key(&self, mu_water: f64) -> String {
-        let text = serde_json::to_string(&(self, mu_water)).unwrap_or_default();
+        let text = match self {
+            ViewRequest::Mesh(_) => serde_json::to_string(&(self, mu_water, SURFACE_REVISION)),
+            _ => serde_json::to_string(&(self, mu_water)),
+        }
+        .unwrap_or_default();
         hex(&Sha256::digest(text.as_bytes()))
+    }
+
+    /// Whether the view can come with warnings ([`Rendered::warnings`]), kept beside the cached file.
+    pub fn warns(&self) -> bool {
+        matches!(self, ViewRequest::Mesh(_))
     }
 
     fn display(&self) -> Option<Display> {
@@ -386,7 +396,24 @@ fn encode_view(
         .map_err(|e| volume_problem(&e))
 }
 
-fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
+/// A rendered view and the stable codes of what it could not honour (a mesh's
+/// [`crate::mesh::MeshWarning`] codes: `empty_surface`, `target_triangles_not_reached`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Rendered {
+    pub bytes: Vec<u8>,
+    pub warnings: Vec<String>,
+}
+
+impl From<Vec<u8>> for Rendered {
+    fn from(bytes: Vec<u8>) -> Self {
+        Self {
+            bytes,
+            warnings: Vec::new(),
+        }
+    }
+}
+
+fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Rendered, Problem> {
     q.validate()?;
     let opts = mesh_options(q, ctx.mu_water, ctx.units);
     let max = vol.data.iter().copied().fold(f32::NEG_INFINITY, f32::max);
@@ -400,13 +427,17 @@ fn mesh_bytes(vol: Volume, q: &MeshQuery, ctx: &RenderContext) -> Result<Vec<u8>
             ),
         ));
     }
-    let (mesh, _) = extract(&vol, &opts)
+    let (mesh, stats) = extract(&vol, &opts)
         .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))?;
     let stl = mesh.to_stl_binary();
-    match q.format {
-        MeshFormat::Stl => Ok(stl),
-        MeshFormat::Dicom => encapsulate(&stl, ctx),
-    }
+    let bytes = match q.format {
+        MeshFormat::Stl => stl,
+        MeshFormat::Dicom => encapsulate(&stl, ctx)?,
+    };
+    Ok(Rendered {
+        bytes,
+        warnings: stats.warnings.into_iter().map(|w| w.code).collect(),
+    })
 }
 
 fn encapsulate(stl: &[u8], ctx: &RenderContext) -> Result<Vec<u8>, Problem> {
@@ -444,7 +475,7 @@ pub fn render(
     volume_npy: &[u8],
     ctx: &RenderContext,
     req: &ViewRequest,
-) -> Result<Vec<u8>, Problem> {
+) -> Result<Rendered, Problem> {
     let vol = decode_volume(volume_npy)?;
     let placed = |plane: crate::volume::ImagePlane| ScOrientation {
         sides: plane.sides_for(ctx.patient),
@@ -462,7 +493,7 @@ pub fn render(
             let (img, plane) = oriented_slice(&vol, &grid, q.axis, index, fill_value(ctx.units))
                 .map_err(|e| volume_problem(&e))?;
             let d = req.display().ok_or_else(Problem::internal)?;
-            encode_view(img, Some(&placed(plane)), &d, ctx)
+            encode_view(img, Some(&placed(plane)), &d, ctx).map(Rendered::from)
         }
         ViewRequest::Projection(q) => {
             let vol = Volume {
@@ -480,7 +511,7 @@ pub fn render(
                 oriented_projection(&vol, &grid, q.axis, q.kind, slab, fill_value(ctx.units))
                     .map_err(|e| volume_problem(&e))?;
             let d = req.display().ok_or_else(Problem::internal)?;
-            encode_view(img, Some(&placed(plane)), &d, ctx)
+            encode_view(img, Some(&placed(plane)), &d, ctx).map(Rendered::from)
         }
         ViewRequest::Mesh(q) => mesh_bytes(
             Volume {
@@ -497,7 +528,8 @@ pub fn render(
             },
             q,
             ctx,
-        ),
+        )
+        .map(Rendered::from),
     }
 }
 

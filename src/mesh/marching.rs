@@ -4,19 +4,28 @@
 //! there and every mesh bounds a solid. Vertices are placed by linear interpolation along cell edges and mapped
 //! to patient millimetres through the volume's [`Frame`].
 //!
-//! Ties are resolved one way everywhere: a sample equal to the iso-value is inside (`value >= iso`), and a
-//! vertex closer than [`SNAP`] of an edge to a sample is put on the sample (as Bourke's `VertexInterp` does).
-//! Integer data meshed at an integer iso-value (HU, label maps) then puts every crossing edge of such a sample
-//! on that one point: those vertices are welded into one, the triangles they collapse are dropped, and pairs of
-//! coincident triangles of opposite orientation (a sheet one sample thick, which has no volume) cancel. No
-//! triangle has zero area and no two used vertices are at one place.
+//! Ties are resolved one way everywhere: a sample equal to the iso-value is inside (`value >= iso`), and the
+//! interpolation parameter along an edge is kept within [[`SNAP`], 1 − [`SNAP`]], so every vertex stays on its
+//! own cell edge, at least `SNAP` of the edge away from either sample. Integer data meshed at an integer
+//! iso-value (HU, label maps) would otherwise put every crossing edge of a sample equal to the iso-value on that
+//! one sample; merging those vertices joins separate triangle fans at one point, and the mesh stops being a
+//! 2-manifold (two solids touching at a corner, a CT surface with hundreds of pinches). With the clamp the
+//! surface around such a sample passes a hair (`SNAP` of a voxel, 0.1 %) outside it, and the mesh is exactly
+//! the combinatorial marching-cubes surface of the inside flags: closed, a 2-manifold (see [`super::cases`]),
+//! no triangle of zero area (three points inside three different edges of a cell are never collinear) and no
+//! two vertices at one place (the interiors of different edges are disjoint). The alternative — merge the
+//! vertices and split every pinched vertex into one copy per triangle fan — would leave copies at the same
+//! position, which an STL reader that welds by position joins again.
+//!
+//! What that means for a solid made of samples equal to the iso-value: it is inside, and its surface runs
+//! `SNAP` of a voxel outside its outer samples. A sheet one sample thick at exactly the iso-value is therefore a
+//! thin closed slab `2 SNAP` voxels thick around the sheet, with the sheet's area on each side and a volume of
+//! area × `2 SNAP` × spacing, rather than nothing: the samples are inside, and the mesh says so.
 //!
 //! The lattice is the volume padded by one sample on every side. Each lattice plane owns the vertices on its x
 //! and y edges and on the z edges to the next plane. Vertices are numbered plane by plane, direction by
 //! direction, in scan order, and found again through per-row bitsets and prefix counts (a rank query), so the
 //! index needs a few bits per lattice point instead of a full integer per edge.
-
-use std::collections::HashMap;
 
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -40,12 +49,10 @@ struct PlaneVerts {
     dir_start: [u32; 3],
     /// Positions in padded index space (i, j, k), direction-major, scan order.
     points: Vec<[f32; 3]>,
-    /// Vertices put on a lattice point: (index in `points`, linear padded lattice index).
-    corners: Vec<(u32, usize)>,
     offset: u32,
 }
 
-/// Fraction of a cell edge within which a vertex is put on the sample at the edge's end.
+/// Least distance, as a fraction of a cell edge, between a vertex and the samples at the ends of its edge.
 pub const SNAP: f32 = 1.0 / 1024.0;
 
 /// Extract the iso-surface `value = iso` of `vol` (inside where value ≥ iso), in patient mm.
@@ -90,19 +97,14 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
             }
         });
     let inside = &inside[..];
-    // Border edges (one end in the padding) sit half-way, i.e. half a voxel outside the volume.
+    // Border edges (one end in the padding) sit half-way, i.e. half a voxel outside the volume; so does an
+    // edge from an infinite sample. Every other vertex keeps SNAP of its edge from both samples.
     let edge_point = |a: f32, b: f32| -> f32 {
-        if a == outside || b == outside {
+        let t = (iso - a) / (b - a);
+        if a == outside || b == outside || t.is_nan() {
             0.5
         } else {
-            let t = ((iso - a) / (b - a)).clamp(0.0, 1.0);
-            if t < SNAP {
-                0.0
-            } else if t > 1.0 - SNAP {
-                1.0
-            } else {
-                t
-            }
+            t.clamp(SNAP, 1.0 - SNAP)
         }
     };
     let words = px.div_ceil(64);
@@ -116,7 +118,6 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
                 row_start: vec![0; py + 1],
             });
             let mut points: [Vec<[f32; 3]>; 3] = Default::default();
-            let mut corners: [Vec<(u32, usize)>; 3] = Default::default();
             for j in 0..py {
                 for (d, dir) in dirs.iter_mut().enumerate() {
                     dir.row_start[j] = points[d].len() as u32;
@@ -132,12 +133,7 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
                             let a = value(k, j, i);
                             let mut p = [i as f32, j as f32, k as f32];
                             let b = [value(k, j, i + 1), value(k, j + 1, i), value(k + 1, j, i)];
-                            let t = edge_point(a, b[d]);
-                            if t == 0.0 || t == 1.0 {
-                                let at = here + if t == 0.0 { 0 } else { strides[d] };
-                                corners[d].push((points[d].len() as u32, at));
-                            }
-                            p[d] += t;
+                            p[d] += edge_point(a, b[d]);
                             points[d].push(p);
                         }
                     }
@@ -151,11 +147,6 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
                 points[0].len() as u32,
                 (points[0].len() + points[1].len()) as u32,
             ];
-            let all_corners = corners
-                .into_iter()
-                .zip(dir_start)
-                .flat_map(|(c, start)| c.into_iter().map(move |(v, at)| (v + start, at)))
-                .collect();
             let [p0, p1, p2] = points;
             let mut all = p0;
             all.extend(p1);
@@ -164,7 +155,6 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
                 dirs,
                 dir_start,
                 points: all,
-                corners: all_corners,
                 offset: 0,
             }
         })
@@ -233,70 +223,8 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
             [q[0] as f32, q[1] as f32, q[2] as f32]
         })
         .collect();
-    let corners: Vec<(u32, usize)> = planes
-        .iter()
-        .flat_map(|pl| pl.corners.iter().map(|&(v, at)| (v + pl.offset, at)))
-        .collect();
-    let mesh = Mesh {
+    Mesh {
         vertices,
         triangles,
-    };
-    if corners.is_empty() {
-        mesh
-    } else {
-        weld_corners(mesh, &corners)
     }
-}
-
-/// Merge the vertices put on one lattice point, drop the triangles that collapse and cancel coincident
-/// triangles of opposite orientation. Only triangles on such a point are touched; the merged-away vertices stay
-/// in the list, used by no triangle (the topology and the measurements count used vertices only).
-fn weld_corners(mut mesh: Mesh, corners: &[(u32, usize)]) -> Mesh {
-    let mut on_point = vec![0u64; mesh.vertices.len().div_ceil(64)];
-    let mut keeper: HashMap<usize, u32> = HashMap::with_capacity(corners.len());
-    let mut remap: HashMap<u32, u32> = HashMap::with_capacity(corners.len());
-    for &(v, at) in corners {
-        on_point[v as usize / 64] |= 1 << (v % 64);
-        remap.insert(v, *keeper.entry(at).or_insert(v));
-    }
-    let is_on_point = |v: u32| on_point[v as usize / 64] >> (v % 64) & 1 == 1;
-    // Triangles on a welded point, as (sorted corners, orientation parity, index).
-    let mut touching: Vec<([u32; 3], bool, usize)> = Vec::new();
-    let mut dead = Vec::new();
-    for (i, t) in mesh.triangles.iter_mut().enumerate() {
-        if !t.iter().any(|&v| is_on_point(v)) {
-            continue;
-        }
-        *t = t.map(|v| remap.get(&v).copied().unwrap_or(v));
-        if t[0] == t[1] || t[1] == t[2] || t[0] == t[2] {
-            dead.push(i);
-            continue;
-        }
-        let mut sorted = *t;
-        sorted.sort_unstable();
-        // An even permutation of the sorted corners has the sorted orientation.
-        let even = *t == sorted
-            || *t == [sorted[1], sorted[2], sorted[0]]
-            || *t == [sorted[2], sorted[0], sorted[1]];
-        touching.push((sorted, even, i));
-    }
-    touching.sort_unstable();
-    for group in touching.chunk_by(|a, b| a.0 == b.0) {
-        let even = group.iter().filter(|g| g.1).map(|g| g.2);
-        let odd = group.iter().filter(|g| !g.1).map(|g| g.2);
-        for (a, b) in even.zip(odd) {
-            dead.extend([a, b]);
-        }
-    }
-    if !dead.is_empty() {
-        dead.sort_unstable();
-        let mut next = dead.iter().peekable();
-        let mut i = 0;
-        mesh.triangles.retain(|_| {
-            let drop = next.next_if(|&&d| d == i).is_some();
-            i += 1;
-            !drop
-        });
-    }
-    mesh
 }

@@ -17,14 +17,23 @@ use crate::recon::geometry::vectors::{cross3 as cross, sub3 as sub};
 pub use clip::clipped_field;
 pub use decimate::decimate;
 pub use marching::{SNAP, marching_cubes};
-pub use pipeline::{MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, extract};
+pub use pipeline::{
+    EMPTY_SURFACE, MAX_SMOOTHING, MeshError, MeshOptions, MeshStats, MeshWarning,
+    TARGET_TRIANGLES_NOT_REACHED, extract,
+};
 pub use smooth::taubin;
 pub use stl::{StlError, parse_stl_binary};
 pub use topology::Topology;
 
+/// Revision of the surface that a volume and a set of [`MeshOptions`] give. Meshes rendered on request are cached
+/// under a key that includes it, so a change to what marching cubes, smoothing or decimation make is never
+/// answered from a cache of an earlier revision. Revision 2: vertices keep [`SNAP`] from the samples instead
+/// of being welded onto them.
+pub const SURFACE_REVISION: u32 = 2;
+
 /// A triangle mesh with shared vertices (mm, patient LPS). Triangles wind counter-clockwise seen from outside.
-/// Marching cubes may leave vertices that no triangle uses (merged into another at the same place); the
-/// largest component and decimation drop them, and every measurement counts used vertices only.
+/// Every measurement counts the vertices that triangles use only, so a mesh read from elsewhere may carry
+/// unused ones.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct Mesh {
     pub vertices: Vec<[f32; 3]>,

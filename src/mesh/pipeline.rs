@@ -53,7 +53,47 @@ pub struct MeshStats {
     pub euler_characteristic: i64,
     /// What the surface could not honour: an empty surface, a `target_triangles` not reached.
     #[serde(default)]
-    pub warnings: Vec<String>,
+    pub warnings: Vec<MeshWarning>,
+}
+
+/// Code of the warning that the surface is empty although the request was accepted (e.g. smoothing lowered the
+/// maximum below the iso-value, or a clip cut every solid away).
+pub const EMPTY_SURFACE: &str = "empty_surface";
+/// Code of the warning that decimation stopped above `target_triangles`.
+pub const TARGET_TRIANGLES_NOT_REACHED: &str = "target_triangles_not_reached";
+
+/// Something a surface could not honour: a stable snake_case `code` ([`EMPTY_SURFACE`],
+/// [`TARGET_TRIANGLES_NOT_REACHED`]) and a sentence with the numbers. Stored results that hold the bare sentence
+/// read back with the code it stands for.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(from = "StoredWarning")]
+pub struct MeshWarning {
+    pub code: String,
+    pub message: String,
+}
+
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum StoredWarning {
+    Coded { code: String, message: String },
+    Sentence(String),
+}
+
+impl From<StoredWarning> for MeshWarning {
+    fn from(w: StoredWarning) -> Self {
+        match w {
+            StoredWarning::Coded { code, message } => Self { code, message },
+            StoredWarning::Sentence(message) => Self {
+                code: if message.starts_with("target_triangles") {
+                    TARGET_TRIANGLES_NOT_REACHED
+                } else {
+                    EMPTY_SURFACE
+                }
+                .into(),
+                message,
+            },
+        }
+    }
 }
 
 /// A mesh request that cannot be honoured.
@@ -134,17 +174,28 @@ pub fn extract(vol: &Volume, opts: &MeshOptions) -> Result<(Mesh, MeshStats), Me
     }
     let mut stats = mesh.stats();
     if mesh.triangles.is_empty() {
-        stats.warnings.push(format!(
-            "the iso-surface at {} is empty: no sample is above it, or the samples equal to it enclose no volume",
-            opts.iso
-        ));
+        stats.warnings.push(MeshWarning {
+            code: EMPTY_SURFACE.into(),
+            message: format!(
+                "the iso-surface at {} is empty: no sample of the volume{} is at or above it",
+                opts.iso,
+                if opts.clip.is_empty() {
+                    ""
+                } else {
+                    " left by the clip"
+                }
+            ),
+        });
     }
     if let Some(t) = opts.target_triangles.filter(|&t| stats.triangles > t) {
-        stats.warnings.push(format!(
-            "target_triangles {t} not reached: decimation stopped at {} triangles, where every further edge \
-             collapse would open, pinch or fold the surface",
-            stats.triangles
-        ));
+        stats.warnings.push(MeshWarning {
+            code: TARGET_TRIANGLES_NOT_REACHED.into(),
+            message: format!(
+                "target_triangles {t} not reached: decimation stopped at {} triangles, where every further \
+                 edge collapse would open, pinch or fold the surface",
+                stats.triangles
+            ),
+        });
     }
     Ok((mesh, stats))
 }
@@ -186,5 +237,27 @@ mod tests {
         };
         assert!(extract(&vol, &bad).is_err());
         assert!(serde_json::from_str::<MeshOptions>(r#"{"iso": 1, "colour": 3}"#).is_err());
+    }
+
+    #[test]
+    fn warnings_carry_stable_codes_and_stored_sentences_read_back_with_theirs() {
+        let w = MeshWarning {
+            code: EMPTY_SURFACE.into(),
+            message: "the iso-surface at 3 is empty".into(),
+        };
+        let text = serde_json::to_string(&w).unwrap();
+        assert_eq!(
+            text,
+            r#"{"code":"empty_surface","message":"the iso-surface at 3 is empty"}"#
+        );
+        assert_eq!(serde_json::from_str::<MeshWarning>(&text).unwrap(), w);
+        let stored: Vec<MeshWarning> = serde_json::from_str(
+            r#"["target_triangles 4 not reached: decimation stopped at 16 triangles",
+                "the iso-surface at 3 is empty: no sample is above it"]"#,
+        )
+        .unwrap();
+        let codes: Vec<&str> = stored.iter().map(|w| w.code.as_str()).collect();
+        assert_eq!(codes, [TARGET_TRIANGLES_NOT_REACHED, EMPTY_SURFACE]);
+        assert!(stored[0].message.contains("16 triangles"));
     }
 }

@@ -100,8 +100,38 @@ fn noisy_random_volumes_always_give_closed_consistently_oriented_meshes() {
     let frame = Frame::from_grid(&VolumeGrid::cube(1, 1.0));
     let mesh = marching_cubes(vol.view(), &frame, 0.5);
     assert!(mesh.triangle_count() > 100);
-    assert!(mesh.is_closed());
+    let t = mesh.topology();
+    assert!(t.closed && t.manifold, "{t:?}");
+    assert_eq!(t.euler_characteristic % 2, 0);
     assert!(mesh.volume_mm3() > 0.0);
+    // Quantised to 0, 0.5 and 1 and meshed at 0.5: a third of the samples tie, still a closed manifold.
+    let ties = vol.mapv(|v| (v * 2.0).round() / 2.0);
+    let mesh = marching_cubes(ties.view(), &frame, 0.5);
+    let t = mesh.topology();
+    assert!(t.closed && t.manifold, "{t:?}");
+}
+
+#[test]
+fn vertices_keep_snap_from_the_samples_at_the_ends_of_their_edges() {
+    // One sample of 1 in zeros at iso 1: the six vertices sit SNAP of a voxel from it, an octahedron.
+    let mut vol = Array3::<f32>::zeros((3, 3, 3));
+    vol[[1, 1, 1]] = 1.0;
+    let frame = Frame::from_grid(&VolumeGrid::cube(3, 2.0));
+    let mesh = marching_cubes(vol.view(), &frame, 1.0);
+    assert_eq!((mesh.vertices.len(), mesh.triangle_count()), (6, 8));
+    let centre = frame.position(1.0, 1.0, 1.0);
+    for p in &mesh.vertices {
+        let d = (0..3)
+            .map(|a| (f64::from(p[a]) - centre[a]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        assert!((d - 2.0 * f64::from(SNAP)).abs() < 1e-5, "{d}");
+    }
+    let t = mesh.topology();
+    assert!(t.closed && t.manifold && t.euler_characteristic == 2);
+    // Its volume: the octahedron of radius 2 SNAP mm.
+    let v0 = 4.0 / 3.0 * (2.0 * f64::from(SNAP)).powi(3);
+    assert!(rel(mesh.volume_mm3(), v0) < 1e-3, "{}", mesh.volume_mm3());
 }
 
 #[test]
@@ -130,7 +160,11 @@ fn taubin_smoothing_keeps_the_volume_of_a_blocky_sphere() {
     let mut mesh = marching_cubes(vol.view(), &frame, 0.5);
     let before = mesh.volume_mm3();
     taubin(&mut mesh, 10);
-    assert!(mesh.is_closed());
+    let t = mesh.topology();
+    assert!(
+        t.closed && t.manifold && t.euler_characteristic == 2,
+        "{t:?}"
+    );
     assert!(
         rel(mesh.volume_mm3(), before) < 0.03,
         "{} vs {before}",
@@ -175,7 +209,11 @@ fn decimation_to_a_quarter_keeps_a_sphere_closed_and_its_measures_within_3_perce
         small.triangle_count()
     );
     assert!(small.triangle_count() > target / 2);
-    assert!(small.is_closed());
+    let t = small.topology();
+    assert!(
+        t.closed && t.manifold && t.euler_characteristic == 2,
+        "{t:?}"
+    );
     assert!(
         rel(small.area_mm2(), 4.0 * PI * r * r) < 0.03,
         "{}",

@@ -13,7 +13,8 @@ use super::image::render_tiles;
 use super::scene::Scene;
 use super::{Clip, RenderError, RgbImage, Shading, V3, ViewRays, dot};
 
-/// One iso-surface: `iso` in the volume's units (inside is above), its RGB colour (0–1) and opacity (0–1).
+/// One iso-surface: `iso` in the volume's units (inside is at or above; a finite 32-bit float), its RGB colour
+/// (0–1) and opacity (0–1).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct Surface {
@@ -59,8 +60,13 @@ impl SsdOptions {
         }
         let unit = |v: f64| v.is_finite() && (0.0..=1.0).contains(&v);
         for s in &self.surfaces {
-            if !s.iso.is_finite() || !unit(s.opacity) || !s.color.iter().all(|&c| unit(c)) {
-                return bad("surfaces", "iso finite, colour and opacity within [0, 1]");
+            // Rays compare 32-bit samples with the iso-value.
+            if !(s.iso as f32).is_finite() || !unit(s.opacity) || !s.color.iter().all(|&c| unit(c))
+            {
+                return bad(
+                    "surfaces",
+                    "iso a finite 32-bit float, colour and opacity within [0, 1]",
+                );
             }
         }
         if !unit(self.depth_cue) {

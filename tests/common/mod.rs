@@ -206,3 +206,21 @@ pub fn read_npy_f32(bytes: &[u8]) -> (Vec<usize>, Vec<f32>) {
     let a = ctrecon::storage::npy::decode_f32(bytes).expect("a valid .npy");
     (a.shape().to_vec(), a.iter().copied().collect())
 }
+
+/// A binary STL as a slicer or CAD reader takes it: the triangles, with the vertices at one position merged.
+pub fn weld_stl(stl: &[u8]) -> ctrecon::mesh::Mesh {
+    let (soup, _) = ctrecon::mesh::parse_stl_binary(stl).expect("a binary STL");
+    let mut at = std::collections::HashMap::<[u32; 3], u32>::new();
+    let mut out = ctrecon::mesh::Mesh::default();
+    for t in &soup.triangles {
+        let t = t.map(|v| {
+            let p = soup.vertices[v as usize];
+            *at.entry(p.map(f32::to_bits)).or_insert_with(|| {
+                out.vertices.push(p);
+                out.vertices.len() as u32 - 1
+            })
+        });
+        out.triangles.push(t);
+    }
+    out
+}

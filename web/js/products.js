@@ -212,7 +212,9 @@ function meshCard(job, p, signal) {
       h('dt', 'Area'), h('dd', `${fmtNum(m.area_mm2, 1)} mm²`),
       h('dt', 'Enclosed volume'), h('dd', `${fmtNum(m.volume_mm3, 1)} mm³ (${fmtNum(m.volume_mm3 / 1000, 1)} mL)`),
       h('dt', 'Closed / manifold'), h('dd', `${m.closed ? 'yes' : 'no'} / ${m.manifold ? 'yes' : 'no'}`)),
-    (m.warnings || []).length ? h('ul.warnings', m.warnings.map((w) => h('li.warn', w))) : null,
+    (m.warnings || []).length
+      ? h('ul.warnings', m.warnings.map((w) => h('li.warn', h('code', w.code), ' ', w.message)))
+      : null,
     open, box);
   open.addEventListener('click', async () => {
     open.disabled = true;

@@ -1,10 +1,12 @@
 //! Results of a succeeded job, immutable once written: `volume.npy`, `slice`, `projection`, `mesh.stl`,
 //! `series.zip` (a derived CT series), `metrics`, and the `products/{index}` of volume jobs. Views are rendered
 //! on the worker pool on first request and cached; every file is served with a strong ETag,
-//! `Cache-Control: immutable` and range support.
+//! `Cache-Control: immutable` and range support. What a view could not honour (a mesh's empty surface or
+//! unreached `target_triangles`) is named by its stable codes in the [`WARNINGS`] header, kept beside the
+//! cached file so that every answer for the same ETag carries it.
 
 use axum::extract::{Path, State};
-use axum::http::HeaderMap;
+use axum::http::{HeaderMap, HeaderName, HeaderValue};
 use axum::response::Response;
 use sha2::{Digest, Sha256};
 
@@ -15,7 +17,7 @@ use super::super::problem::{ApiResult, api_error};
 use crate::dicom::SeriesMeta;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::views::{
-    MeshQuery, ProductFormat, ProductQuery, ProjectionQuery, RenderContext, SeriesQuery,
+    MeshQuery, ProductFormat, ProductQuery, ProjectionQuery, RenderContext, Rendered, SeriesQuery,
     SliceQuery, ViewRequest, render, render_product,
 };
 use crate::jobs::{JobResult, JobStatus};
@@ -118,25 +120,45 @@ async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext
     })
 }
 
-/// Render a derived file from `source` into `path` on the worker pool, unless it is already there (results are
-/// immutable, so a rendering never goes stale).
+/// Response header naming, comma-separated, the stable codes of what a view could not honour (absent when
+/// there is nothing to say).
+pub const WARNINGS: &str = "x-ctrecon-warnings";
+
+/// Where a derived file and, for views that can warn, the JSON array of its warning codes are kept.
+struct Derived {
+    path: std::path::PathBuf,
+    warnings: Option<std::path::PathBuf>,
+}
+
+/// Render a derived file from `source` on the worker pool, unless it is already there (results are immutable,
+/// so a rendering never goes stale); returns its warning codes. The warnings are written before the file, so a
+/// cached file always has them.
 async fn render_once<F>(
     st: &AppState,
     r: &JobResult,
-    path: &std::path::Path,
+    out: &Derived,
     make: F,
     source: std::path::PathBuf,
-) -> ApiResult<()>
+) -> ApiResult<Vec<String>>
 where
-    F: FnOnce(&[u8], &RenderContext) -> Result<Vec<u8>, Problem> + Send + 'static,
+    F: FnOnce(&[u8], &RenderContext) -> Result<Rendered, Problem> + Send + 'static,
 {
-    if tokio::fs::try_exists(path).await.unwrap_or(false) {
-        return Ok(());
+    if tokio::fs::try_exists(&out.path).await.unwrap_or(false) {
+        let Some(w) = &out.warnings else {
+            return Ok(Vec::new());
+        };
+        if let Ok(text) = tokio::fs::read(w).await
+            && let Ok(codes) = serde_json::from_slice::<Vec<String>>(&text)
+        {
+            return Ok(codes);
+        }
     }
     let ctx = render_context(st, r).await?;
     let store = st.store.clone();
-    let dest = path.to_path_buf();
-    st.engine
+    let dest = out.path.clone();
+    let warnings = out.warnings.clone();
+    let codes = st
+        .engine
         .compute(move || {
             let io = |e: std::io::Error| {
                 tracing::error!(error = %e, "rendering a result failed");
@@ -144,10 +166,15 @@ where
             };
             let bytes = store.local(&source).and_then(std::fs::read).map_err(io)?;
             let out = make(&bytes, &ctx)?;
-            store.write_atomic(&dest, &out).map_err(io)
+            if let Some(w) = &warnings {
+                let text = serde_json::to_vec(&out.warnings).map_err(|_| Problem::internal())?;
+                store.write_atomic(w, &text).map_err(io)?;
+            }
+            store.write_atomic(&dest, &out.bytes).map_err(io)?;
+            Ok(out.warnings)
         })
         .await?;
-    Ok(())
+    Ok(codes)
 }
 
 async fn view(
@@ -162,32 +189,45 @@ async fn view(
     let mu_water = st.settings.mu_water_per_mm;
     let key = req.key(mu_water);
     let (ext, content_type) = req.media();
-    let path = st.store.result_path(
-        id,
-        &ResultName::Derived {
-            key_hex: key.clone(),
-            ext,
-        },
-    );
+    let derived = |ext| {
+        st.store.result_path(
+            id,
+            &ResultName::Derived {
+                key_hex: key.clone(),
+                ext,
+            },
+        )
+    };
+    let out = Derived {
+        path: derived(ext),
+        warnings: req.warns().then(|| derived("warnings.json")),
+    };
     let source = st.store.result_path(id, &ResultName::Volume);
-    render_once(
+    let codes = render_once(
         &st,
         &r,
-        &path,
+        &out,
         move |bytes, ctx| render(bytes, ctx, &req),
         source,
     )
     .await?;
-    serve_file(
+    let mut resp = serve_file(
         &headers,
         FileMeta {
-            path,
+            path: out.path,
             etag: key,
             content_type,
             filename: Some(format!("{id}.{ext}")),
         },
     )
-    .await
+    .await?;
+    if !codes.is_empty()
+        && let Ok(v) = HeaderValue::from_str(&codes.join(", "))
+    {
+        resp.headers_mut()
+            .insert(HeaderName::from_static(WARNINGS), v);
+    }
+    Ok(resp)
 }
 
 pub async fn series_zip(
@@ -247,25 +287,28 @@ pub async fn product(
         .await;
     }
     let key = q.key(index, format, st.settings.mu_water_per_mm);
-    let path = st.store.result_path(
-        id,
-        &ResultName::Derived {
-            key_hex: key.clone(),
-            ext,
-        },
-    );
+    let out = Derived {
+        path: st.store.result_path(
+            id,
+            &ResultName::Derived {
+                key_hex: key.clone(),
+                ext,
+            },
+        ),
+        warnings: None,
+    };
     render_once(
         &st,
         &r,
-        &path,
-        move |bytes, ctx| render_product(bytes, &p, &q, format, ctx),
+        &out,
+        move |bytes, ctx| render_product(bytes, &p, &q, format, ctx).map(Rendered::from),
         stored,
     )
     .await?;
     serve_file(
         &headers,
         FileMeta {
-            path,
+            path: out.path,
             etag: key,
             content_type,
             filename: Some(format!("{id}-{index}.{ext}")),

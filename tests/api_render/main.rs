@@ -1,8 +1,13 @@
 //! Volume renderings and shaded surfaces as products of a volume job, over HTTP against the real server: the
 //! PNG, APNG and RGB Secondary Capture outputs, checked by their numbers (silhouette size, where a marker at the
-//! patient's left appears, frame counts, DICOM identity), and bad render requests refused at submission.
+//! patient's left appears, frame counts, DICOM identity), and bad render requests refused at submission (a shaded
+//! surface above every value of the volume among them, in `iso`; one that smoothing pushed above is warned
+//! about).
 
+#[path = "../common/mod.rs"]
 mod common;
+
+mod iso;
 
 use common::{TestApp, assert_problem, spawn_app, spawn_app_with};
 use ctrecon::dicom::{SeriesMeta, write_ct_series};
@@ -46,7 +51,11 @@ fn series() -> Vec<(String, Vec<u8>)> {
 }
 
 async fn upload(app: &TestApp) -> String {
-    let form = series()
+    upload_files(app, series()).await
+}
+
+async fn upload_files(app: &TestApp, files: Vec<(String, Vec<u8>)>) -> String {
+    let form = files
         .into_iter()
         .fold(reqwest::multipart::Form::new(), |f, (name, bytes)| {
             f.part(
