@@ -1,9 +1,11 @@
 //! Iso-values against the range of a volume job's volume. A surface whose iso-value lies above every sample is
-//! empty, so a mesh or a shaded surface at it shows nothing: refused at submission (422 `iso_out_of_range`)
-//! where the maximum is known (a stored series or result, bounded after steps by [`super::imaging::plan`]);
-//! where only the data know it (a series pulled from a PACS, smoothing that lowered the ridge) a shaded surface
-//! that cannot appear is reported as a job warning with the same code. Samples equal to the iso-value are
-//! inside, so an iso-value at the maximum still shows them.
+//! empty, so a mesh at it, or a shaded-surface product all of whose surfaces are, shows nothing: refused at
+//! submission (422 `iso_out_of_range`) where the maximum is known (a stored series or result, bounded after
+//! steps by [`super::imaging::plan`]). A shaded-surface product with some surfaces that cannot appear (a
+//! protocol's bone surface on a volume without bone) still shows the others: each missing surface is a job
+//! warning with the same code, as is every surface that cannot appear where only the data know the maximum (a
+//! series pulled from a PACS, smoothing that lowered the ridge). Samples equal to the iso-value are inside, so
+//! an iso-value at the maximum still shows them.
 
 use super::imaging::{ProductSpec, VolumeJobRequest};
 use super::model::{Notice, VolumeUnits};
@@ -59,8 +61,9 @@ fn surfaces_above(
     out
 }
 
-/// Refuse a volume job with a `surface_render` iso-value above `max`, the bound on the volume's values after its
-/// steps (`None`: not known before the job runs). HU iso-values on a μ volume convert through `mu_water`.
+/// Refuse a volume job with a `surface_render` product every surface of which lies above `max`, the bound on
+/// the volume's values after its steps (`None`: not known before the job runs): the picture would be empty.
+/// The pointer names the product's first surface. HU iso-values on a μ volume convert through `mu_water`.
 pub fn refuse_surfaces_above(
     req: &VolumeJobRequest,
     max: Option<f32>,
@@ -68,11 +71,20 @@ pub fn refuse_surfaces_above(
     mu_water: f64,
 ) -> Result<(), Problem> {
     let Some(max) = max else { return Ok(()) };
-    match surfaces_above(req, max, units, mu_water).into_iter().next() {
-        Some((i, j, message)) => Err(Problem::new(ErrorCode::IsoOutOfRange, message)
-            .at(format!("/products/{i}/surfaces/{j}/iso"))),
-        None => Ok(()),
+    let above = surfaces_above(req, max, units, mu_water);
+    for (i, p) in req.products.iter().enumerate() {
+        let ProductSpec::SurfaceRender(s) = p else {
+            continue;
+        };
+        let here: Vec<&(usize, usize, String)> = above.iter().filter(|a| a.0 == i).collect();
+        if let Some(first) = here.first()
+            && here.len() == s.surfaces.len()
+        {
+            return Err(Problem::new(ErrorCode::IsoOutOfRange, first.2.clone())
+                .at(format!("/products/{i}/surfaces/{}/iso", first.1)));
+        }
     }
+    Ok(())
 }
 
 /// Warnings (`iso_out_of_range`) for every `surface_render` iso-value above `max`, the largest value of the
@@ -107,12 +119,19 @@ mod tests {
     }
 
     #[test]
-    fn a_shaded_surface_above_the_maximum_is_refused_with_its_pointer_and_one_at_it_is_kept() {
-        let req = request(serde_json::json!([{"iso": 300}, {"iso": 1200}]), "hu");
+    fn a_shaded_surface_product_above_the_maximum_is_refused_with_its_pointer_and_a_partial_one_is_kept()
+     {
+        let req = request(serde_json::json!([{"iso": 1100}, {"iso": 1200}]), "hu");
         let e = refuse_surfaces_above(&req, Some(1000.0), VolumeUnits::Hu, 0.02).unwrap_err();
         assert_eq!(e.code, ErrorCode::IsoOutOfRange);
-        assert_eq!(e.errors[0].pointer, "/products/1/surfaces/1/iso");
+        assert_eq!(e.errors[0].pointer, "/products/1/surfaces/0/iso");
         assert!(e.detail.contains("at most 1000 HU"), "{}", e.detail);
+        // Skin still shows when the bone surface cannot: kept, and warned about when it runs.
+        let partial = request(serde_json::json!([{"iso": 300}, {"iso": 1200}]), "hu");
+        assert!(refuse_surfaces_above(&partial, Some(1000.0), VolumeUnits::Hu, 0.02).is_ok());
+        let w = warn_surfaces_above(&partial, 1000.0, VolumeUnits::Hu, 0.02);
+        assert_eq!(w.len(), 1);
+        assert!(w[0].message.contains("surfaces[1].iso"), "{}", w[0].message);
         let at = request(serde_json::json!([{"iso": 1000}]), "hu");
         assert!(refuse_surfaces_above(&at, Some(1000.0), VolumeUnits::Hu, 0.02).is_ok());
         assert!(refuse_surfaces_above(&req, None, VolumeUnits::Hu, 0.02).is_ok());

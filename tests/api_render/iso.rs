@@ -15,14 +15,14 @@ async fn a_shaded_surface_above_the_data_is_refused_and_one_the_steps_pushed_abo
 {
     let app = spawn_app().await;
     let sid = upload(&app).await;
-    // The balls reach 1000 HU (1000.0077 as stored). Any surface above that (in HU, or in the volume's own units, HU here) cannot
-    // appear: refused before any work, pointing at its iso-value.
+    // The balls reach 1000 HU (1000.0077 as stored). A product whose every surface is above that (in HU, or in
+    // the volume's own units, HU here) would be empty: refused before any work, pointing at its first iso-value.
     for (surfaces, units, at) in [
         (json!([{"iso": 1200}]), "hu", "/products/0/surfaces/0/iso"),
         (
-            json!([{"iso": 0}, {"iso": 1000.5}]),
+            json!([{"iso": 1000.5}, {"iso": 2000}]),
             "hu",
-            "/products/0/surfaces/1/iso",
+            "/products/0/surfaces/0/iso",
         ),
         (
             json!([{"iso": 3000}]),
@@ -82,6 +82,35 @@ async fn a_shaded_surface_above_the_data_is_refused_and_one_the_steps_pushed_abo
     let (n, _) = lit(&frames[0], w, 0);
     // The plateau (r ≤ 30 mm of the ball) spans about 2 × 30 / 6.9 mm ≈ 9 pixels across: about 50 lit.
     assert!(n > 30, "{n} pixels");
+
+    // A protocol's second surface above the data (bone on a volume without bone): the first still shows, the
+    // job runs and names the missing one.
+    let job = app
+        .submit(&json!({"kind": "volume", "input": sid, "products": [
+            {"type": "surface_render", "surfaces": [{"iso": 1000}, {"iso": 2000, "opacity": 0.5}],
+             "size": [32, 32]}]}))
+        .await;
+    let id = job["id"].as_str().unwrap().to_string();
+    let done = app.finish(&id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    let said: Vec<String> = done["result"]["warnings"]
+        .as_array()
+        .cloned()
+        .unwrap_or_default()
+        .iter()
+        .filter(|w| w["code"] == "iso_out_of_range")
+        .map(|w| w["message"].as_str().unwrap_or_default().to_string())
+        .collect();
+    assert_eq!(said.len(), 1, "{said:?}");
+    assert!(said[0].contains("`surfaces[1].iso` 2000"), "{said:?}");
+    let png = get(
+        &app,
+        &format!("/v1/jobs/{id}/result/products/0"),
+        "image/png",
+    )
+    .await;
+    let (w, _, frames) = decode(&png);
+    assert_eq!(lit(&frames[0], w, 0).0, n, "the same ball as alone");
 
     // One voxel of 1000 HU in air: the bound after a smoothing step is still 1000 HU, so 500 HU is accepted,
     // but smoothing spreads the voxel to below 0 HU and the surface does not appear. The job says so.
