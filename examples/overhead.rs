@@ -9,8 +9,8 @@
 //! A real server on loopback (default settings but the data directory and port, on its own runtime) gets a
 //! tiny simulated sinogram, then `--jobs` tiny FBP jobs one after the other (8 × 8 pixels from 16 views ×
 //! 16 detector cells: microseconds of compute). For each it reports, as medians and 90th percentiles:
-//! - `queue→finish`: the job's own `finished_at − created_at` (persist, wake, claim, run, record), and
-//!   `run`: `finished_at − started_at`;
+//! - `queue→finish`: the job's own `finished_at − created_at` (persist, wake, claim, run, record),
+//!   `queue→claim`: `started_at − created_at` (persist, wake, claim) and `run`: `finished_at − started_at`;
 //! - `client`: from sending `POST /v1/jobs` to seeing `succeeded` by polling `GET /v1/jobs/{id}` every ms.
 
 use std::time::{Duration, Instant};
@@ -106,7 +106,8 @@ async fn measure(jobs: usize, database_url: Option<String>) {
         .await
         .expect("json");
     let input = sim["id"].as_str().expect("dataset id").to_string();
-    let (mut total, mut run, mut seen) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut total, mut claim, mut run, mut seen) =
+        (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for k in 0..jobs + 3 {
         let sent = Instant::now();
         let j: Value = client
@@ -140,10 +141,12 @@ async fn measure(jobs: usize, database_url: Option<String>) {
         }
         seen.push(sent.elapsed().as_secs_f64() * 1e3);
         total.push((micros(&done, "finished_at") - micros(&done, "created_at")) as f64 / 1e3);
+        claim.push((micros(&done, "started_at") - micros(&done, "created_at")) as f64 / 1e3);
         run.push((micros(&done, "finished_at") - micros(&done, "started_at")) as f64 / 1e3);
     }
     for (name, v) in [
         ("queue→finish", &mut total),
+        ("queue→claim", &mut claim),
         ("run", &mut run),
         ("client", &mut seen),
     ] {

@@ -5,7 +5,7 @@
 # run again. A test whose peer is missing prints one skip line, or fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
 #   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, s3,
-#                                       vtk, schemathesis)
+#                                       netns, vtk, schemathesis)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -64,6 +64,14 @@ if want s3; then
     cargo install --quiet --locked --root "$peers/s3s" s3s-fs --version 0.14.1 --features binary
   fi
   "$peers/s3s/bin/s3s-fs" --version 2>/dev/null || echo "s3s-fs: $peers/s3s/bin/s3s-fs"
+fi
+
+# --- iproute2 (`ip netns`, veth, bridge) for the workers in network namespaces (tests/multi_host.rs, root) --
+if want netns; then
+  echo "== peer: netns"
+  if ! command -v ip >/dev/null; then
+    apt_install iproute2
+  fi
 fi
 
 # --- vtk: offscreen rendering (OSMesa) for tests/render_vtk.rs and benches/render_vtk.py ---------------

@@ -3,7 +3,7 @@
 //! after its lease (on SQLite and PostgreSQL, in-process; and on PostgreSQL with `kill -9` of a real
 //! `ctrecon serve` process), a job queued on a busy process started at once by an idle one (`NOTIFY`), a
 //! cancel posted to one process stopping the job another runs, and a database that cannot be reached
-//! refusing the start.
+//! refusing the start of either role (`serve`, `worker`).
 //!
 //! PostgreSQL is a throwaway cluster (`common/postgres.rs`); without it those tests print one skip line,
 //! unless `CTRECON_REQUIRE_PEERS=1`.
@@ -373,29 +373,33 @@ async fn postgres_an_idle_process_is_woken_at_once_and_a_cancel_posted_to_one_pr
 }
 
 #[test]
-fn an_unreachable_database_stops_the_start_with_a_clear_message() {
-    let dir = tempfile::tempdir().expect("temp dir");
-    let started = Instant::now();
-    let out = Command::new(env!("CARGO_BIN_EXE_ctrecon"))
-        .arg("serve")
-        .env("CTRECON_BIND", "127.0.0.1:0")
-        .env("CTRECON_DATA_DIR", dir.path())
-        // Port 9 (discard) on loopback: nothing listens there.
-        .env(
-            "CTRECON_DATABASE_URL",
-            "postgres://ctrecon@127.0.0.1:9/ctrecon",
-        )
-        .output()
-        .expect("ctrecon runs");
-    assert!(!out.status.success());
-    let stderr = String::from_utf8_lossy(&out.stderr);
-    assert!(
-        stderr.contains("database: cannot connect to postgres://ctrecon@127.0.0.1:9/ctrecon"),
-        "{stderr}"
-    );
-    assert!(started.elapsed() < Duration::from_secs(30));
-    assert!(
-        String::from_utf8_lossy(&out.stdout).is_empty(),
-        "it never listened"
-    );
+fn an_unreachable_database_stops_the_start_of_either_role_with_a_clear_message() {
+    for role in [
+        &["serve", "--bind", "127.0.0.1:0"][..],
+        &["worker", "--health-bind", "127.0.0.1:0"][..],
+    ] {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let started = Instant::now();
+        let out = Command::new(env!("CARGO_BIN_EXE_ctrecon"))
+            .args(role)
+            .env("CTRECON_DATA_DIR", dir.path())
+            // Port 9 (discard) on loopback: nothing listens there.
+            .env(
+                "CTRECON_DATABASE_URL",
+                "postgres://ctrecon@127.0.0.1:9/ctrecon",
+            )
+            .output()
+            .expect("ctrecon runs");
+        assert!(!out.status.success(), "{role:?}");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            stderr.contains("database: cannot connect to postgres://ctrecon@127.0.0.1:9/ctrecon"),
+            "{role:?}: {stderr}"
+        );
+        assert!(started.elapsed() < Duration::from_secs(30), "{role:?}");
+        assert!(
+            String::from_utf8_lossy(&out.stdout).is_empty(),
+            "{role:?} never listened"
+        );
+    }
 }

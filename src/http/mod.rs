@@ -265,7 +265,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             "/v1/jobs/{id}/result/products/{index}",
             get(results::product),
         )
-        .route("/v1/uploads/{id}", get(uploads::get_upload))
+        .route(
+            "/v1/uploads/{id}",
+            get(uploads::get_upload).delete(uploads::delete_upload),
+        )
         .route(
             "/v1/series/{id}",
             get(series::get_series).delete(series::delete_series),

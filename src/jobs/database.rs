@@ -18,7 +18,7 @@ use super::model::{
     UploadRecord,
 };
 use super::pg::PgDb;
-use super::repo::{Appended, Completed, Db, DbError, Deleted};
+use super::repo::{Appended, Completed, Db, DbError, Deleted, UploadDeleted};
 use super::store::{Expired, JobStore, Renewed, StoreResult};
 use crate::storage::sweep::BlobKind;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
@@ -219,6 +219,10 @@ impl Database {
         max_bytes: u64,
     ) -> Result<Appended, DbError> {
         on!(self, db => db.append_upload_file(id, sha256, label, bytes, series_uid, max_bytes).await)
+    }
+
+    pub async fn delete_open_upload(&self, id: UploadId) -> Result<UploadDeleted, DbError> {
+        on!(self, db => db.delete_open_upload(id).await)
     }
 
     pub async fn upload_files(&self, id: UploadId) -> Result<Vec<(String, String)>, DbError> {

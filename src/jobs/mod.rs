@@ -38,5 +38,7 @@ pub use model::{
     SimulationRequest, UploadRecord,
 };
 pub use pg::PgDb;
-pub use repo::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter};
+pub use repo::{
+    Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter, UploadDeleted,
+};
 pub use store::{JobStore, StoreError};

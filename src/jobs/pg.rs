@@ -25,7 +25,9 @@ use rows::{
 };
 
 use super::model::{Dataset, Job, JobStatus, JobSummary, now_us};
-pub use super::repo::{Appended, Completed, DbError, IdempotencyKey, Inserted, JobFilter};
+pub use super::repo::{
+    Appended, Completed, DbError, IdempotencyKey, Inserted, JobFilter, UploadDeleted,
+};
 use super::repo::{corrupt, to_json};
 use crate::storage::{DatasetId, JobId};
 

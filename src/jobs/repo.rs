@@ -61,6 +61,16 @@ pub enum Appended {
     TooLarge(u64),
 }
 
+/// Outcome of deleting an open upload.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum UploadDeleted {
+    /// The upload and its instance rows are gone.
+    Done,
+    /// The upload is completed: it goes with its series, not by itself.
+    Completed,
+    NotFound,
+}
+
 /// Outcome of completing an upload.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Completed {

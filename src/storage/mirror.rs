@@ -1,19 +1,20 @@
 //! Object storage behind the data directory (`storage.url = "s3://…"`): several hosts, each with a data
-//! directory of its own, share datasets, assembled series and job results.
+//! directory of its own, share datasets, assembled series, job results and the instances of open uploads.
 //!
-//! - **Durable in the object store.** A blob under `datasets/`, `series/` or `results/` (renderings cached as
-//!   `derived-*` excepted: any host makes them again) is put to the object of the same key *before* its
-//!   temporary file is renamed into place ([`BlobStore::commit`]), and every caller commits before it records
-//!   the blob as there (a dataset's 201, a series' answer, a job's `succeeded`). A put is complete or absent
-//!   (one `PutObject`, or a multipart upload that is aborted when the file cannot be read), streamed from
-//!   the synced temporary file, never whole in memory.
+//! - **Durable in the object store.** A blob under `datasets/`, `series/`, `results/` (renderings cached as
+//!   `derived-*` excepted: any host makes them again) or `uploads/<upload>/` is put to the object of the
+//!   same key *before* its temporary file is renamed into place ([`BlobStore::commit`]), and every caller
+//!   commits before it records the blob as there (a dataset's 201, a series' answer, a job's `succeeded`,
+//!   an instance's acknowledgement, so that an upload can be completed through any API host). A put is
+//!   complete or absent (one `PutObject`, or a multipart upload that is aborted when the file cannot be
+//!   read), streamed from the synced temporary file, never whole in memory.
 //! - **The data directory is a cache.** A reader asks for a local path ([`BlobStore::local`] on the
 //!   worker pool, [`BlobStore::fetch`] on the runtime): a file that is not there is fetched from its object
 //!   into `tmp/`, synced and renamed, so a reader never sees a part of it. Results are served to clients
 //!   straight from the object with ranged GETs when the API host has no copy ([`BlobStore::object_meta`]).
-//! - **Deletion** removes the object too ([`BlobStore::remove_blob`], [`BlobStore::delete_results`]); the
-//!   start-up removal of an unfinished job's partial files stays local, since on a shared job database
-//!   another host may be running that job.
+//! - **Deletion** removes the object too ([`BlobStore::remove_blob`], [`BlobStore::delete_results`],
+//!   [`BlobStore::remove_upload`]); the start-up removal of an unfinished job's partial files stays local,
+//!   since on a shared job database another host may be running that job.
 
 use std::fmt;
 use std::future::Future;
@@ -27,10 +28,12 @@ use tokio::io::AsyncWriteExt;
 use tokio::runtime::{Handle, RuntimeFlavor};
 
 use super::port::{BlobKey, BlobMeta, Blobs, ByteStream};
-use super::{BlobStore, JobId};
+use super::{BlobStore, JobId, UploadId};
 
 /// The top-level folders of the data directory whose files live in the object store.
-const DURABLE: [&str; 3] = ["datasets", "series", "results"];
+const DURABLE: [&str; 4] = ["datasets", "series", "results", "uploads"];
+/// How long `/readyz` waits for the object store to answer.
+const CHECK_WITHIN: std::time::Duration = std::time::Duration::from_secs(3);
 /// Read size when a file is streamed to the object store.
 const CHUNK: usize = 1 << 20;
 
@@ -92,6 +95,28 @@ impl Mirror {
     pub(super) fn put_file(&self, key: &BlobKey, path: &Path) -> io::Result<BlobMeta> {
         self.wait(self.put_file_async(key, path))
     }
+
+    /// The object store answers and lets this process read (a listing), within a few seconds.
+    pub async fn check(&self) -> io::Result<()> {
+        match tokio::time::timeout(CHECK_WITHIN, self.blobs.check()).await {
+            Ok(r) => r,
+            Err(_) => Err(io::Error::new(
+                io::ErrorKind::TimedOut,
+                format!("no answer within {CHECK_WITHIN:?}"),
+            )),
+        }
+    }
+
+    /// Remove every object under `prefix` (blocking).
+    fn remove_under(&self, prefix: &str) -> io::Result<()> {
+        let prefix = BlobKey::parse(prefix)?;
+        self.wait(async {
+            for m in self.blobs.list(&prefix).await? {
+                self.blobs.delete(&m.key).await?;
+            }
+            Ok(())
+        })
+    }
 }
 
 impl BlobStore {
@@ -118,6 +143,10 @@ impl BlobStore {
         let first = *parts.first()?;
         let name = *parts.last()?;
         if parts.len() < 2 || !DURABLE.contains(&first) || name.starts_with("derived-") {
+            return None;
+        }
+        // An upload's instances, not its folder.
+        if first == "uploads" && parts.len() != 3 {
             return None;
         }
         BlobKey::parse(&parts.join("/")).ok()
@@ -243,15 +272,18 @@ impl BlobStore {
     /// Remove a job's results here and their objects (missing is fine). Blocking.
     pub fn delete_results(&self, id: JobId) -> io::Result<()> {
         if let Some(mirror) = &self.mirror {
-            let prefix = BlobKey::parse(&format!("results/{id}"))?;
-            mirror.wait(async {
-                for m in mirror.blobs.list(&prefix).await? {
-                    mirror.blobs.delete(&m.key).await?;
-                }
-                Ok(())
-            })?;
+            mirror.remove_under(&format!("results/{id}"))?;
         }
         self.remove_results(id)
+    }
+
+    /// Remove the instances of an upload here and their objects (missing is fine): once it is completed,
+    /// deleted or retired. Another host's copies of them go with that host's start-up sweep. Blocking.
+    pub fn remove_upload(&self, id: UploadId) -> io::Result<()> {
+        if let Some(mirror) = &self.mirror {
+            mirror.remove_under(&format!("uploads/{id}"))?;
+        }
+        self.remove_upload_here(id)
     }
 }
 
@@ -282,10 +314,14 @@ mod tests {
             ext: "png",
         };
         assert_eq!(key(store.result_path(job, &derived)), None);
+        // An upload's instances are kept too (any API host may complete it), its folder is no blob.
+        let u = UploadId::generate();
+        let sha = "ab".repeat(32);
         assert_eq!(
-            key(store.upload_dir(crate::storage::UploadId::generate())),
-            None
+            key(store.upload_file(u, &sha)),
+            Some(format!("uploads/{u}/{sha}.dcm"))
         );
+        assert_eq!(key(store.upload_dir(u)), None);
         assert_eq!(key(dir.path().join("tmp").join("x.part")), None);
         assert_eq!(key(PathBuf::from("/elsewhere/results/x")), None);
         // Without object storage nothing is mirrored and local paths are answered as they are.

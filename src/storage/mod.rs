@@ -13,9 +13,9 @@
 //!   complete. A blob that has a database row is renamed into place only after its row is committed.
 //!   `tmp/` is emptied at start (in a directory shared by several processes, of what lay idle for an hour).
 //!
-//! With object storage (`storage.url = "s3://…"`, see [`mirror`]) the durable copy of `datasets/`, `series/`
-//! and `results/` is the object under the same key, put before the local rename; the data directory is then a
-//! cache that readers fill on a miss ([`BlobStore::local`], [`BlobStore::fetch`]).
+//! With object storage (`storage.url = "s3://…"`, see [`mirror`]) the durable copy of `datasets/`, `series/`,
+//! `results/` and `uploads/` is the object under the same key, put before the local rename; the data
+//! directory is then a cache that readers fill on a miss ([`BlobStore::local`], [`BlobStore::fetch`]).
 
 pub mod ids;
 pub mod mirror;
@@ -215,8 +215,9 @@ impl BlobStore {
         self.upload_dir(id).join(format!("{sha256_hex}.dcm"))
     }
 
-    /// Remove an upload's instances (missing is fine).
-    pub fn remove_upload(&self, id: UploadId) -> io::Result<()> {
+    /// Remove an upload's instances from the data directory only (missing is fine); see
+    /// [`remove_upload`](Self::remove_upload).
+    pub fn remove_upload_here(&self, id: UploadId) -> io::Result<()> {
         match fs::remove_dir_all(self.upload_dir(id)) {
             Err(e) if e.kind() != io::ErrorKind::NotFound => Err(e),
             _ => Ok(()),

@@ -416,6 +416,10 @@ impl Blobs for ObjectBlobs {
         let key = key.clone();
         async move { self.fetch_to_cache(&key).await }.boxed()
     }
+
+    fn check(&self) -> BoxFuture<'_, io::Result<()>> {
+        async move { ObjectBlobs::check(self).await }.boxed()
+    }
 }
 
 #[cfg(test)]

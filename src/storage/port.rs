@@ -79,6 +79,11 @@ pub trait Blobs: Send + Sync {
     fn list(&self, prefix: &BlobKey) -> BoxFuture<'_, io::Result<Vec<BlobMeta>>>;
     /// A local file holding the object, for kernels that map or seek files.
     fn local_path(&self, key: &BlobKey) -> BoxFuture<'_, io::Result<PathBuf>>;
+    /// The store can be used now: reachable, and the credentials allowed to read (`/readyz`). A local
+    /// directory always is.
+    fn check(&self) -> BoxFuture<'_, io::Result<()>> {
+        async { Ok(()) }.boxed()
+    }
 }
 
 fn meta_of(key: BlobKey, md: &std::fs::Metadata) -> BlobMeta {

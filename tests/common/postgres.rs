@@ -64,7 +64,9 @@ fn run(mut c: Command, what: &str) -> Result<(), String> {
     }
 }
 
-fn start() -> Result<Cluster, String> {
+/// Start a cluster listening on 127.0.0.1 and on `also` (an address of this host and the network whose
+/// clients it trusts, as `10.1.2.1` and `10.1.2.0/24`), if given.
+fn start_listening(also: Option<(&str, &str)>) -> Result<Cluster, String> {
     let bin =
         bindir().ok_or("PostgreSQL is not installed (no /usr/lib/postgresql/*/bin/initdb)")?;
     let root = tempfile::Builder::new()
@@ -102,6 +104,14 @@ fn start() -> Result<Cluster, String> {
         "--locale=C.UTF-8",
     ]);
     run(init, "initdb")?;
+    let mut listen = "127.0.0.1".to_string();
+    if let Some((addr, net)) = also {
+        listen = format!("{listen},{addr}");
+        let hba = data.join("pg_hba.conf");
+        let mut text = std::fs::read_to_string(&hba).map_err(|e| format!("pg_hba.conf: {e}"))?;
+        text.push_str(&format!("host all all {net} trust\n"));
+        std::fs::write(&hba, text).map_err(|e| format!("pg_hba.conf: {e}"))?;
+    }
     let port = free_port();
     let mut ctl = as_server_user(&bin.join("pg_ctl"));
     ctl.arg("-D")
@@ -110,7 +120,7 @@ fn start() -> Result<Cluster, String> {
         .arg(root.join("log"))
         .args(["-w", "-o"])
         .arg(format!(
-            "-p {port} -k {} -c listen_addresses=127.0.0.1 -c fsync=off -c max_connections=300",
+            "-p {port} -k {} -c listen_addresses={listen} -c fsync=off -c max_connections=300",
             root.display()
         ))
         .arg("start");
@@ -142,7 +152,23 @@ fn start() -> Result<Cluster, String> {
 /// The cluster of this test binary, or `None` (after one skip line) where PostgreSQL is missing.
 pub fn cluster(test: &str) -> Option<&'static Cluster> {
     static CLUSTER: OnceLock<Result<Cluster, String>> = OnceLock::new();
-    match CLUSTER.get_or_init(start) {
+    match CLUSTER.get_or_init(|| start_listening(None)) {
+        Ok(c) => Some(c),
+        Err(why) => {
+            assert!(
+                std::env::var("CTRECON_REQUIRE_PEERS").as_deref() != Ok("1"),
+                "{test}: {why}, and CTRECON_REQUIRE_PEERS=1 (run scripts/install-peers.sh)"
+            );
+            eprintln!("skipped {test}: {why}");
+            None
+        }
+    }
+}
+
+/// A cluster of its own that also listens on `addr` and trusts clients of `net` (see [`start_listening`]),
+/// or `None` (after one skip line) where PostgreSQL is missing. Stopped when the test process exits.
+pub fn cluster_on(test: &str, addr: &str, net: &str) -> Option<Cluster> {
+    match start_listening(Some((addr, net))) {
         Ok(c) => Some(c),
         Err(why) => {
             assert!(
@@ -158,6 +184,11 @@ pub fn cluster(test: &str) -> Option<&'static Cluster> {
 /// A fresh, empty database on the cluster: its URL.
 pub fn database_url(test: &str) -> Option<String> {
     let c = cluster(test)?;
+    Some(database_on(c, "127.0.0.1"))
+}
+
+/// A fresh, empty database on cluster `c`: its URL through address `host`.
+pub fn database_on(c: &Cluster, host: &str) -> String {
     let name = format!("t_{}", uuid_like());
     let out = Command::new("psql")
         .args(["-h", "127.0.0.1", "-U", "postgres", "-p"])
@@ -171,7 +202,7 @@ pub fn database_url(test: &str) -> Option<String> {
         "CREATE DATABASE: {}",
         String::from_utf8_lossy(&out.stderr)
     );
-    Some(format!("postgres://postgres@127.0.0.1:{}/{name}", c.port))
+    format!("postgres://postgres@{host}:{}/{name}", c.port)
 }
 
 fn uuid_like() -> String {

@@ -1,5 +1,5 @@
-//! `/healthz` (the process answers), `/readyz` (database and data directory usable), `/metrics`
-//! (Prometheus text), `/openapi.yaml` (the contract).
+//! `/healthz` (the process answers), `/readyz` (database, data directory and object storage usable),
+//! `/metrics` (Prometheus text), `/openapi.yaml` (the contract).
 
 use axum::extract::State;
 use axum::http::header;
@@ -21,20 +21,30 @@ pub async fn readyz(State(st): State<AppState>) -> ApiResult<Response> {
     let disk = tokio::task::spawn_blocking(move || store.probe())
         .await
         .unwrap_or(false);
-    if db && disk {
-        Ok(
-            axum::Json(json!({ "status": "ready", "database": "ok", "data_dir": "ok" }))
-                .into_response(),
-        )
+    // With object storage: a listing of the bucket, answered within a few seconds.
+    let objects = match st.store.mirror() {
+        None => None,
+        Some(m) => Some(match m.check().await {
+            Ok(()) => true,
+            Err(e) => {
+                tracing::warn!(error = %e, store = m.name(), "readiness: object storage unavailable");
+                false
+            }
+        }),
+    };
+    let word = |ok: bool| if ok { "ok" } else { "unavailable" };
+    if db && disk && objects != Some(false) {
+        let mut body = json!({ "status": "ready", "database": "ok", "data_dir": "ok" });
+        if objects.is_some() {
+            body["object_storage"] = json!("ok");
+        }
+        Ok(axum::Json(body).into_response())
     } else {
-        Err(api_error(
-            ErrorCode::Unavailable,
-            format!(
-                "database {}, data directory {}",
-                if db { "ok" } else { "unavailable" },
-                if disk { "ok" } else { "unavailable" }
-            ),
-        ))
+        let mut detail = format!("database {}, data directory {}", word(db), word(disk));
+        if let Some(ok) = objects {
+            detail.push_str(&format!(", object storage {}", word(ok)));
+        }
+        Err(api_error(ErrorCode::Unavailable, detail))
     }
 }
 

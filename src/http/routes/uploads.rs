@@ -1,5 +1,5 @@
 //! DICOM in: `POST /v1/series` (a multipart form of files, a ZIP, or one `application/dicom` instance appended
-//! to an open upload), `GET /v1/uploads/{id}` and `POST /v1/uploads/{id}/complete`.
+//! to an open upload), `GET /v1/uploads/{id}`, `POST /v1/uploads/{id}/complete` and `DELETE /v1/uploads/{id}`.
 //!
 //! Bodies and multipart fields stream to temporary files (the size limit enforced while streaming); what
 //! becomes of them — decoding, assembling, recording, indexing — is the application's (`app::uploads`).
@@ -267,4 +267,14 @@ pub async fn complete_upload(
     let id = upload_id(&id)?;
     let view = st.complete_upload(id, q.uneven).await?;
     Ok(created(&format!("/v1/uploads/{id}"), view))
+}
+
+/// `DELETE /v1/uploads/{id}`: 204, an open upload and its instances removed; 409 `upload_closed` for a
+/// completed one (it goes with its series).
+pub async fn delete_upload(
+    State(st): State<AppState>,
+    Path(id): Path<String>,
+) -> ApiResult<Response> {
+    st.delete_upload(upload_id(&id)?).await?;
+    Ok(StatusCode::NO_CONTENT.into_response())
 }

@@ -3,7 +3,7 @@
 
 use sqlx::Row;
 
-use super::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted};
+use super::{Appended, Completed, Db, DbError, IdempotencyKey, Inserted, UploadDeleted};
 use super::{json_col, opt_json_col, to_json};
 use crate::jobs::model::{SeriesRecord, UploadRecord, now_us};
 use crate::storage::{SeriesId, UploadId};
@@ -154,6 +154,26 @@ impl Db {
             .await?;
         tx.commit().await?;
         Ok(Appended::Added(instances.max(0) as u32 + 1))
+    }
+
+    /// Delete the open upload `id` with its instance rows (a completed upload goes with its series).
+    pub async fn delete_open_upload(&self, id: UploadId) -> Result<UploadDeleted, DbError> {
+        let gone = sqlx::query("DELETE FROM uploads WHERE id = ? AND status = 'open'")
+            .bind(id.to_string())
+            .execute(&self.pool)
+            .await?;
+        if gone.rows_affected() > 0 {
+            return Ok(UploadDeleted::Done);
+        }
+        let known = sqlx::query("SELECT 1 FROM uploads WHERE id = ?")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(if known.is_some() {
+            UploadDeleted::Completed
+        } else {
+            UploadDeleted::NotFound
+        })
     }
 
     /// The instances of an upload: `(sha256, label)` in order of arrival.

@@ -4,10 +4,11 @@
 //!
 //! Received files are decoded on the worker pool, split by SeriesInstanceUID and assembled into HU volumes;
 //! a file or member that cannot be read is listed as rejected with its reason and the others go on.
-//! Instances of an open upload are stored under their SHA-256 as they arrive (so re-sending one is harmless)
-//! and assembled on completion; a completion that fails (say, a missing slice) leaves the upload open, so the
-//! missing instance can still be sent. Volumes are renamed into place only after their rows are committed,
-//! and the instances of a recorded upload are indexed.
+//! Volumes are renamed into place only after their rows are committed, and the instances of a recorded
+//! upload are indexed. Open uploads (instances appended one by one, completed or deleted later) are in
+//! [`open`].
+
+mod open;
 
 use serde_json::{Value, json};
 
@@ -16,11 +17,11 @@ use super::idempotency::settle;
 use super::instances::StagedInstances;
 use super::series::outcome_view;
 use super::{App, AppError, AppResult, Replay};
-use crate::dicom::{ReadLimits, UploadFile, read_upload_file};
-use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::ingest::{Staged, dicom_problem};
+use crate::dicom::UploadFile;
+use crate::error_code::ErrorCode;
+use crate::jobs::ingest::Staged;
 use crate::jobs::model::rfc3339;
-use crate::jobs::{Appended, Completed, IdempotencyKey, SeriesRecord, UploadRecord};
+use crate::jobs::{IdempotencyKey, SeriesRecord, UploadRecord};
 use crate::series::UnevenPolicy;
 use crate::storage::{TempBlob, UploadId};
 
@@ -231,183 +232,5 @@ impl App {
         if let Err(e) = self.index_staged(id, kept, records).await {
             tracing::warn!(upload_id = %id, error = %e, "the upload's instances are not indexed");
         }
-    }
-
-    /// Append one instance (`body`: a temporary file of `bytes` bytes whose SHA-256 is `sha`, hex) to the open
-    /// upload `existing`, or to a new one (under `key`, replayed when an identical request used it). The
-    /// instance is decoded first, so that a broken file is refused at once and never reaches the upload.
-    pub async fn append_instance(
-        &self,
-        existing: Option<UploadId>,
-        key: Option<IdempotencyKey>,
-        body: TempBlob,
-        sha: &str,
-        bytes: u64,
-    ) -> AppResult<AppendAnswer> {
-        match self.replayed_upload(key.as_ref()).await {
-            Ok(None) => {}
-            Ok(Some(u)) => {
-                body.discard().await;
-                return Ok(AppendAnswer::Replayed(u));
-            }
-            Err(e) => {
-                body.discard().await;
-                return Err(e);
-            }
-        }
-        let (series_uid, name) = match self.decode_instance(&body).await {
-            Ok(v) => v,
-            Err(e) => {
-                body.discard().await;
-                return Err(e);
-            }
-        };
-        let (id, opened) = match existing {
-            Some(id) => (id, false),
-            None => {
-                let id = UploadId::generate();
-                let inserted = self.db.insert_open_upload(id, key.as_ref()).await?;
-                if let Replay::Existing(winner) = settle(inserted, key.as_ref())? {
-                    // Lost a race with the same key: answer the winner.
-                    return Ok(AppendAnswer::Replayed(self.recorded_upload(&winner).await?));
-                }
-                (id, true)
-            }
-        };
-        // Temporary file → row → rename: a crash between the last two leaves a row the completion reports.
-        let path = self.store.upload_file(id, sha);
-        let outcome = self
-            .db
-            .append_upload_file(
-                id,
-                sha,
-                &name,
-                bytes,
-                &series_uid,
-                self.settings.max_upload_bytes,
-            )
-            .await;
-        let (instances, duplicate) = match outcome {
-            Ok(Appended::Added(n)) => {
-                body.sync().await?;
-                self.store.commit_async(body, path).await?;
-                (n, false)
-            }
-            Ok(Appended::Duplicate(n)) => {
-                body.discard().await;
-                (n, true)
-            }
-            Ok(other) => {
-                body.discard().await;
-                return Err(match other {
-                    Appended::Closed => refused(
-                        ErrorCode::UploadClosed,
-                        format!("upload {id} was completed meanwhile"),
-                    ),
-                    Appended::TooLarge(limit) => refused(
-                        ErrorCode::BodyTooLarge,
-                        format!("the upload would exceed its limit of {limit} bytes"),
-                    ),
-                    _ => upload_not_found(id),
-                });
-            }
-            Err(e) => {
-                body.discard().await;
-                return Err(e.into());
-            }
-        };
-        tracing::info!(upload_id = %id, instances, duplicate, "instance appended");
-        let mut view = upload_view(&self.upload(id).await?);
-        view["appended"] = json!({"file": name, "series_uid": series_uid, "duplicate": duplicate});
-        Ok(AppendAnswer::Appended { id, view, opened })
-    }
-
-    /// The SeriesInstanceUID of the instance in `body` and its name in messages: its SOP Instance UID (a
-    /// body has no file name).
-    async fn decode_instance(&self, body: &TempBlob) -> AppResult<(String, String)> {
-        let file = UploadFile {
-            label: "the instance".to_string(),
-            path: body.path().to_path_buf(),
-        };
-        Ok(self
-            .engine
-            .compute(move || {
-                read_upload_file(&file, &ReadLimits::default())
-                    .map(|inst| {
-                        let name = if inst.sop_instance_uid.is_empty() {
-                            "an instance without a SOP Instance UID".to_string()
-                        } else {
-                            inst.sop_instance_uid
-                        };
-                        (inst.series_uid, name)
-                    })
-                    .map_err(|e| dicom_problem(&e))
-            })
-            .await?)
-    }
-
-    /// Complete the open upload `id`: assemble its instances (refused, the upload left open, when no series
-    /// could be made), record its series, index its instances, fire the processing rules and remove the
-    /// instances it kept. Returns the upload's outcome.
-    pub async fn complete_upload(
-        &self,
-        id: UploadId,
-        uneven: Option<UnevenPolicy>,
-    ) -> AppResult<Value> {
-        if !self.upload(id).await?.open {
-            return Err(refused(
-                ErrorCode::UploadClosed,
-                format!("upload {id} is already completed"),
-            ));
-        }
-        let listed = self.db.upload_files(id).await?;
-        let instances = listed.len() as u32;
-        let mut files = Vec::with_capacity(listed.len());
-        let mut bytes = 0u64;
-        for (sha, name) in listed {
-            if sha.len() != 64 || !sha.bytes().all(|b| b.is_ascii_hexdigit()) {
-                tracing::error!(upload_id = %id, "an upload file has a malformed hash");
-                return Err(Problem::internal().into());
-            }
-            let path = self.store.upload_file(id, &sha);
-            bytes += tokio::fs::metadata(&path).await?.len();
-            files.push(UploadFile { label: name, path });
-        }
-        let (ingested, staged) = self.ingest_files(id, files.clone(), uneven).await?;
-        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
-        if records.is_empty() {
-            // The upload stays open: a missing instance can still be appended.
-            staged.discard().await;
-            return Err(ingested.failure().into());
-        }
-        let view = outcome_view(id, instances, bytes, &ingested);
-        let recorded = match self
-            .db
-            .complete_upload(id, instances, &view, &records)
-            .await
-        {
-            Ok(Completed::Done) => Ok(None::<()>),
-            Ok(Completed::Changed) => Err(refused(
-                ErrorCode::UploadChanged,
-                "instances arrived while the upload was being completed; complete it again",
-            )),
-            Ok(Completed::Closed) => Err(refused(
-                ErrorCode::UploadClosed,
-                format!("upload {id} was completed meanwhile"),
-            )),
-            Err(e) => Err(e.into()),
-        };
-        self.commit_series(staged, recorded).await?;
-        if let Ok(kept) = self.stage_uploaded(&files, &ingested.rejected).await {
-            self.index_upload(id, kept, &records).await;
-        }
-        self.fire_rules(&ingested, None).await;
-        let store = self.store.clone();
-        let removed = tokio::task::spawn_blocking(move || store.remove_upload(id)).await;
-        if let Ok(Err(e)) = removed {
-            tracing::warn!(error = %e, upload_id = %id, "removing the instances of a completed upload failed");
-        }
-        tracing::info!(upload_id = %id, series = records.len(), "upload completed");
-        Ok(view)
     }
 }
