@@ -2,7 +2,8 @@
 //! validators' own constants and settings, and each bound is accepted while one past it is refused;
 //! refusals name the request's fields by JSON Pointer (`errors`) on the simulation, job and rule routes;
 //! `GET /v1/events` streams every job's creation, status, progress and deletion in order, resumes after a
-//! `Last-Event-ID` and asks for a reload when it cannot.
+//! `Last-Event-ID` and asks for a reload when it cannot; `GET /v1/protocols` lists the protocols the rules
+//! run, each a volume job body the API takes, and a rule and the listed body make the same job.
 
 mod common;
 #[path = "common/sse.rs"]
@@ -11,13 +12,17 @@ mod sse;
 use serde_json::{Value, json};
 
 use common::{TestApp, assert_problem, cone_geometry, parallel_geometry, spawn_app_with};
+use ctrecon::dicom::{SeriesMeta, write_ct_series, write_zip};
 use ctrecon::jobs::imaging::{MAX_CURVE_POINTS, MAX_ITEMS, MAX_ROTATING_FRAMES, MAX_SIGMA_MM};
 use ctrecon::jobs::render_products::MAX_RENDER_FRAMES;
+use ctrecon::jobs::rules::{JobTemplate, Protocol};
+use ctrecon::jobs::volume_spec::ProductSpec;
 use ctrecon::recon::geometry::angles::MAX_VIEWS;
 use ctrecon::recon::grid::MAX_AXIS;
 use ctrecon::recon::iterative::params::{MAX_ITERATIONS, MAX_TV_ITERATIONS};
 use ctrecon::recon::phantom::{MAX_BODIES, MAX_INCIDENT_PHOTONS};
 use ctrecon::volume::MAX_SIDE;
+use ctrecon::volume::{Frame, Volume};
 use sse::{Ev, Sse};
 
 const BUDGET: u64 = 3 << 28;
@@ -392,4 +397,142 @@ async fn one_stream_tells_every_jobs_creation_status_progress_and_deletion_in_or
     // An id from another process is not resumed: the client is told to reload.
     let mut stranger = Sse::open(&app.client, &app.url("/v1/events"), Some("1-1")).await;
     assert_eq!(stranger.next(10).await.name, "resync");
+}
+
+/// The products of a job as the API shows it, typed (defaults filled in, so two spellings compare equal).
+fn products_of(job: &Value) -> Vec<ProductSpec> {
+    serde_json::from_value(job["products"].clone()).unwrap_or_else(|e| panic!("{e}: {job}"))
+}
+
+#[tokio::test]
+async fn protocols_are_the_ones_rules_run_and_each_is_a_volume_job_the_api_takes() {
+    let token = "protocols-test-token-0123456789abcdef";
+    let app = spawn_app_with(|s| s.api_tokens = vec![token.into()]).await;
+    let get = |path: &str| app.client.get(app.url(path)).bearer_auth(token).send();
+    let post = |path: &str, body: Value| {
+        app.client
+            .post(app.url(path))
+            .bearer_auth(token)
+            .json(&body)
+            .send()
+    };
+    // Behind the token, as the rest of /v1.
+    assert_eq!(app.get("/v1/protocols").await.status(), 401);
+    let r = get("/v1/protocols").await.expect("request");
+    assert_eq!(r.status(), 200);
+    let listed: Value = r.json().await.expect("json");
+    let listed = listed["protocols"].as_array().expect("protocols").clone();
+    let names: Vec<&str> = listed.iter().filter_map(|p| p["name"].as_str()).collect();
+    assert_eq!(names, ["spine", "bone_stl", "lung"]);
+    for (p, shipped) in listed.iter().zip(Protocol::ALL) {
+        // Exactly the steps and products a rule naming the protocol runs, and its window.
+        let t: JobTemplate =
+            serde_json::from_value(json!({"steps": p["steps"], "products": p["products"]}))
+                .unwrap_or_else(|e| panic!("{e}: {p}"));
+        assert_eq!(t, shipped.template(), "{p}");
+        assert_eq!(p["window"], json!(shipped.window()), "{p}");
+        assert_eq!(p["description"], shipped.description());
+    }
+    assert_eq!(listed[2]["window"], "lung");
+    assert_eq!(listed[1]["products"][0]["target_triangles"], 200000);
+
+    // A rule naming `lung`, then a series (a 32 × 32 × 12 ramp of 1 × 1 × 2 mm): the rule's job and the
+    // listed body sent as a volume job (what the viewer's preset sends) make the same products.
+    let r = post(
+        "/v1/rules",
+        json!({"name": "lung-ct", "protocol": "lung", "match": {"modality": "CT"}}),
+    )
+    .await
+    .expect("request");
+    assert_eq!(r.status(), 201, "{}", r.text().await.unwrap_or_default());
+    let data = ndarray::Array3::from_shape_fn((12, 32, 32), |(k, j, i)| {
+        (k * 100 + j * 10 + i) as f32 - 1000.0
+    });
+    let frame = Frame {
+        origin_mm: [-16.0, -16.0, 0.0],
+        spacing_mm: [1.0, 1.0, 2.0],
+        direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+    };
+    let meta = SeriesMeta {
+        series_description: "protocols".into(),
+        series_number: 3,
+        ..Default::default()
+    };
+    let files = write_ct_series(&Volume { data, frame }, &meta)
+        .expect("a CT series")
+        .files;
+    let r = app
+        .client
+        .post(app.url("/v1/series"))
+        .bearer_auth(token)
+        .header("content-type", "application/zip")
+        .body(write_zip(&files).expect("zip"))
+        .send()
+        .await
+        .expect("upload");
+    assert_eq!(r.status(), 201);
+    let up: Value = r.json().await.expect("json");
+    let series = up["series"][0]["series"]["id"]
+        .as_str()
+        .expect("series id")
+        .to_string();
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    let rule_job = loop {
+        let rule: Value = get("/v1/rules/lung-ct")
+            .await
+            .expect("request")
+            .json()
+            .await
+            .expect("json");
+        if let Some(id) = rule["runs"][0]["job_id"].as_str() {
+            break id.to_string();
+        }
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the rule never ran: {rule}"
+        );
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+    };
+    let job_of = |id: String| {
+        let get = &get;
+        async move {
+            let r = get(&format!("/v1/jobs/{id}")).await.expect("request");
+            assert_eq!(r.status(), 200);
+            r.json::<Value>().await.expect("json")
+        }
+    };
+    let by_rule = job_of(rule_job).await;
+    for p in &listed {
+        let body = json!({"kind": "volume", "input": series, "steps": p["steps"],
+                          "products": p["products"]});
+        let r = post("/v1/jobs", body).await.expect("request");
+        assert_eq!(
+            r.status(),
+            202,
+            "{p}: {}",
+            r.text().await.unwrap_or_default()
+        );
+        let job: Value = r.json().await.expect("json");
+        let want: Vec<ProductSpec> =
+            serde_json::from_value(p["products"].clone()).expect("products");
+        assert_eq!(products_of(&job), want, "{p}");
+        if p["name"] == "lung" {
+            assert_eq!(products_of(&job), products_of(&by_rule), "{by_rule}");
+            let id = job["id"].as_str().expect("id").to_string();
+            let deadline = std::time::Instant::now() + std::time::Duration::from_secs(120);
+            let done = loop {
+                let j = job_of(id.clone()).await;
+                if j["status"] != "queued" && j["status"] != "running" {
+                    break j;
+                }
+                assert!(std::time::Instant::now() < deadline, "{j}");
+                tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+            };
+            assert_eq!(done["status"], "succeeded", "{done}");
+            // A coronal MinIP (one 12 × 32 image) and 10 mm axial MIP slabs every 10 mm.
+            let products = done["result"]["products"].as_array().expect("products");
+            assert_eq!(products[0]["shape"], json!([1, 12, 32]), "{done}");
+            assert_eq!(products[1]["type"], "mpr", "{done}");
+        }
+    }
 }

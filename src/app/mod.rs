@@ -15,6 +15,7 @@ pub mod jobs;
 pub mod limits;
 pub mod local;
 pub mod matching;
+pub mod protocols;
 pub mod query;
 pub mod rules;
 pub mod series;

@@ -61,13 +61,15 @@ pub fn limit_simd_from_env() -> bool {
 }
 
 /// `CTRECON_*` variables that are not settings but are read elsewhere: the log format (telemetry), the SIMD
-/// cap (every command, [`limit_simd_from_env`]), the test-data and peer rules of the test suite and the cone
-/// case of the iterative benchmark. Setting them never makes a command refuse to start.
+/// cap (every command, [`limit_simd_from_env`]), the test-data and peer rules of the test suite, where the
+/// viewer tests write their screenshots, and the cone case of the iterative benchmark. Setting them never
+/// makes a command refuse to start.
 pub const READ_ELSEWHERE: &[&str] = &[
     "CTRECON_LOG_FORMAT",
     "CTRECON_SIMD",
     "CTRECON_REQUIRE_TEST_DATA",
     "CTRECON_REQUIRE_PEERS",
+    "CTRECON_SCREENSHOT_DIR",
     "CTRECON_BENCH_CONE",
 ];
 

@@ -253,6 +253,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             get(datasets::get_dataset).delete(datasets::delete_dataset),
         )
         .route("/v1/limits", get(limits::get_limits))
+        .route("/v1/protocols", get(limits::get_protocols))
         .route("/v1/jobs", post(jobs::post_job).get(jobs::list_jobs))
         .route("/v1/jobs/{id}", get(jobs::get_job).delete(jobs::delete_job))
         .route("/v1/jobs/{id}/cancel", post(jobs::cancel_job))

@@ -75,7 +75,7 @@ pub struct SeriesMatch {
     pub calling_ae: Vec<String>,
 }
 
-/// A shipped protocol, usable by name in a rule.
+/// A shipped protocol, usable by name in a rule and listed by `GET /v1/protocols` (the viewer's presets).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Protocol {
@@ -83,11 +83,45 @@ pub enum Protocol {
     Spine,
     /// A bone iso-surface (300 HU, largest piece, smoothed; Encapsulated STL) and a 36-frame rotating MIP.
     BoneStl,
+    /// A coronal MinIP (airways) and axial 10 mm MIP slabs every 10 mm (nodules, vessels), lung window.
+    Lung,
 }
 
 impl Protocol {
-    /// The protocol's steps and products.
-    pub fn template(self) -> JobTemplate {
+    /// Every shipped protocol, in the order clients list them.
+    pub const ALL: [Protocol; 3] = [Protocol::Spine, Protocol::BoneStl, Protocol::Lung];
+
+    /// The name rules give (`"protocol": "spine"`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Protocol::Spine => "spine",
+            Protocol::BoneStl => "bone_stl",
+            Protocol::Lung => "lung",
+        }
+    }
+
+    /// One line on what the protocol makes, for people choosing one.
+    pub fn description(self) -> &'static str {
+        match self {
+            Protocol::Spine => {
+                "Spine: sagittal and coronal 3 mm average slabs every 3 mm, coronal MIP"
+            }
+            Protocol::BoneStl => "Bone: 300 HU bone surface (STL), 36-frame rotating MIP",
+            Protocol::Lung => "Lung: coronal MinIP, axial 10 mm MIP slabs every 10 mm",
+        }
+    }
+
+    /// The window of its Secondary Capture results when the rule names none.
+    pub fn window(self) -> WindowPreset {
+        match self {
+            Protocol::Spine | Protocol::BoneStl => WindowPreset::Bone,
+            Protocol::Lung => WindowPreset::Lung,
+        }
+    }
+
+    /// The steps and products as `POST /v1/jobs` (`kind: volume`) takes them: `{"steps": [...], "products":
+    /// [...]}`. [`Protocol::template`] is this, parsed.
+    pub fn body(self) -> serde_json::Value {
         let products = match self {
             Protocol::Spine => json!([
                 {"type": "mpr", "plane": "sagittal", "slab": {"thickness_mm": 3.0, "kind": "average"},
@@ -101,11 +135,18 @@ impl Protocol {
                  "target_triangles": 200000},
                 {"type": "rotating", "frames": 36, "kind": "mip"}
             ]),
+            Protocol::Lung => json!([
+                {"type": "projection", "axis": "coronal", "kind": "minip"},
+                {"type": "mpr", "plane": "axial", "slab": {"thickness_mm": 10.0, "kind": "mip"},
+                 "spacing_mm": 10.0}
+            ]),
         };
-        JobTemplate {
-            steps: Vec::new(),
-            products: serde_json::from_value(products).unwrap_or_default(),
-        }
+        json!({"steps": [], "products": products})
+    }
+
+    /// The protocol's steps and products.
+    pub fn template(self) -> JobTemplate {
+        serde_json::from_value(self.body()).unwrap_or_default()
     }
 }
 
@@ -139,8 +180,8 @@ pub struct RuleSpec {
     pub protocol: Option<Protocol>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub job: Option<JobTemplate>,
-    /// Window of Secondary Capture results (projections, rotating MIPs); default `bone` with a protocol,
-    /// otherwise each image's own 0.5–99.5 percentile range.
+    /// Window of Secondary Capture results (projections, rotating MIPs); default the protocol's (`lung` for
+    /// `lung`, `bone` otherwise), and without a protocol each image's own 0.5–99.5 percentile range.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub window: Option<WindowPreset>,
     /// Also send the job's whole volume as a derived CT series.
@@ -174,7 +215,7 @@ impl RuleSpec {
 
     /// The Secondary Capture window of the results.
     pub fn result_window(&self) -> Option<WindowPreset> {
-        self.window.or(self.protocol.map(|_| WindowPreset::Bone))
+        self.window.or(self.protocol.map(Protocol::window))
     }
 
     /// Check everything that needs no volume; `is_peer` says whether an AE title is a configured peer.
@@ -529,5 +570,13 @@ mod tests {
         assert_eq!(bone.products.len(), 2);
         assert!(matches!(&bone.products[0], ProductSpec::Mesh(m) if m.iso == 300.0));
         assert!(matches!(&bone.products[1], ProductSpec::Rotating(r) if r.frames == 36));
+        let lung = Protocol::Lung.template();
+        assert_eq!(lung.products.len(), 2);
+        assert!(matches!(&lung.products[1], ProductSpec::Mpr(m) if m.spacing_mm == Some(10.0)));
+        for p in Protocol::ALL {
+            // The name is the one serde reads, and every body parses into a non-empty template.
+            assert_eq!(serde_json::to_value(p).ok(), Some(json!(p.name())));
+            assert!(!p.template().products.is_empty(), "{p:?}");
+        }
     }
 }

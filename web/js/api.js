@@ -92,6 +92,22 @@ export function limits() {
   return limitsOnce;
 }
 
+let protocolsOnce = null;
+
+/**
+ * The server's volume protocols (`GET /v1/protocols`: name, description, window, steps and products as
+ * `POST /v1/jobs` takes them), the ones its processing rules run; fetched once per page load.
+ */
+export function protocols() {
+  if (!protocolsOnce) {
+    protocolsOnce = api('/v1/protocols').then((a) => a.protocols).catch((e) => {
+      protocolsOnce = null;
+      throw e;
+    });
+  }
+  return protocolsOnce;
+}
+
 /** An ArrayBuffer, optionally a byte range [start, end] inclusive. */
 export async function bytes(path, range, signal) {
   const headers = range ? { Range: `bytes=${range[0]}-${range[1]}` } : {};

@@ -47,10 +47,15 @@ class StackView {
     const [rowMm, colMm] = this.p.pixel_mm || [1, 1];
     this.canvas.width = s[2];
     this.canvas.height = s[1];
-    const scale = Math.min(1, 480 / (s[1] * rowMm), 720 / (s[2] * colMm));
-    this.canvas.style.width = `${Math.round(s[2] * colMm * scale * 1.0)}px`;
-    this.canvas.style.height = `${Math.round(s[1] * rowMm * scale)}px`;
-    this.show(0);
+    // CSS pixels per mm: at most 480 × 720 px on screen, and small images (a few cm) enlarged to about
+    // 320 px along their longer side.
+    const physH = s[1] * rowMm;
+    const physW = s[2] * colMm;
+    const scale = Math.min(480 / physH, 720 / physW, Math.max(1, 320 / Math.max(physW, physH)));
+    this.canvas.style.width = `${Math.round(physW * scale)}px`;
+    this.canvas.style.height = `${Math.round(physH * scale)}px`;
+    // A rotation starts at its first angle (anterior), a series of planes at its middle plane.
+    this.show(this.p.type === 'rotating' ? 0 : Math.floor((s[0] - 1) / 2));
   }
 
   show(f) {
@@ -70,6 +75,7 @@ class StackView {
       out[x] = 0xff000000 | (g << 16) | (g << 8) | g;
     }
     ctx.putImageData(img, 0, 0);
+    this.el.dataset.frame = String(f);
     this.slider.value = String(f);
     this.label.textContent = `frame ${f + 1} / ${this.n[0]}`;
   }
@@ -81,6 +87,7 @@ class StackView {
     } else {
       this.timer = setInterval(() => this.show((this.frame + 1) % this.n[0]), 80);
     }
+    this.el.dataset.playing = this.timer ? 'true' : 'false';
     this.play.textContent = this.timer ? 'Pause' : 'Play';
     this.play.setAttribute('aria-pressed', this.timer ? 'true' : 'false');
   }
@@ -209,8 +216,8 @@ function meshCard(job, p, signal) {
     h('dl.facts.mesh-facts',
       h('dt', 'Triangles'), h('dd.mesh-api-triangles', fmtNum(m.triangles, 0)),
       h('dt', 'Vertices'), h('dd', fmtNum(m.vertices, 0)),
-      h('dt', 'Area'), h('dd', `${fmtNum(m.area_mm2, 1)} mm²`),
-      h('dt', 'Enclosed volume'), h('dd', `${fmtNum(m.volume_mm3, 1)} mm³ (${fmtNum(m.volume_mm3 / 1000, 1)} mL)`),
+      h('dt', 'Area'), h('dd.mesh-area', `${fmtNum(m.area_mm2, 1)} mm²`),
+      h('dt', 'Enclosed volume'), h('dd.mesh-volume', `${fmtNum(m.volume_mm3, 1)} mm³ (${fmtNum(m.volume_mm3 / 1000, 1)} mL)`),
       h('dt', 'Closed / manifold'), h('dd', `${m.closed ? 'yes' : 'no'} / ${m.manifold ? 'yes' : 'no'}`)),
     (m.warnings || []).length
       ? h('ul.warnings', m.warnings.map((w) => h('li.warn', h('code', w.code), ' ', w.message)))

@@ -1,38 +1,7 @@
-// Volume protocols (a volume job's steps and products, as the API takes them) and the choices of the phantom
-// forms. The enums and minimums follow openapi.yaml, the maximums come from `GET /v1/limits`; the server
-// checks everything again at submission (and the memory budget) and its problem is shown next to the field
-// its JSON Pointer names.
-
-/** Presets of `POST /v1/jobs` with `kind: volume` (HU iso-values: a series is in HU). */
-export const PROTOCOLS = {
-  bone: {
-    label: 'Bone: coronal MIP, rotating MIP, bone surface',
-    steps: [],
-    products: [
-      { type: 'projection', axis: 'coronal', kind: 'mip' },
-      { type: 'rotating', frames: 24, kind: 'mip' },
-      { type: 'mesh', iso: 300, smoothing: 10, target_triangles: 200000 },
-    ],
-  },
-  spine: {
-    label: 'Spine: sagittal and coronal thick slabs, sagittal MIP, bone surface',
-    steps: [{ op: 'resample', spacing_mm: 1.0 }],
-    products: [
-      { type: 'mpr', plane: 'sagittal', slab: { thickness_mm: 10, kind: 'mip' } },
-      { type: 'mpr', plane: 'coronal', slab: { thickness_mm: 10, kind: 'average' } },
-      { type: 'projection', axis: 'sagittal', kind: 'mip' },
-      { type: 'mesh', iso: 250, smoothing: 10, target_triangles: 150000 },
-    ],
-  },
-  lung: {
-    label: 'Lung: coronal MinIP, axial thick MIP slabs',
-    steps: [],
-    products: [
-      { type: 'projection', axis: 'coronal', kind: 'minip' },
-      { type: 'mpr', plane: 'axial', slab: { thickness_mm: 10, kind: 'mip' }, spacing_mm: 10 },
-    ],
-  },
-};
+// The choices of the phantom forms. The enums and minimums follow openapi.yaml, the maximums come from
+// `GET /v1/limits`; the server checks everything again at submission (and the memory budget) and its problem
+// is shown next to the field its JSON Pointer names. (Volume protocols are the server's: `GET /v1/protocols`,
+// see api.js.)
 
 export const PHANTOM_TABLES = ['modified_shepp_logan', 'shepp_logan', 'yu_ye_wang'];
 export const FILTERS = ['ram-lak', 'shepp-logan', 'cosine', 'hamming', 'hann'];

@@ -1,30 +1,41 @@
 // Sending work: DICOM upload with its report, a volume protocol for a ready series, and a phantom simulated
 // and reconstructed. Also the page of one series (its facts, slices and the protocol form).
 
-import { api, limits } from './api.js';
+import { api, limits, protocols } from './api.js';
 import { clear, errorBox, fmtNum, h } from './dom.js';
 import {
-  ALGORITHMS_2D, ALGORITHMS_3D, PHANTOM_FIELDS, PROTOCOLS, fieldOfPointer, limitAt, phantomRequests,
+  ALGORITHMS_2D, ALGORITHMS_3D, PHANTOM_FIELDS, fieldOfPointer, limitAt, phantomRequests,
 } from './protocols.js';
 import { SliceViewer } from './slices.js';
 import { dropZone } from './upload.js';
 
-/** The volume protocol form for a series (or a succeeded job) id. */
+/**
+ * The volume protocol form for a series (or a succeeded job) id: the server's protocols (the ones its rules
+ * run) as presets, their steps and products editable as JSON. The form is `data-ready` once they arrived.
+ */
 export function protocolForm(input) {
-  const preset = h('select.protocol-preset', { 'aria-label': 'protocol' },
-    Object.entries(PROTOCOLS).map(([k, p]) => h('option', { value: k }, p.label)));
+  const preset = h('select.protocol-preset', { 'aria-label': 'protocol', disabled: true },
+    h('option', { value: '' }, 'loading the protocols…'));
   const text = h('textarea.protocol-json', { 'aria-label': 'steps and products (JSON)', spellcheck: 'false' });
   const err = h('div.field-error', { role: 'alert' });
-  const fill = () => {
-    const p = PROTOCOLS[preset.value];
-    text.value = JSON.stringify({ steps: p.steps, products: p.products }, null, 2);
-  };
-  preset.addEventListener('change', fill);
-  fill();
-  const submit = h('button.primary.protocol-run', { type: 'submit' }, 'Run protocol');
+  const submit = h('button.primary.protocol-run', { type: 'submit', disabled: true }, 'Run protocol');
   const form = h('form.protocol', { dataset: { input } },
     h('div.row', h('label', 'Protocol ', preset), submit),
     h('details', h('summary', 'Steps and products (editable)'), text), err);
+  let byName = new Map();
+  const fill = () => {
+    const p = byName.get(preset.value);
+    if (p) text.value = JSON.stringify({ steps: p.steps, products: p.products }, null, 2);
+  };
+  preset.addEventListener('change', fill);
+  protocols().then((list) => {
+    byName = new Map(list.map((p) => [p.name, p]));
+    clear(preset).append(...list.map((p) => h('option', { value: p.name }, p.description)));
+    preset.disabled = false;
+    submit.disabled = false;
+    fill();
+    form.dataset.ready = 'true';
+  }).catch((e) => err.append(errorBox(e)));
   form.addEventListener('submit', async (ev) => {
     ev.preventDefault();
     clear(err);

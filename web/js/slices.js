@@ -25,10 +25,16 @@ export class SliceViewer {
     this.views = [];
     this.window = { ww: 1, wl: 0 };
     this.onResize = () => this.layout();
+    // The views are laid out for the width of their container, whatever changes it: the window, or a
+    // scroll bar that appears once the page below has grown.
+    this.resizes = new ResizeObserver(() => {
+      if (this.grid && this.grid.clientWidth !== this.laidOutFor) this.layout();
+    });
   }
 
   destroy() {
     window.removeEventListener('resize', this.onResize);
+    this.resizes.disconnect();
     if (this.ctl) this.ctl.abort();
   }
 
@@ -189,6 +195,7 @@ export class SliceViewer {
 
   layout() {
     const wide = this.grid.clientWidth;
+    this.laidOutFor = wide;
     const cols = wide >= 900 ? 3 : wide >= 560 ? 2 : 1;
     const boxW = Math.floor((wide - (cols - 1) * 8) / cols) - 8;
     const boxH = Math.max(200, Math.min(boxW, window.innerHeight - 200));
@@ -223,9 +230,10 @@ export class SliceViewer {
     clear(this.root).append(h('h2', 'Slices'),
       h('div.row.toolbar', presets, h('label', 'W ', this.wwInput), h('label', 'L ', this.wlInput),
         h('span.muted', unit), this.status,
-        h('span.muted.hint', 'wheel or ↑↓ scroll · right-drag window · click to link')),
+        h('span.muted.hint', 'wheel (a slice per notch) or ↑↓ scroll · right-drag window · click to link')),
       this.grid);
     window.addEventListener('resize', this.onResize);
+    this.resizes.observe(this.grid);
     this.layout();
   }
 }

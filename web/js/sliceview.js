@@ -1,6 +1,6 @@
 // One plane of the slice viewer: a canvas at the image's own resolution, windowed in the browser, with
 // orientation labels, a scale bar, linked crosshairs, the value and position under the cursor, wheel and key
-// scrolling and window/level by right-drag.
+// scrolling (one slice per wheel event, i.e. per notch of a mouse wheel) and window/level by right-drag.
 
 import { h } from './dom.js';
 import { planeSides } from './orient.js';
@@ -183,6 +183,7 @@ export class PlaneView {
     ro.dataset.j = String(v[1]);
     ro.dataset.k = String(v[2]);
     ro.dataset.value = value === null ? '' : String(value);
+    ro.dataset.positionMm = pos.join(',');
     const unit = this.vol.units === 'hu' ? 'HU' : this.vol.units === 'mu_per_mm' ? '/mm' : '';
     const shown = value === null ? '…' : this.vol.units === 'hu' ? value.toFixed(0) : value.toPrecision(4);
     const where = pos.map((x) => x.toFixed(1)).join(', ');
