@@ -17,7 +17,6 @@ mod directory {
 #[cfg(feature = "s3")]
 mod s3 {
     use std::io;
-    use std::net::TcpListener;
     use std::path::PathBuf;
     use std::process::{Child, Command, Stdio};
     use std::time::{Duration, Instant};
@@ -43,6 +42,8 @@ mod s3 {
             let _ = self.child.wait();
         }
     }
+
+    include!("common/ports.rs");
 
     fn s3s_fs() -> Option<PathBuf> {
         if let Ok(p) = std::env::var("CTRECON_S3S_FS") {
@@ -71,10 +72,7 @@ mod s3 {
         };
         let root = tempfile::tempdir().expect("temp dir");
         std::fs::create_dir(root.path().join(BUCKET)).expect("bucket directory");
-        let port = TcpListener::bind("127.0.0.1:0")
-            .and_then(|l| l.local_addr())
-            .expect("a free port")
-            .port();
+        let port = free_port();
         let child = Command::new(bin)
             .args(["--host", "127.0.0.1", "--port", &port.to_string()])
             .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])

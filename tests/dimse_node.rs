@@ -439,13 +439,7 @@ impl Drop for Running {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+include!("common/ports.rs");
 
 #[tokio::test]
 async fn ctrecon_stores_a_series_into_storescp_and_reports_each_instance() {

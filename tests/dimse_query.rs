@@ -50,13 +50,7 @@ fn peer(ae: &str, port: u16, query: bool, retrieve: bool) -> Peer {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
+include!("common/ports.rs");
 
 async fn run(tool: &str, args: &[String], cwd: Option<&Path>) -> Output {
     let (tool, args, cwd) = (tool.to_string(), args.to_vec(), cwd.map(Path::to_path_buf));

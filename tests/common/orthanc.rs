@@ -28,13 +28,7 @@ pub fn orthanc_present() -> bool {
     ok
 }
 
-/// A free TCP port on 127.0.0.1 (free when asked; the caller binds it soon after).
-pub fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free port")
-}
+include!("ports.rs");
 
 /// A running Orthanc.
 pub struct Orthanc {

@@ -44,12 +44,7 @@ fn as_server_user(program: &Path) -> Command {
     }
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free port")
-}
+include!("ports.rs");
 
 fn run(mut c: Command, what: &str) -> Result<(), String> {
     let out = c.output().map_err(|e| format!("{what}: {e}"))?;

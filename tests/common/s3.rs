@@ -7,7 +7,6 @@
 //! `CTRECON_REQUIRE_PEERS=1`, where it fails.
 #![allow(dead_code)]
 
-use std::net::TcpListener;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -78,6 +77,8 @@ impl S3Server {
     }
 }
 
+include!("ports.rs");
+
 fn s3s_fs() -> Option<PathBuf> {
     if let Ok(p) = std::env::var("CTRECON_S3S_FS") {
         return Some(PathBuf::from(p));
@@ -106,10 +107,7 @@ pub fn s3_on(test: &str, host: &str) -> Option<S3Server> {
     };
     let root = tempfile::tempdir().expect("temp dir");
     std::fs::create_dir(root.path().join(BUCKET)).expect("bucket directory");
-    let port = TcpListener::bind((host, 0))
-        .and_then(|l| l.local_addr())
-        .expect("a free port")
-        .port();
+    let port = free_port_on(host);
     let child = Command::new(bin)
         .args(["--host", host, "--port", &port.to_string()])
         .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])

@@ -44,12 +44,7 @@ pub fn skip(test: &str, why: &str) {
     eprintln!("SKIPPED {test}: {why} (scripts/install-peers.sh installs it)");
 }
 
-fn free_port() -> u16 {
-    std::net::TcpListener::bind("127.0.0.1:0")
-        .and_then(|l| l.local_addr())
-        .map(|a| a.port())
-        .expect("a free port")
-}
+include!("../common/ports.rs");
 
 /// Start chromedriver and a headless Chromium session of `width` × `height`; `None` (after the skip line)
 /// when they are not installed.
