@@ -103,7 +103,7 @@ fn lidc_paths() -> Option<Vec<String>> {
     Some(files)
 }
 
-async fn api_json(app: &TestApp, token: &str, path: &str) -> Value {
+pub async fn api_json(app: &TestApp, token: &str, path: &str) -> Value {
     let r = app
         .client
         .get(app.url(path))
@@ -146,6 +146,8 @@ pub async fn pixel(b: &Browser, i: usize, j: usize) -> (u8, u64) {
     )
 }
 
+/// Upload LIDC-IDRI-0001 through the drop zone, run the bone protocol, then check the views, the stacks, the
+/// mesh, the downloads and the tablet width (`checks`).
 pub async fn lidc(token: &str) {
     let Some(files) = lidc_paths() else { return };
     let Some(b) = browser::start("viewer: LIDC in Chromium", 1280, 800).await else {
@@ -183,7 +185,11 @@ pub async fn lidc(token: &str) {
         .expect("series id");
     b.shot("upload-report").await;
 
-    // 2. The bone protocol; the job page follows the job to `succeeded` through its event stream.
+    // 2. The server's bone protocol (a bone surface and a rotating MIP); the job page follows the job to
+    //    `succeeded` through its event stream.
+    b.wait_for("#upload-report form.protocol[data-ready]", 20)
+        .await;
+    super::ui::choose(&b, "#upload-report select.protocol-preset", "bone_stl").await;
     b.find("#upload-report .protocol-run")
         .await
         .click()

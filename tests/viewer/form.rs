@@ -1,12 +1,14 @@
 //! The phantom form in Chromium against the API: its bounds are those of `GET /v1/limits`, it creates the
 //! simulation and the job with the values typed into it, and values the browser or the server refuse are
-//! shown next to their field — the server's by the JSON Pointer of its problem.
+//! shown next to their field — the server's by the JSON Pointer of its problem; the form is also sent with
+//! the keyboard alone.
 
+use fantoccini::key::Key;
 use serde_json::{Value, json};
 
 use super::browser::{self, Browser};
 use super::common::spawn_app_with;
-use super::ui::{api_ids, choose, click};
+use super::ui::{api_ids, choose, click, press, tab_to};
 
 /// Type `value` into the phantom form's field `name` (a number input) or choose it (a select).
 async fn fill(b: &Browser, name: &str, value: &str) {
@@ -256,7 +258,12 @@ pub async fn phantom_form() {
         )
         .await;
     assert_eq!(hidden, json!([true, true, false]));
-    click(&b, "#phantom-form button[type=submit]").await;
+    // Sent by keyboard only: from the top of the page (a click on its heading), Tab to the form's button,
+    // Enter.
+    click(&b, "#send-dicom h1").await;
+    let presses = tab_to(&b, "#phantom-form button[type=submit]", 60).await;
+    press(&b, char::from(Key::Enter)).await;
+    eprintln!("keyboard: Tab reached the phantom form's button in {presses} presses");
     b.until(
         &format!("location.hash.startsWith('#/job/') && location.hash !== '#/job/{id}'"),
         30,

@@ -1,15 +1,16 @@
 //! The jobs list in Chromium against the API: the status and kind filters show exactly the jobs the API
 //! lists for them, cancel and delete from the list and from a job's page reach the API (the job is then
-//! `canceled`, or gone with 404), and the list follows every job live through one `GET /v1/events`
+//! `canceled`, or gone with 404; a keyboard alone reaches and presses Cancel), and the list follows every job live through one `GET /v1/events`
 //! connection (counted by the server's request metrics), with no stream per job and no polling.
 
 use std::time::Duration;
 
+use fantoccini::key::Key;
 use serde_json::json;
 
 use super::browser::{self, Browser};
 use super::common::{cone_geometry, parallel_geometry, spawn_app_with};
-use super::ui::{api_ids, choose, click, endless, list_shows, page_ids, status_of};
+use super::ui::{api_ids, choose, click, endless, list_shows, page_ids, press, status_of, tab_to};
 
 pub async fn filters_cancel_delete() {
     let Some(b) = browser::start("viewer: list filters, cancel and delete", 1280, 800).await else {
@@ -129,16 +130,22 @@ pub async fn filters_cancel_delete() {
         20,
     )
     .await;
-    click(
+    // The queued one by keyboard only: Tab to its Cancel button, Enter.
+    let presses = tab_to(
         &b,
         &format!("#jobs-table tr[data-id='{queued}'] button.cancel"),
+        60,
     )
     .await;
+    press(&b, char::from(Key::Enter)).await;
     b.wait_for(
         &format!("#jobs-table tr[data-id='{queued}'] [data-status=canceled]"),
         20,
     )
     .await;
+    eprintln!(
+        "keyboard: Tab reached the queued job's Cancel in {presses} presses; Enter canceled it"
+    );
     assert_eq!(status_of(&app, &queued).await, "canceled");
     click(
         &b,

@@ -1,25 +1,35 @@
 //! The built-in web viewer in a real headless Chromium (WebDriver) against the real server on a random port:
 //! the page is served with its security headers, a DICOM series goes in through the drop zone's file input,
-//! the bone protocol runs and the page follows it to `succeeded` through Server-Sent Events, the value under
-//! the cursor equals the API's volume, window changes recolour the canvas as the window formula says, the
-//! mesh is drawn and its triangle count is the API's, and a wrong token or a stopped server give the page's
-//! messages. Renderings of a reconstructed phantom are shown as the API serves them; the list's filters,
-//! cancel and delete, and the phantom form agree with the API (its bounds from `/v1/limits`, refusals placed
-//! by JSON Pointer); the list follows every job through one `/v1/events` stream; oblique volumes get combined orientation
-//! labels; the page's files go gzip-compressed to clients that take it. Screenshots of each view go to
-//! `screenshots/` in the target directory (or `CTRECON_SCREENSHOT_DIR`); the figures (time to first slice,
-//! frames per second, page weight) are printed.
+//! the server's bone protocol runs and the page follows it to `succeeded` through Server-Sent Events, the
+//! value and LPS position under the cursor in each plane equal the API's volume and frame, crosshairs link
+//! the planes, the scale bar measures what it says, wheel and keys step slices, window changes recolour the
+//! canvas as the window formula says, the rotating MIP plays, the mesh is drawn and its triangle count, area
+//! and volume are the API's, every download answers as the API does, the tablet width and the keyboard
+//! alone work, and a wrong token or a stopped server give the page's messages. A dropped ZIP's report shows
+//! refused files and warnings as the API does; the server's protocols (`GET /v1/protocols`) are the page's
+//! presets, and the spine and lung protocols' slabs, MIP and MinIP are shown as the API's values windowed.
+//! Renderings of a reconstructed phantom are shown as the API serves them, and a failed job's page shows
+//! its problem; the list's filters, cancel and delete, and the phantom form agree with the API (its bounds
+//! from `/v1/limits`, refusals placed by JSON Pointer); the list follows every job through one `/v1/events`
+//! stream; oblique volumes get combined orientation labels; the page's files go gzip-compressed to clients
+//! that take it. Screenshots of each view go to `screenshots/` in the target directory (or
+//! `CTRECON_SCREENSHOT_DIR`); the figures (page load, time to first slice, frames per second, page weight)
+//! are printed.
 
 #[path = "../common/mod.rs"]
 mod common;
 
 mod browser;
 mod checks;
+mod downloads;
 mod flow;
 mod form;
 mod list;
 mod orient;
+mod planes;
+mod presets;
 mod renders;
+mod stacks;
 mod ui;
 
 use common::spawn_app_with;
@@ -187,7 +197,8 @@ async fn lidc_upload_bone_protocol_slices_window_and_mesh_in_chromium() {
 }
 
 #[tokio::test]
-async fn renderings_of_a_reconstructed_phantom_are_shown_as_the_api_serves_them() {
+async fn renderings_of_a_reconstructed_phantom_and_a_failed_jobs_problem_are_shown_as_the_api_serves_them()
+ {
     renders::renderings().await;
 }
 
@@ -214,4 +225,10 @@ async fn the_pages_label_function_agrees_with_the_servers_on_oblique_directions(
 #[tokio::test]
 async fn oblique_series_show_combined_orientation_labels_in_all_three_planes() {
     orient::oblique_series().await;
+}
+
+#[tokio::test]
+async fn a_dropped_zip_reports_refused_files_and_warnings_and_the_servers_protocols_show_as_stacks()
+{
+    presets::zip_and_protocols().await;
 }

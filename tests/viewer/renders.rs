@@ -109,7 +109,8 @@ async fn img_pixels(b: &Browser, css: &str) -> (u32, u32, Vec<u8>) {
     )
 }
 
-fn base64_decode(text: &str) -> Vec<u8> {
+/// Bytes of standard base64 text (as `btoa` writes it).
+pub fn base64_decode(text: &str) -> Vec<u8> {
     let value = |c: u8| match c {
         b'A'..=b'Z' => c - b'A',
         b'a'..=b'z' => c - b'a' + 26,
@@ -141,8 +142,26 @@ pub async fn renderings() {
     let Some(b) = browser::start("viewer: renderings", 1280, 800).await else {
         return;
     };
+    // A DICOM node and a PACS peer where nothing listens: a job that pulls from it fails at run time.
+    let free = || {
+        std::net::TcpListener::bind("127.0.0.1:0")
+            .and_then(|l| l.local_addr())
+            .map(|a| a.port())
+            .expect("a free port")
+    };
+    let (node_port, down_port) = (free(), free());
     let app = spawn_app_with(|s| {
         s.memory_budget_bytes = 2 << 30;
+        s.dicom.port = Some(node_port);
+        s.dicom.dimse_timeout_secs = 3;
+        s.dicom.peers = vec![ctrecon::dimse::Peer {
+            ae_title: "DOWN".into(),
+            host: "127.0.0.1".into(),
+            port: down_port,
+            store: true,
+            query: true,
+            retrieve: true,
+        }];
     })
     .await;
 
@@ -385,4 +404,52 @@ pub async fn renderings() {
             .any(|u| u.as_str() == Some(not_apng.as_str())),
         "a single frame has no animation to download"
     );
+
+    failed_job_page(&b, &app).await;
+}
+
+/// A job that fails at run time (the PACS it pulls its series from does not answer): its page follows it
+/// to `failed` and shows the problem's title, detail and code, and its attempts, as the API records them.
+async fn failed_job_page(b: &Browser, app: &TestApp) {
+    let job = app
+        .submit(&json!({"kind": "volume",
+            "input": {"pacs": "DOWN", "series_instance_uid": "1.2.826.0.1.3680043.8.498.99"},
+            "products": [{"type": "projection", "axis": "coronal", "kind": "mip"}]}))
+        .await;
+    let id = job["id"].as_str().expect("id").to_string();
+    b.goto(&app.url(&format!("/#/job/{id}"))).await;
+    b.wait_for("#job-status [data-status=failed]", 60).await;
+    let done = app.finish(&id).await;
+    assert_eq!(done["status"], "failed", "{done}");
+    let error = &done["error"];
+    assert_eq!(error["code"], "pull_failed", "{done}");
+    b.wait_for("#job-error .error-title", 10).await;
+    assert_eq!(
+        b.text("#job-error .error-title").await,
+        error["title"].as_str().expect("title")
+    );
+    assert_eq!(
+        b.text("#job-error .error-detail").await,
+        error["detail"].as_str().expect("detail")
+    );
+    assert_eq!(b.text("#job-error .error-code").await.trim(), "pull_failed");
+    let attempts = b
+        .js(
+            "const dt = [...document.querySelectorAll('#job-summary dt')].find((d) => d.textContent === 'Attempts');
+             return dt ? dt.nextElementSibling.textContent : null;",
+            vec![],
+        )
+        .await;
+    assert_eq!(attempts, json!(done["attempts"].to_string()), "{done}");
+    // No results to show or download for a failed job.
+    assert_eq!(
+        b.js("return [document.getElementById('slice-panel'), document.getElementById('downloads')].every((e) => e === null);", vec![]).await,
+        json!(true)
+    );
+    eprintln!(
+        "failed job: {} — {}",
+        error["title"].as_str().unwrap_or(""),
+        error["detail"].as_str().unwrap_or("")
+    );
+    b.shot("job-failed").await;
 }

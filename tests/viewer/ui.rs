@@ -1,8 +1,11 @@
 //! What the page tests share: the API's and the page's job lists, choosing an option and clicking as a user
-//! does, and long-running jobs.
+//! does, moving through the page with Tab and keys, the fit of the page in a narrow window, and long-running
+//! jobs.
 
 use std::time::Duration;
 
+use fantoccini::actions::{InputSource, KeyAction, KeyActions};
+use fantoccini::key::Key;
 use serde_json::{Value, json};
 
 use super::browser::Browser;
@@ -86,4 +89,57 @@ pub async fn status_of(app: &TestApp, id: &str) -> Value {
 
 pub async fn click(b: &Browser, css: &str) {
     b.find(css).await.click().await.expect("click");
+}
+
+/// Press one key (a character or a `fantoccini::key::Key`) on whatever has the focus.
+pub async fn press(b: &Browser, key: char) {
+    let keys = KeyActions::new("keyboard".into())
+        .then(KeyAction::Down { value: key })
+        .then(KeyAction::Up { value: key });
+    b.client.perform_actions(keys).await.expect("a key press");
+}
+
+/// Press Tab until the focused element matches `css` (at most `max` presses), as a keyboard-only user moves
+/// through the page; returns how many presses it took.
+pub async fn tab_to(b: &Browser, css: &str, max: usize) -> usize {
+    let mut seen = Vec::new();
+    for n in 1..=max {
+        press(b, char::from(Key::Tab)).await;
+        let v = b
+            .js(
+                "const e = document.activeElement;
+                 return [e.matches(arguments[0]), e.tagName + (e.id ? '#' + e.id : '') + '.' + e.className];",
+                vec![json!(css)],
+            )
+            .await;
+        if v[0] == json!(true) {
+            return n;
+        }
+        seen.push(v[1].as_str().unwrap_or("").to_string());
+    }
+    panic!("Tab never reached {css} in {max} presses; focus went {seen:?}");
+}
+
+/// The page is no wider than the window (no horizontal scrolling), and each of `controls` is shown whole
+/// inside it.
+pub async fn fits_the_window(b: &Browser, what: &str, controls: &[&str]) {
+    let v = b
+        .js(
+            "const s = document.scrollingElement;
+             return [s.scrollWidth, innerWidth, arguments[0].map((css) => {
+               const e = document.querySelector(css); if (!e) return [css, 'missing'];
+               const r = e.getBoundingClientRect(); const st = getComputedStyle(e);
+               const shown = r.width > 0 && r.height > 0 && r.left >= -0.5 && r.right <= innerWidth + 0.5
+                 && st.visibility !== 'hidden' && st.display !== 'none';
+               return shown ? null : [css, [r.left, r.right, r.width, r.height, st.visibility]];
+             }).filter((x) => x)];",
+            vec![json!(controls)],
+        )
+        .await;
+    let (scroll, inner) = (v[0].as_f64().expect("width"), v[1].as_f64().expect("width"));
+    assert!(
+        scroll <= inner,
+        "{what}: the page is {scroll} px wide in a {inner} px window"
+    );
+    assert_eq!(v[2], json!([]), "{what}: controls not shown whole");
 }
