@@ -674,6 +674,8 @@ fn make_product(
     let mut placed: Option<(ImagePlane, Option<f64>)> = None;
     // Screen sides of the first frame of non-planar products.
     let mut sides: Option<ScreenSides> = None;
+    // Frames that face different ways (a rotating projection): each frame's sides.
+    let mut frame_orientations: Vec<ScreenSides> = Vec::new();
     let (images, pixel_mm) = match planned {
         Planned::Render(spec) => {
             return make_render_product(store, job.id, vol, index, spec, units, mu_water, patient);
@@ -788,14 +790,21 @@ fn make_product(
             )
         }
         Planned::Rotating { angles, kind } => {
-            // The first frame looks from anterior, as a coronal image.
-            let front = ImagePlane {
-                first_pixel_mm: [0.0; 3],
-                row_direction: rotating_axes(angles.first().copied().unwrap_or(0.0)).1,
-                column_direction: [0.0, 0.0, -1.0],
-                pixel_mm: [1.0; 2],
+            // Frame k is seen from angles[k] about the superior axis, screen down inferior; the first looks
+            // from anterior, as a coronal image.
+            let seen_from = |angle: f64| {
+                ImagePlane {
+                    first_pixel_mm: [0.0; 3],
+                    row_direction: rotating_axes(angle).1,
+                    column_direction: [0.0, 0.0, -1.0],
+                    pixel_mm: [1.0; 2],
+                }
+                .sides_for(patient)
             };
-            sides = Some(front.sides_for(patient));
+            sides = Some(seen_from(angles.first().copied().unwrap_or(0.0)));
+            if angles.len() > 1 {
+                frame_orientations = angles.iter().map(|&a| seen_from(a)).collect();
+            }
             let px = vol
                 .frame
                 .spacing_mm
@@ -828,7 +837,7 @@ fn make_product(
         orientation: placed.map(|(p, _)| p.sides_for(patient)).or(sides),
         plane: placed.map(|(p, _)| p),
         frame_spacing_mm: placed.and_then(|(_, step)| step),
-        frame_orientations: Vec::new(),
+        frame_orientations,
         description: None,
         file,
     })

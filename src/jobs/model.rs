@@ -311,8 +311,8 @@ pub struct ProductResult {
     /// `row_direction × column_direction`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame_spacing_mm: Option<f64>,
-    /// Renderings of several frames (a sequence turning about the camera's up axis): the screen sides of
-    /// every frame, the first being `orientation`.
+    /// Rotating projections and renderings of several frames (a sequence turning about the superior or the
+    /// camera's up axis): the screen sides of every frame, the first being `orientation`.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub frame_orientations: Vec<ScreenSides>,
     /// Renderings: what the picture shows (preset or surfaces, camera), as written to DICOM

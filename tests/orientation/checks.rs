@@ -123,6 +123,29 @@ pub async fn check_products(
         e.check_json(p, &what);
         let frames = p["shape"][0].as_u64().unwrap() as usize;
         let path = format!("/v1/jobs/{id}/result/products/{i}");
+        // Frames seen from different sides (a rotating projection, a turning rendering) name each frame's
+        // sides in the JSON, as their PNGs do; other stacks share the first frame's `orientation`.
+        let turning = frames > 1 && matches!(e, Expect::Rotating { .. } | Expect::Render { .. });
+        match p["frame_orientations"].as_array() {
+            Some(list) => {
+                assert!(
+                    turning,
+                    "{what}: frame_orientations on a stack facing one way"
+                );
+                assert_eq!(list.len(), frames, "{what}: frame_orientations");
+                for (k, listed) in list.iter().enumerate() {
+                    let want = match e {
+                        Expect::Render { .. } => e.sides(k, frames),
+                        _ => {
+                            let (r, d) = e.axes(k, frames);
+                            sides(r, d)
+                        }
+                    };
+                    assert_eq!(listed, &want, "{what}: frame_orientations[{k}]");
+                }
+            }
+            None => assert!(!turning, "{what}: no frame_orientations"),
+        }
         if let Expect::Render { .. } = e {
             let at: Vec<[f64; 3]> = MARKERS.iter().map(|(c, _)| lps(*c)).collect();
             for k in 0..frames {
