@@ -177,10 +177,70 @@ pub async fn plays(b: &Browser, app: &TestApp, token: Option<&str>, job: &str, i
         "paused"
     );
     let (frame, _) = stack_matches(b, app, token, job, index).await;
+    // The letters around the picture are the API's sides of the frame shown: the held one, and a quarter
+    // turn on (for a rotation, seen from the side: other letters than the first frame's).
+    let quarter = (frame + frames / 4) % frames;
+    let held_sides = letters_match(b, app, token, job, index, frame).await;
+    let quarter_sides = letters_match(b, app, token, job, index, quarter).await;
+    if frames >= 4 && b.attr(&card, "data-type").await.as_deref() == Some("rotating") {
+        assert_ne!(
+            held_sides, quarter_sides,
+            "frames {frame} and {quarter} of a rotation are seen from different sides"
+        );
+    }
     eprintln!(
         "loop of {frames} frames: {} frames and {} pictures seen in {} looks, paused at frame {frame}",
         distinct.len(),
         pictures.len(),
         seen.len()
     );
+}
+
+/// Step stack `index` to `frame` with its slider; the four letters around the picture must be the API's
+/// sides of that frame (`frame_orientations[frame]`, else `orientation`). Returns them.
+async fn letters_match(
+    b: &Browser,
+    app: &TestApp,
+    token: Option<&str>,
+    job: &str,
+    index: usize,
+    frame: usize,
+) -> serde_json::Value {
+    let shown = b
+        .js(
+            "const el = document.querySelector(`.product[data-index='${arguments[0]}']`);
+             const s = el.querySelector('input.frame');
+             s.value = String(arguments[1]); s.dispatchEvent(new Event('input'));
+             return [Number(el.dataset.frame), Object.fromEntries([...el.querySelectorAll('span.orient')]
+               .map((o) => [o.dataset.side, o.textContent]))];",
+            vec![json!(index), json!(frame)],
+        )
+        .await;
+    assert_eq!(
+        shown[0],
+        json!(frame),
+        "product {index}: stepped to frame {frame}"
+    );
+    let mut req = app.client.get(app.url(&format!("/v1/jobs/{job}")));
+    if let Some(t) = token {
+        req = req.bearer_auth(t);
+    }
+    let j: serde_json::Value = req
+        .send()
+        .await
+        .expect("request")
+        .json()
+        .await
+        .expect("job");
+    let p = &j["result"]["products"][index];
+    let want = p["frame_orientations"]
+        .get(frame)
+        .unwrap_or(&p["orientation"]);
+    for side in ["left", "right", "top", "bottom"] {
+        assert_eq!(
+            shown[1][side], want[side],
+            "product {index}, frame {frame}: the {side} letter"
+        );
+    }
+    shown[1].clone()
 }

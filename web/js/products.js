@@ -10,6 +10,22 @@ import { PRESETS } from './slices.js';
 
 const MU_WATER = 0.0192;
 
+/** The orientation letters around a product's image: frame `k`'s own sides where its frames face
+ * different ways (`frame_orientations`, a rotation), else the sides all frames share. */
+function sidesOf(p, k) {
+  return (p.frame_orientations || [])[k] || p.orientation || {};
+}
+
+function orientLabels(p, k) {
+  return ['top', 'bottom', 'left', 'right'].map((s) =>
+    h(`span.orient.orient-${s}`, { dataset: { side: s } }, sidesOf(p, k)[s] || ''));
+}
+
+function setOrientLabels(stage, p, k) {
+  const o = sidesOf(p, k);
+  for (const el of stage.querySelectorAll('span.orient')) el.textContent = o[el.dataset.side] || '';
+}
+
 class StackView {
   constructor(job, p) {
     this.job = job;
@@ -17,9 +33,7 @@ class StackView {
     this.hu = (job.result.units || 'hu') === 'hu';
     this.frame = 0;
     this.canvas = h('canvas.product-image');
-    const o = p.orientation || {};
-    this.stage = h('div.product-stage', this.canvas,
-      ['top', 'bottom', 'left', 'right'].map((s) => h(`span.orient.orient-${s}`, { dataset: { side: s } }, o[s] || '')));
+    this.stage = h('div.product-stage', this.canvas, orientLabels(p, 0));
     this.slider = h('input.frame', { type: 'range', min: '0', max: '0', value: '0', 'aria-label': 'frame' });
     this.play = h('button.play', { type: 'button', 'aria-pressed': 'false' }, 'Play');
     this.preset = h('select.preset', { 'aria-label': 'window preset' },
@@ -75,6 +89,7 @@ class StackView {
       out[x] = 0xff000000 | (g << 16) | (g << 8) | g;
     }
     ctx.putImageData(img, 0, 0);
+    setOrientLabels(this.stage, this.p, f);
     this.el.dataset.frame = String(f);
     this.slider.value = String(f);
     this.label.textContent = `frame ${f + 1} / ${this.n[0]}`;
@@ -135,11 +150,9 @@ class RenderView {
     this.frames = p.shape ? p.shape[0] : 1;
     this.urls = new Map(); // frame -> object URL
     this.frame = 0;
-    const o = p.orientation || {};
     this.img = h('img.render-still', { alt: `${RENDER_NAMES[p.type]}, frame 1` });
     this.anim = h('img.render-apng', { alt: `${RENDER_NAMES[p.type]}, rotation`, hidden: true });
-    this.stage = h('div.product-stage', this.img, this.anim,
-      ['top', 'bottom', 'left', 'right'].map((s) => h(`span.orient.orient-${s}`, { dataset: { side: s } }, o[s] || '')));
+    this.stage = h('div.product-stage', this.img, this.anim, orientLabels(p, 0));
     this.slider = h('input.frame', {
       type: 'range', min: '0', max: String(this.frames - 1), value: '0', 'aria-label': 'frame',
     });
@@ -180,6 +193,7 @@ class RenderView {
     }
     this.frame = k;
     this.img.alt = `${RENDER_NAMES[this.p.type]}, frame ${k + 1}`;
+    setOrientLabels(this.stage, this.p, k);
     this.el.dataset.frame = String(k);
     this.slider.value = String(k);
     this.label.textContent = `frame ${k + 1} / ${this.frames}`;
@@ -193,6 +207,8 @@ class RenderView {
     }
     this.anim.hidden = !playing;
     this.img.hidden = playing;
+    // The animation's frames face every way and give no event per frame: no letters while it plays.
+    for (const el of this.stage.querySelectorAll('span.orient')) el.hidden = playing && (this.p.frame_orientations || []).length > 1;
     this.slider.disabled = playing;
     this.el.dataset.playing = playing ? 'true' : 'false';
     this.play.textContent = playing ? 'Stop' : 'Play rotation';
