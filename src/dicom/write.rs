@@ -275,12 +275,14 @@ fn grey_pixels(b: &mut Builder, ny: usize, nx: usize, bits: u16, signed: bool) {
         .us(tags::PIXEL_REPRESENTATION, signed as u16);
 }
 
+/// Slice `k` as little-endian int16 stored values, in one allocation of its exact size.
 fn plane_bytes(vol: &Volume, k: usize, slope: f64, intercept: f64) -> Vec<u8> {
-    vol.data
-        .index_axis(ndarray::Axis(0), k)
-        .iter()
-        .flat_map(|&v| stored(v, slope, intercept).to_le_bytes())
-        .collect()
+    let plane = vol.data.index_axis(ndarray::Axis(0), k);
+    let mut out = vec![0u8; plane.len() * 2];
+    for (o, &v) in out.chunks_exact_mut(2).zip(plane.iter()) {
+        o.copy_from_slice(&stored(v, slope, intercept).to_le_bytes());
+    }
+    out
 }
 
 /// Write a volume in HU (`[z][y][x]`, convert μ first with `volume::mu_to_hu`) as a derived CT series: one
@@ -459,9 +461,10 @@ pub fn write_enhanced_ct(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSerie
     .seq(tags::SHARED_FUNCTIONAL_GROUPS_SEQUENCE, vec![shared])
     .seq(tags::PER_FRAME_FUNCTIONAL_GROUPS_SEQUENCE, per_frame);
     image_pixel(&mut b, ny, nx);
-    let pixels: Vec<u8> = (0..nz)
-        .flat_map(|k| plane_bytes(vol, k, slope, intercept))
-        .collect();
+    let mut pixels: Vec<u8> = Vec::with_capacity(nz * ny * nx * 2);
+    for k in 0..nz {
+        pixels.extend_from_slice(&plane_bytes(vol, k, slope, intercept));
+    }
     b.bytes(tags::PIXEL_DATA, VR::OW, pixels);
     Ok(DerivedSeries {
         study_uid,
