@@ -324,6 +324,46 @@ async fn two_series_in_one_zip_are_split_and_a_missing_slice_is_refused_or_resam
     .await;
 }
 
+/// Instances appended to one open upload all at once (as a PACS router sends them, several associations
+/// or requests in flight): each append reads the upload and then writes it, so on SQLite each must hold
+/// the write lock from its start; a deferred transaction whose snapshot went stale failed with a 500.
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn instances_appended_to_one_upload_at_the_same_time_are_all_kept() {
+    let app = spawn_app().await;
+    let (files, _) = series_files("body");
+    let r = post_bytes(&app, "/v1/series", "application/dicom", files[0].1.clone()).await;
+    assert_eq!(r.status(), 201);
+    let id = r.json::<Value>().await.unwrap()["upload"]["id"]
+        .as_str()
+        .unwrap()
+        .to_string();
+    let append = format!("/v1/series?upload={id}");
+    let sends = files.iter().skip(1).map(|(_, file)| {
+        let (app, append, file) = (&app, &append, file.clone());
+        async move {
+            let r = post_bytes(app, append, "application/dicom", file).await;
+            let status = r.status();
+            (status, r.text().await.unwrap())
+        }
+    });
+    for (status, body) in futures_util::future::join_all(sends).await {
+        assert_eq!(status, 200, "{body}");
+    }
+    let v: Value = app
+        .get(&format!("/v1/uploads/{id}"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(v["upload"]["instances"], files.len(), "{v}");
+    let r = app
+        .post_json(&format!("/v1/uploads/{id}/complete"), &json!({}))
+        .await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(v["series"][0]["report"]["instances"], files.len(), "{v}");
+}
+
 #[tokio::test]
 async fn an_open_upload_collects_instances_and_stays_open_until_it_completes() {
     let app = spawn_app().await;
@@ -754,11 +794,10 @@ async fn a_tilted_series_and_an_enhanced_multi_frame_file_come_through() {
         enhanced.files[0].1.clone(),
     )
     .await;
-    assert_eq!(r.status(), 201);
-    let id = r.json::<Value>().await.unwrap()["upload"]["id"]
-        .as_str()
-        .unwrap()
-        .to_string();
+    let status = r.status();
+    let answer: Value = r.json().await.unwrap();
+    assert_eq!(status, 201, "{answer}");
+    let id = answer["upload"]["id"].as_str().unwrap().to_string();
     let r = app
         .post_json(&format!("/v1/uploads/{id}/complete"), &json!({}))
         .await;

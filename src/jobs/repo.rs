@@ -208,6 +208,14 @@ fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
 }
 
 impl Db {
+    /// A transaction that takes the write lock at its start (`BEGIN IMMEDIATE`). A deferred transaction that
+    /// reads and then writes fails at once with `SQLITE_BUSY` when another connection wrote in between (WAL
+    /// cannot upgrade a stale read snapshot, and the busy timeout does not apply); an immediate one waits for
+    /// the lock within the busy timeout instead. Every transaction of this adapter writes.
+    async fn write_tx(&self) -> Result<sqlx::Transaction<'static, sqlx::Sqlite>, sqlx::Error> {
+        self.pool.begin_with("BEGIN IMMEDIATE").await
+    }
+
     /// Open (creating if needed) the database file and apply the migrations.
     pub async fn open(path: &Path) -> Result<Self, DbError> {
         let options = SqliteConnectOptions::from_str("sqlite://")?
@@ -246,7 +254,7 @@ impl Db {
         key: Option<&IdempotencyKey>,
         id: &str,
     ) -> Result<Result<sqlx::Transaction<'static, sqlx::Sqlite>, Inserted>, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         if let Some(key) = key
             && let existing @ Inserted::Existing { .. } = Self::claim_key(&mut tx, key, id).await?
         {

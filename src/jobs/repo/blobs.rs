@@ -82,7 +82,7 @@ impl Db {
         kind: BlobKind,
         id: &str,
     ) -> Result<Deleted, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let sql = format!("DELETE FROM {table} WHERE id = ? AND NOT {ACTIVE_INPUT}");
         let done = sqlx::query(sqlx::AssertSqlSafe(sql))
             .bind(id)

@@ -122,7 +122,7 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
     ) -> Result<(), DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let (upload, job) = match owner {
             InstanceOwner::Upload(u) => (Some(u.to_string()), None),
             InstanceOwner::Job(j) => (None, Some(j.to_string())),

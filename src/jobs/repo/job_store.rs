@@ -155,7 +155,7 @@ impl Db {
                 })
                 .collect::<Result<Vec<_>, DbError>>()
         };
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let failed = sqlx::query(
             "UPDATE jobs SET status = 'failed', stage = 'failed', finished_us = ?, error = ?,
                     lease_expires_us = NULL

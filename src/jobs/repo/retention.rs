@@ -33,7 +33,7 @@ impl Db {
         sql: &'static str,
         before_us: i64,
     ) -> Result<Vec<String>, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
         let ids = rows
             .iter()

@@ -117,7 +117,7 @@ impl Db {
     /// Delete an API rule and its runs (so a rule made again under the name starts afresh); false when
     /// there is no API rule of that name.
     pub async fn delete_rule(&self, name: &str) -> Result<bool, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let r = sqlx::query("DELETE FROM rules WHERE name = ? AND source = 'api'")
             .bind(name)
             .execute(&mut *tx)
@@ -152,7 +152,7 @@ impl Db {
     /// replaced (a config rule replaces an API rule of the same name).
     pub async fn sync_config_rules(&self, specs: &[RuleSpec]) -> Result<(), DbError> {
         let now = now_us();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let names = to_json(&specs.iter().map(|s| &s.name).collect::<Vec<_>>());
         sqlx::query(
             "DELETE FROM rules WHERE source = 'config' AND name NOT IN (SELECT value FROM json_each(?))",
@@ -393,7 +393,7 @@ impl Db {
         id: &str,
         instances: &[DeliveryInstance],
     ) -> Result<(), DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         sqlx::query("DELETE FROM delivery_instances WHERE delivery_id = ?")
             .bind(id)
             .execute(&mut *tx)
@@ -430,7 +430,7 @@ impl Db {
         error: Option<&str>,
     ) -> Result<bool, DbError> {
         let now = now_us();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         for (k, i) in d.instances.iter().enumerate() {
             sqlx::query(
                 "UPDATE delivery_instances SET state = ?, status = ?, detail = ?
@@ -465,7 +465,7 @@ impl Db {
     /// `failed`.
     pub async fn retry_delivery(&self, id: &str) -> Result<bool, DbError> {
         let now = now_us();
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let r = sqlx::query(
             "UPDATE deliveries SET state = 'queued', attempts = 0, next_attempt_us = ?, updated_us = ?,
                  finished_us = NULL WHERE id = ? AND state = 'failed'",

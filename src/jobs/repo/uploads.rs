@@ -110,7 +110,7 @@ impl Db {
         series_uid: &str,
         max_bytes: u64,
     ) -> Result<Appended, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let Some(row) = sqlx::query("SELECT status, instances, bytes FROM uploads WHERE id = ?")
             .bind(id.to_string())
             .fetch_optional(&mut *tx)
@@ -197,7 +197,7 @@ impl Db {
         outcome: &serde_json::Value,
         series: &[SeriesRecord],
     ) -> Result<Completed, DbError> {
-        let mut tx = self.pool.begin().await?;
+        let mut tx = self.write_tx().await?;
         let done = sqlx::query(
             "UPDATE uploads SET status = 'completed', outcome = ?, completed_us = ?
              WHERE id = ? AND status = 'open' AND instances = ?",
