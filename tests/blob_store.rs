@@ -15,84 +15,22 @@ mod directory {
 }
 
 #[cfg(feature = "s3")]
+#[path = "common/s3.rs"]
+mod s3server;
+
+#[cfg(feature = "s3")]
 mod s3 {
     use std::io;
-    use std::path::PathBuf;
-    use std::process::{Child, Command, Stdio};
-    use std::time::{Duration, Instant};
 
     use ctrecon::storage::object::{ObjectBlobs, PART_SIZE, S3Location, SINGLE_PUT_MAX};
     use ctrecon::storage::port::{BlobKey, Blobs, ByteStream};
     use futures_util::StreamExt;
 
-    const ACCESS_KEY: &str = "ctrecon-test";
-    const SECRET_KEY: &str = "ctrecon-test-secret";
-    const BUCKET: &str = "ctrecon-blobs";
+    use super::s3server::{ACCESS_KEY, BUCKET, S3Server, SECRET_KEY};
 
-    /// An s3s-fs process with its own root and port, stopped on drop.
-    pub struct S3Server {
-        child: Child,
-        pub endpoint: String,
-        _root: tempfile::TempDir,
-    }
-
-    impl Drop for S3Server {
-        fn drop(&mut self) {
-            let _ = self.child.kill();
-            let _ = self.child.wait();
-        }
-    }
-
-    include!("common/ports.rs");
-
-    fn s3s_fs() -> Option<PathBuf> {
-        if let Ok(p) = std::env::var("CTRECON_S3S_FS") {
-            return Some(PathBuf::from(p));
-        }
-        let local = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join(".peers/s3s/bin/s3s-fs");
-        if local.is_file() {
-            return Some(local);
-        }
-        std::env::var_os("PATH").and_then(|paths| {
-            std::env::split_paths(&paths)
-                .map(|d| d.join("s3s-fs"))
-                .find(|p| p.is_file())
-        })
-    }
-
-    /// Start s3s-fs with one bucket, or say why not (one skip line; a failure when peers are required).
-    pub fn start() -> Option<S3Server> {
-        let Some(bin) = s3s_fs() else {
-            assert!(
-                std::env::var("CTRECON_REQUIRE_PEERS").as_deref() != Ok("1"),
-                "s3s-fs is missing and CTRECON_REQUIRE_PEERS=1 (scripts/install-peers.sh s3)"
-            );
-            eprintln!("skipped: s3s-fs is not installed (scripts/install-peers.sh s3)");
-            return None;
-        };
-        let root = tempfile::tempdir().expect("temp dir");
-        std::fs::create_dir(root.path().join(BUCKET)).expect("bucket directory");
-        let port = free_port();
-        let child = Command::new(bin)
-            .args(["--host", "127.0.0.1", "--port", &port.to_string()])
-            .args(["--access-key", ACCESS_KEY, "--secret-key", SECRET_KEY])
-            .arg(root.path())
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("s3s-fs starts");
-        let server = S3Server {
-            child,
-            endpoint: format!("http://127.0.0.1:{port}"),
-            _root: root,
-        };
-        let deadline = Instant::now() + Duration::from_secs(10);
-        while std::net::TcpStream::connect(("127.0.0.1", port)).is_err() {
-            assert!(Instant::now() < deadline, "s3s-fs did not listen");
-            std::thread::sleep(Duration::from_millis(10));
-        }
-        Some(server)
+    /// s3s-fs with one bucket (`tests/common/s3.rs`), or `None` after one skip line.
+    fn start() -> Option<S3Server> {
+        super::s3server::s3("blob store conformance")
     }
 
     fn location(server: &S3Server, prefix: &str, secret: &str, bucket: &str) -> S3Location {
