@@ -49,6 +49,29 @@ fn frame_streams(fragments: &[&[u8]], frames: usize) -> Result<Vec<Vec<u8>>, Str
     Ok(out)
 }
 
+/// The stream without the fill bytes (0xFF, T.81 B.1.1.2, which T.87 keeps) between the end of its scan and
+/// its EOI marker. CharLS, and DCMTK through it, ends a scan whose last data byte is a full byte with one
+/// such fill byte; the decoder reads the first 0xFF after the scan as the marker's start and refuses the
+/// stream. A 0xFF data byte is always followed by a byte below 0x80, so a 0xFF followed by 0xFF is fill.
+fn without_fill_before_eoi(stream: &[u8]) -> std::borrow::Cow<'_, [u8]> {
+    // The last EOI, before any padding after it (fragments are padded to even length).
+    let Some(eoi) = stream.windows(2).rposition(|w| w == [0xFF, 0xD9]) else {
+        return stream.into();
+    };
+    let fill = stream[..eoi]
+        .iter()
+        .rev()
+        .take_while(|&&b| b == 0xFF)
+        .count();
+    if fill == 0 {
+        return stream.into();
+    }
+    let mut out = Vec::with_capacity(stream.len() - fill);
+    out.extend_from_slice(&stream[..eoi - fill]);
+    out.extend_from_slice(&stream[eoi..]);
+    out.into()
+}
+
 /// Decode `frames` frames of `rows` × `columns` single-sample pixels into little-endian samples of
 /// `bits_allocated` (8 or 16) bits, frame after frame.
 pub fn decode_frames(
@@ -76,7 +99,8 @@ pub fn decode_frames(
     let streams = frame_streams(fragments, frames)?;
     let mut out = Vec::with_capacity(frames * rows * columns * bytes_per);
     for (i, stream) in streams.iter().enumerate() {
-        let decoded = catch_unwind(AssertUnwindSafe(|| jpegls::decode(stream, w, h)))
+        let stream = without_fill_before_eoi(stream);
+        let decoded = catch_unwind(AssertUnwindSafe(|| jpegls::decode(&stream, w, h)))
             .map_err(|_| {
                 format!(
                     "frame {}: the JPEG-LS decoder failed on malformed data",
@@ -147,6 +171,32 @@ mod tests {
             .map(|(c, &v)| (u16::from_le_bytes([c[0], c[1]]) as i32 - v as i32).abs())
             .max();
         assert!(worst.is_some_and(|e| e <= 3), "{worst:?}");
+    }
+
+    #[test]
+    fn fill_bytes_before_the_end_of_image_are_skipped() {
+        let (w, h) = (16usize, 9usize);
+        let a = ramp(w, h, 4095);
+        let f = encode(&a, 16, 9, 0);
+        assert_eq!(&f[f.len() - 2..], &[0xFF, 0xD9]);
+        for fill in [1, 3] {
+            // Fill bytes before EOI, and the zero that pads a DICOM fragment to even length after it.
+            let mut filled = f[..f.len() - 2].to_vec();
+            filled.extend(std::iter::repeat_n(0xFF, fill));
+            filled.extend_from_slice(&[0xFF, 0xD9]);
+            if filled.len() % 2 == 1 {
+                filled.push(0);
+            }
+            assert!(jpegls::decode(&filled, 16, 9).is_err(), "the decoder alone");
+            let out = decode_frames(&[&filled], 1, h, w, 1, 16).expect("decode");
+            let got: Vec<u16> = out
+                .chunks_exact(2)
+                .map(|c| u16::from_le_bytes([c[0], c[1]]))
+                .collect();
+            assert_eq!(got, a, "{fill} fill bytes");
+        }
+        assert_eq!(without_fill_before_eoi(&f), &f[..]);
+        assert_eq!(without_fill_before_eoi(&[0xFF, 0xFF]), &[0xFF, 0xFF][..]);
     }
 
     #[test]
