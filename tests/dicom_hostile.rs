@@ -566,6 +566,97 @@ fn a_deflated_data_set_that_inflates_past_the_limit_is_refused_at_the_limit() {
     assert!(e.to_string().contains("inflates to more than"), "{e}");
 }
 
+/// A Part 10 file of `file` (explicit VR little endian) whose data set is deflated: the meta group with
+/// Deflated Explicit VR Little Endian as its transfer syntax, then the data set as raw deflate.
+fn deflated(file: &[u8]) -> Vec<u8> {
+    use std::io::Write;
+    let meta_len = u32::from_le_bytes(file[140..144].try_into().unwrap()) as usize;
+    let (meta, data) = (&file[144..144 + meta_len], &file[144 + meta_len..]);
+    let mut kept = Vec::new();
+    let mut at = 0;
+    while at < meta.len() {
+        let tag = (
+            u16::from_le_bytes([meta[at], meta[at + 1]]),
+            u16::from_le_bytes([meta[at + 2], meta[at + 3]]),
+        );
+        let vr = &meta[at + 4..at + 6];
+        let (head, len) = if matches!(vr, b"OB" | b"OW" | b"UN" | b"SQ" | b"UT") {
+            (
+                12,
+                u32::from_le_bytes(meta[at + 8..at + 12].try_into().unwrap()) as usize,
+            )
+        } else {
+            (8, u16::from_le_bytes([meta[at + 6], meta[at + 7]]) as usize)
+        };
+        if tag != (0x0002, 0x0010) {
+            kept.extend_from_slice(&meta[at..at + head + len]);
+        }
+        at += head + len;
+    }
+    let ts = b"1.2.840.10008.1.2.1.99\0\0";
+    kept.extend_from_slice(&[0x02, 0x00, 0x10, 0x00, b'U', b'I', ts.len() as u8, 0]);
+    kept.extend_from_slice(ts);
+    let mut out = vec![0u8; 128];
+    out.extend_from_slice(b"DICM");
+    out.extend_from_slice(&[0x02, 0x00, 0x00, 0x00, b'U', b'L', 4, 0]);
+    out.extend_from_slice(&(kept.len() as u32).to_le_bytes());
+    out.extend_from_slice(&kept);
+    let mut z = flate2::write::DeflateEncoder::new(out, flate2::Compression::best());
+    z.write_all(data).unwrap();
+    z.finish().unwrap()
+}
+
+#[test]
+fn a_small_deflated_file_of_smooth_pixels_reads_whatever_its_ratio_and_a_bomb_does_not() {
+    use ctrecon::dicom::{SeriesMeta, header_of, write_ct_series};
+    use ctrecon::volume::{Frame, Volume};
+    // A 64 × 64 CT slice of one value: its data set deflates more than 20-fold.
+    let vol = Volume {
+        data: ndarray::Array3::from_elem((2, 64, 64), 40.0),
+        frame: Frame {
+            origin_mm: [0.0, 0.0, 0.0],
+            spacing_mm: [1.0, 1.0, 2.0],
+            direction: Frame::AXIS_ALIGNED,
+        },
+    };
+    let series = write_ct_series(&vol, &SeriesMeta::default()).unwrap();
+    let plain = &series.files[0].1;
+    let small = deflated(plain);
+    assert!(
+        small.len() * 4 < plain.len(),
+        "{} of {}",
+        small.len(),
+        plain.len()
+    );
+    let h = header_of("smooth", &small).expect("the header of a small deflated file");
+    let want = header_of("plain", plain).unwrap();
+    assert_eq!(
+        (h.sop_instance_uid, h.series_uid, h.transfer_syntax),
+        (
+            want.sop_instance_uid,
+            want.series_uid,
+            "1.2.840.10008.1.2.1.99".to_string()
+        )
+    );
+    assert_eq!(
+        read_bytes("smooth", &small, &ReadLimits::default())
+            .unwrap()
+            .slices[0]
+            .stored,
+        read_bytes("plain", plain, &ReadLimits::default())
+            .unwrap()
+            .slices[0]
+            .stored
+    );
+    // The same file with 80 MiB of zeros after its data set: a header read stops at its 16 MiB floor.
+    let mut padded = plain.clone();
+    padded.extend(std::iter::repeat_n(0u8, 80 << 20));
+    let bomb = deflated(&padded);
+    assert!(bomb.len() < 1 << 20, "{}", bomb.len());
+    let e = header_of("bomb", &bomb).expect_err("refused");
+    assert!(e.to_string().contains("inflates to more than"), "{e}");
+}
+
 // ---------------------------------------------------------------------------------------------------------
 // Part 3: read what peers read.
 

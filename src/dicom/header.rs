@@ -11,7 +11,7 @@ use dicom_dictionary_std::tags;
 use serde::Serialize;
 
 use super::error::DicomError;
-use super::read::{MAX_HEADER_BYTES, Opened, float, int, open, text};
+use super::read::{Opened, float, header_inflate_limit, int, open, text};
 
 /// SOP classes a DICOM node of ctrecon stores: CT Image, Enhanced CT Image, Secondary Capture Image and
 /// Encapsulated STL.
@@ -112,10 +112,7 @@ pub fn header_of(label: &str, bytes: &[u8]) -> Result<InstanceHeader, DicomError
     let Opened { obj, framed } = open(
         label,
         bytes,
-        bytes
-            .len()
-            .saturating_mul(4)
-            .min(MAX_HEADER_BYTES.saturating_mul(16)),
+        header_inflate_limit(bytes.len()),
         Some(tags::PIXEL_DATA),
     )?;
     let missing = |what| DicomError::MissingAttribute {

@@ -37,6 +37,15 @@ impl Default for ReadLimits {
 /// Room for the attributes beside the pixel data when a deflated data set is inflated (bytes).
 pub(super) const MAX_HEADER_BYTES: usize = 64 << 20;
 
+/// The most a deflated file of `file_len` bytes may inflate to when its attributes alone are read (a
+/// header, its DICOM JSON, a re-encoding): four times the file, but at least 16 MiB, since a small file of
+/// smooth pixels deflates far more than 4× (a synthetic CT slice of 4.9 kB to 1 kB), and at most 1 GiB.
+pub(super) fn header_inflate_limit(file_len: usize) -> usize {
+    file_len
+        .saturating_mul(4)
+        .clamp(MAX_HEADER_BYTES / 4, MAX_HEADER_BYTES.saturating_mul(16))
+}
+
 /// A decoded DICOM image file.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Instance {

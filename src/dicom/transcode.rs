@@ -5,7 +5,7 @@
 use std::path::Path;
 
 use super::error::DicomError;
-use super::read::{MAX_HEADER_BYTES, Opened, open};
+use super::read::{Opened, header_inflate_limit, open};
 use super::web::{EXPLICIT_LE, IMPLICIT_LE};
 
 /// Whether a data set stored in `from` can be sent in `to` by [`data_set_as`].
@@ -31,12 +31,7 @@ pub fn data_set_as(path: &Path, ts_uid: &str, max_bytes: u64) -> Result<Vec<u8>,
     } else {
         dicom_transfer_syntax_registry::entries::IMPLICIT_VR_LITTLE_ENDIAN.erased()
     };
-    let Opened { obj, .. } = open(
-        &label,
-        &bytes,
-        bytes.len().saturating_mul(2).min(MAX_HEADER_BYTES * 16),
-        None,
-    )?;
+    let Opened { obj, .. } = open(&label, &bytes, header_inflate_limit(bytes.len()), None)?;
     let mut out = Vec::with_capacity(bytes.len() + 1024);
     obj.write_dataset_with_ts(&mut out, &ts)
         .map_err(|e| DicomError::Write(e.to_string()))?;

@@ -16,7 +16,7 @@ use dicom_object::InMemDicomObject;
 use serde_json::{Map, Value, json};
 
 use super::error::DicomError;
-use super::read::{MAX_HEADER_BYTES, Opened, open};
+use super::read::{Opened, header_inflate_limit, open};
 
 /// Explicit VR little endian.
 pub const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
@@ -36,10 +36,7 @@ pub fn instance_json(path: &Path, max_bytes: u64) -> Result<Value, DicomError> {
     let Opened { obj, .. } = open(
         &label,
         &bytes,
-        bytes
-            .len()
-            .saturating_mul(4)
-            .min(MAX_HEADER_BYTES.saturating_mul(16)),
+        header_inflate_limit(bytes.len()),
         Some(tags::PIXEL_DATA),
     )?;
     Ok(Value::Object(data_set_json(&obj)))
@@ -158,7 +155,7 @@ pub fn explicit_le_bytes(path: &Path, max_bytes: u64) -> Result<Vec<u8>, DicomEr
     let Opened { mut obj, .. } = open(
         &label,
         &bytes,
-        bytes.len().saturating_mul(2).min(MAX_HEADER_BYTES * 16),
+        header_inflate_limit(bytes.len()),
         None,
     )?;
     obj.meta_mut()
