@@ -8,175 +8,21 @@
 //! Without Orthanc or its DICOMweb plugin each test prints one skip line, unless `CTRECON_REQUIRE_PEERS=1`.
 
 mod common;
+#[path = "common/dicomweb.rs"]
+mod dw;
 #[path = "common/orthanc.rs"]
 mod orthanc;
 
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};
 
-use common::{TestApp, read_npy_f32, spawn_app_with};
-use ctrecon::dicom::{SeriesMeta, write_ct_series};
-use ctrecon::volume::{Frame, Volume};
+use common::read_npy_f32;
+use dw::{
+    EXPLICIT_LE, Part, STOW_TYPE, TOKEN, ctrecon, header, multipart, parts, seq_values, stow,
+    synthetic, value,
+};
 use orthanc::{Orthanc, OrthancOptions, orthanc_dicomweb_present};
 use serde_json::{Value, json};
-
-const TOKEN: &str = "dicomweb-test-token-0123456789";
-const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
-const BOUNDARY: &str = "ctrecon-test-boundary-7f3a";
-
-/// A ctrecon with a bearer token, its DICOM node on (derived series are indexed) and room for uploads.
-async fn ctrecon() -> (TestApp, reqwest::Client) {
-    let app = spawn_app_with(|s| {
-        s.api_tokens = vec![TOKEN.to_string()];
-        s.dicom.port = Some(0);
-        s.max_upload_bytes = 64 << 20;
-    })
-    .await;
-    let mut h = reqwest::header::HeaderMap::new();
-    h.insert(
-        reqwest::header::AUTHORIZATION,
-        format!("Bearer {TOKEN}").parse().unwrap(),
-    );
-    let client = reqwest::Client::builder()
-        .default_headers(h)
-        .build()
-        .unwrap();
-    (app, client)
-}
-
-/// A synthetic CT series of `nz` slices of 48 × 40 (1 × 1 × 2 mm): soft tissue with a 400 HU block, in
-/// `study` (a new one when `None`); the Part 10 files in instance order.
-fn synthetic(nz: usize, study: Option<&str>, patient: &str) -> (String, String, Vec<Vec<u8>>) {
-    let data = ndarray::Array3::from_shape_fn((nz, 40, 48), |(k, j, i)| {
-        let bone = (8..32).contains(&i) && (10..30).contains(&j) && (2..nz - 2).contains(&k);
-        if bone {
-            400.0
-        } else {
-            40.0 + (i + 2 * j + 3 * k) as f32
-        }
-    });
-    let vol = Volume {
-        data,
-        frame: Frame {
-            origin_mm: [-24.0, -20.0, 10.0],
-            spacing_mm: [1.0, 1.0, 2.0],
-            direction: [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
-        },
-    };
-    let study = study.map_or_else(ctrecon::dicom::new_uid, str::to_string);
-    let meta = SeriesMeta {
-        study_uid: Some(study.clone()),
-        frame_of_reference_uid: Some(ctrecon::dicom::new_uid()),
-        patient_id: Some(patient.into()),
-        patient_name: Some("WEB^DICOM".into()),
-        series_description: "L-SPINE bone".into(),
-        series_number: 2,
-        ..Default::default()
-    };
-    let s = write_ct_series(&vol, &meta).unwrap();
-    (
-        study,
-        s.series_uid,
-        s.files.into_iter().map(|(_, b)| b).collect(),
-    )
-}
-
-/// A STOW-RS body of `parts` (content type, bytes).
-fn multipart(parts: &[(&str, &[u8])]) -> Vec<u8> {
-    let mut b = Vec::new();
-    for (ct, data) in parts {
-        b.extend_from_slice(format!("--{BOUNDARY}\r\nContent-Type: {ct}\r\n\r\n").as_bytes());
-        b.extend_from_slice(data);
-        b.extend_from_slice(b"\r\n");
-    }
-    b.extend_from_slice(format!("--{BOUNDARY}--\r\n").as_bytes());
-    b
-}
-
-const STOW_TYPE: &str =
-    "multipart/related; type=\"application/dicom\"; boundary=ctrecon-test-boundary-7f3a";
-
-async fn stow(client: &reqwest::Client, url: String, body: Vec<u8>) -> (u16, Value) {
-    let r = client
-        .post(url)
-        .header("content-type", STOW_TYPE)
-        .header("accept", "application/dicom+json")
-        .body(body)
-        .send()
-        .await
-        .unwrap();
-    let status = r.status().as_u16();
-    (status, r.json().await.unwrap_or(Value::Null))
-}
-
-/// The values of `tag` in the items of sequence `seq` of a STOW-RS answer.
-fn seq_values(v: &Value, seq: &str, tag: &str) -> BTreeSet<String> {
-    v[seq]["Value"]
-        .as_array()
-        .map(|items| {
-            items
-                .iter()
-                .map(|i| match &i[tag]["Value"][0] {
-                    Value::String(s) => s.clone(),
-                    other => other.to_string(),
-                })
-                .collect()
-        })
-        .unwrap_or_default()
-}
-
-/// The parts of a multipart body: (headers, lower-case names; bytes).
-type Part = (Vec<(String, String)>, Vec<u8>);
-
-fn parts(content_type: &str, body: &[u8]) -> Vec<Part> {
-    let b = content_type
-        .split(';')
-        .find_map(|p| p.trim().strip_prefix("boundary="))
-        .expect("a boundary")
-        .trim_matches('"')
-        .to_string();
-    let delim = format!("--{b}");
-    let mut out = Vec::new();
-    let mut rest = body;
-    let find = |h: &[u8], n: &[u8]| h.windows(n.len()).position(|w| w == n);
-    let start = find(rest, delim.as_bytes()).expect("first delimiter");
-    rest = &rest[start + delim.len()..];
-    while !rest.starts_with(b"--") {
-        rest = &rest[2..]; // CRLF
-        let end = find(rest, b"\r\n\r\n").expect("end of headers");
-        let headers: Vec<(String, String)> = String::from_utf8_lossy(&rest[..end])
-            .split("\r\n")
-            .filter_map(|l| l.split_once(':'))
-            .map(|(k, v)| (k.trim().to_ascii_lowercase(), v.trim().to_string()))
-            .collect();
-        rest = &rest[end + 4..];
-        let next = find(rest, format!("\r\n{delim}").as_bytes()).expect("next delimiter");
-        out.push((headers, rest[..next].to_vec()));
-        rest = &rest[next + 2 + delim.len()..];
-    }
-    out
-}
-
-fn header<'a>(h: &'a [(String, String)], name: &str) -> Option<&'a str> {
-    h.iter().find(|(k, _)| k == name).map(|(_, v)| v.as_str())
-}
-
-/// The string or number value of `tag` in a DICOM JSON data set (or in the form Orthanc's DICOMweb client
-/// gives answers in: one value, not an array).
-fn value(d: &Value, tag: &str) -> Option<String> {
-    if let Value::String(s) = &d[tag]["Value"] {
-        return Some(s.clone());
-    }
-    match &d[tag]["Value"][0] {
-        Value::String(s) => Some(s.clone()),
-        Value::Number(n) => Some(n.to_string()),
-        Value::Object(o) => o
-            .get("Alphabetic")
-            .and_then(|a| a.as_str())
-            .map(str::to_string),
-        _ => None,
-    }
-}
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn orthanc_stows_a_series_finds_it_and_retrieves_the_derived_series_with_its_hu_values() {
@@ -470,6 +316,31 @@ async fn the_same_stow_qido_and_wado_requests_get_equivalent_answers_from_orthan
     .await;
     assert_eq!(limited.as_array().unwrap().len(), 2);
     assert_eq!(value(&limited[0], "00200013").as_deref(), Some("4"));
+    // Each QIDO-RS answer carries the RetrieveURL (0008,1190) of what it found, back at ctrecon, and each
+    // one retrieves it.
+    let study_url = format!("{}/dicom-web/studies/{study}", app.base);
+    let series_url = format!("{study_url}/series/{series}");
+    let found = get(app.url("/dicom-web/studies?PatientID=DW-2")).await;
+    assert_eq!(value(&found[0], "00081190"), Some(study_url.clone()));
+    let found = get(app.url(&format!("/dicom-web/studies/{study}/series"))).await;
+    assert_eq!(value(&found[0], "00081190"), Some(series_url.clone()));
+    let found = get(app.url(&format!(
+        "/dicom-web/studies/{study}/series/{series}/instances"
+    )))
+    .await;
+    for d in found.as_array().unwrap() {
+        let sop = value(d, "00080018").unwrap();
+        assert_eq!(
+            value(d, "00081190"),
+            Some(format!("{series_url}/instances/{sop}"))
+        );
+    }
+    let r = client
+        .get(value(&found[0], "00081190").unwrap())
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
 
     // WADO-RS: the same multipart structure and the same instances.
     let mut bodies = Vec::new();
@@ -494,6 +365,22 @@ async fn the_same_stow_qido_and_wado_requests_get_equivalent_answers_from_orthan
     }
     assert_eq!(bodies[0].len(), 6);
     assert_eq!(bodies[1].len(), 6);
+    // The study as a whole: the same six instances from both.
+    for root in &roots {
+        let r = client
+            .get(format!("{root}/studies/{study}"))
+            .header(
+                "accept",
+                "multipart/related; type=\"application/dicom\"; transfer-syntax=*",
+            )
+            .send()
+            .await
+            .unwrap();
+        assert_eq!(r.status(), 200, "{root}");
+        let ct = r.headers()["content-type"].to_str().unwrap().to_string();
+        let body = r.bytes().await.unwrap();
+        bodies.push(parts(&ct, &body));
+    }
     let sop = |p: &Part| {
         let obj =
             dicom_object::from_reader(std::io::Cursor::new(&p.1[128..])).expect("a DICOM part");
@@ -507,6 +394,42 @@ async fn the_same_stow_qido_and_wado_requests_get_equivalent_answers_from_orthan
     let sa: BTreeSet<String> = bodies[0].iter().map(sop).collect();
     let sb: BTreeSet<String> = bodies[1].iter().map(sop).collect();
     assert_eq!(sa, sb);
+    for study_parts in &bodies[2..] {
+        assert_eq!(study_parts.iter().map(sop).collect::<BTreeSet<_>>(), sa);
+    }
+    // The metadata of the study and of the series: the same six instances from both, and ctrecon names
+    // the resource in Content-Location.
+    for path in [
+        format!("/studies/{study}/metadata"),
+        format!("/studies/{study}/series/{series}/metadata"),
+    ] {
+        let mut sops = Vec::new();
+        for root in &roots {
+            let r = client
+                .get(format!("{root}{path}"))
+                .header("accept", "application/dicom+json")
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 200, "{root}{path}");
+            if root.starts_with(&app.base) {
+                assert_eq!(
+                    r.headers()["content-location"].to_str().unwrap(),
+                    format!("{}/dicom-web{path}", app.base)
+                );
+            }
+            let m: Value = r.json().await.unwrap();
+            sops.push(
+                m.as_array()
+                    .unwrap()
+                    .iter()
+                    .filter_map(|d| value(d, "00080018"))
+                    .collect::<BTreeSet<_>>(),
+            );
+        }
+        assert_eq!(sops[0], sa, "{path}");
+        assert_eq!(sops[1], sa, "{path}");
+    }
     for p in &bodies[1] {
         assert!(
             header(&p.0, "content-type")
@@ -705,7 +628,7 @@ async fn bad_input_gets_the_ps3_18_status_or_a_problem_and_nothing_partial_is_st
             .to_string()
     };
     let inst = format!("/dicom-web/studies/{study}/series/{series}/instances/{sop}");
-    problem(406, "not_acceptable")(get(format!("{inst}/rendered"), "image/jpeg").await.unwrap())
+    problem(406, "not_acceptable")(get(format!("{inst}/rendered"), "image/gif").await.unwrap())
         .await;
     problem(406, "not_acceptable")(
         get(
@@ -846,4 +769,106 @@ async fn an_instance_stored_in_implicit_vr_is_sent_as_stored_or_re_encoded_in_ex
     let (ts, re_encoded) = pixels(&got[1].1);
     assert_eq!(ts, EXPLICIT_LE);
     assert_eq!(re_encoded, pixels(&files[1]).1, "the same pixel data");
+}
+
+/// The fenced blocks of README.md with info string `lang`.
+fn readme_blocks(lang: &str) -> Vec<String> {
+    let text =
+        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md"))
+            .unwrap();
+    let mut out = Vec::new();
+    let mut open: Option<(String, String)> = None;
+    for line in text.lines() {
+        if let Some(fence) = line.trim_start().strip_prefix("```") {
+            match open.take() {
+                None => open = Some((fence.trim().to_string(), String::new())),
+                Some((l, t)) if l == lang => out.push(t),
+                Some(_) => {}
+            }
+        } else if let Some((_, t)) = open.as_mut() {
+            t.push_str(line);
+            t.push('\n');
+        }
+    }
+    out
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_readme_orthanc_dicomweb_client_example_runs_as_written() {
+    if !orthanc_dicomweb_present() {
+        return;
+    }
+    let root = std::path::Path::new(env!("CARGO_MANIFEST_DIR"));
+    if !root.join(".testdata/lidc/1-010.dcm").is_file() {
+        assert!(
+            std::env::var("CTRECON_REQUIRE_TEST_DATA").as_deref() != Ok("1"),
+            ".testdata/lidc is missing and CTRECON_REQUIRE_TEST_DATA=1"
+        );
+        eprintln!("skipped: .testdata/lidc is missing");
+        return;
+    }
+    let have = |t: &str| {
+        std::process::Command::new(t)
+            .arg("--version")
+            .output()
+            .is_ok()
+    };
+    if !(have("curl") && have("jq")) {
+        eprintln!("skipped: the README's Orthanc example needs curl and jq");
+        return;
+    }
+    let scripts = readme_blocks("sh dicomweb-orthanc");
+    assert_eq!(scripts.len(), 1, "one script");
+    // ctrecon as the README shows it (no token); Orthanc with the README's server entry for it.
+    let app = common::spawn_app_with(|s| {
+        s.dicom.stable_age_secs = 1;
+        s.max_upload_bytes = 64 << 20;
+    })
+    .await;
+    let o = Orthanc::start(OrthancOptions {
+        dicomweb: Some((format!("{}/dicom-web/", app.base), Some("<token>".into()))),
+        ..Default::default()
+    })
+    .await;
+    let script = format!(
+        "set -euo pipefail\ncurl() {{ command curl --fail-with-body \"$@\"; }}\n{}",
+        scripts[0]
+            .replace("localhost:8080", app.base.trim_start_matches("http://"))
+            .replace("localhost:8042", &format!("127.0.0.1:{}", o.http_port))
+    );
+    let dir = root.to_path_buf();
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new("timeout")
+            .args(["120", "bash", "-c"])
+            .arg(&script)
+            .current_dir(dir)
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).to_string();
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let expected: Vec<&str> = scripts[0]
+        .lines()
+        .filter_map(|l| {
+            l.trim()
+                .strip_prefix("# {")
+                .map(|_| l.trim().trim_start_matches("# "))
+        })
+        .collect();
+    let printed: Vec<&str> = stdout.lines().filter(|l| l.starts_with('{')).collect();
+    assert_eq!(printed, expected, "{stdout}");
+    // ctrecon holds the slice Orthanc pushed, as it was sent.
+    let found: Value = app
+        .get("/dicom-web/instances?PatientID=LIDC-IDRI-0001")
+        .await
+        .json()
+        .await
+        .unwrap();
+    assert_eq!(found.as_array().unwrap().len(), 1, "{found}");
 }

@@ -563,3 +563,166 @@ async fn qido_finds_an_http_upload_and_a_jobs_derived_ct_sc_and_stl_results_with
     assert_eq!(left.len(), 12, "{left:?}");
     assert!(!app.dir.path().join("results").join(&job_id).exists());
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_web_peer_with_a_bearer_token_stows_into_a_ctrecon_that_checks_it_and_peers_hide_it() {
+    const TOKEN: &str = "bearer-test-token-5f0c9a";
+    // The target: another ctrecon that takes only this token on every route, /dicom-web included.
+    let target = spawn_app_with(|s| {
+        s.api_tokens = vec![TOKEN.to_string()];
+        s.max_upload_bytes = 64 << 20;
+    })
+    .await;
+    let bearer = |name: &str, token: &str| WebPeer {
+        bearer_token: Some(token.into()),
+        ..web_peer(name, target.url("/dicom-web"), None)
+    };
+    let app = ctrecon(
+        vec![
+            bearer("TARGET", TOKEN),
+            bearer("TARGET-WRONG", "not-the-token"),
+        ],
+        |_| {},
+    )
+    .await;
+    // /v1/peers lists the web peers with their kind and which credentials they use, never the tokens.
+    let peers = app.get("/v1/peers").await;
+    assert_eq!(peers.status(), 200);
+    let listed = peers.text().await.unwrap();
+    assert!(
+        !listed.contains(TOKEN) && !listed.contains("not-the-token"),
+        "{listed}"
+    );
+    let peers: Value = serde_json::from_str(&listed).unwrap();
+    let web = peers["web_peers"].as_array().unwrap();
+    assert_eq!(web.len(), 2, "{peers}");
+    assert_eq!(web[0]["kind"], "dicomweb");
+    assert_eq!(web[0]["name"], "TARGET");
+    assert_eq!(web[0]["url"], target.url("/dicom-web").as_str());
+    assert_eq!(web[0]["auth"], "bearer");
+    post_rule(
+        &app,
+        json!({"name": "bearer", "send_volume": true, "destinations": ["TARGET", "TARGET-WRONG"],
+               "job": {"products": [{"type": "projection", "axis": "axial"}]}}),
+    )
+    .await;
+    let dir = tempfile::tempdir().unwrap();
+    let (study, files) = synthetic(dir.path(), 6);
+    upload(&app, &files).await;
+    let list = until(&app, "/v1/deliveries?rule=bearer", 180, |v| {
+        let d = v["deliveries"].as_array().cloned().unwrap_or_default();
+        d.len() == 2
+            && d.iter()
+                .all(|d| d["state"] == "succeeded" || d["state"] == "failed")
+    })
+    .await;
+    let mut by_dest = BTreeMap::new();
+    for d in list["deliveries"].as_array().unwrap() {
+        let id = d["id"].as_str().unwrap();
+        let full = json_of(app.get(&format!("/v1/deliveries/{id}")).await).await;
+        by_dest.insert(d["destination"].as_str().unwrap().to_string(), full);
+    }
+    // With the token: every instance stored (the volume's six derived CT slices and the MIP).
+    let ok = &by_dest["TARGET"];
+    assert_eq!(ok["state"], "succeeded", "{ok}");
+    assert_eq!(
+        count_by(ok, "sop_class_uid"),
+        BTreeMap::from([(CT.into(), 6), (SC.into(), 1)]),
+        "{ok}"
+    );
+    // With a wrong token: refused by the target, 401 on every instance, nothing stored from it.
+    let wrong = &by_dest["TARGET-WRONG"];
+    assert_eq!(wrong["state"], "failed", "{wrong}");
+    for i in wrong["instances"].as_array().unwrap() {
+        assert_eq!(i["state"], "failed", "{wrong}");
+        assert!(
+            i["detail"].as_str().unwrap_or("").contains("401"),
+            "{wrong}"
+        );
+    }
+    // The target holds exactly the instances sent, in the source's study, each found by QIDO-RS with the
+    // token; a derived slice has the job's HU values.
+    let target_client = reqwest::Client::new();
+    let found: Value = target_client
+        .get(target.url(&format!(
+            "/dicom-web/studies/{study}/instances?includefield=00200013"
+        )))
+        .bearer_auth(TOKEN)
+        .send()
+        .await
+        .unwrap()
+        .json()
+        .await
+        .unwrap();
+    let sent: BTreeSet<String> = ok["instances"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| i["sop_instance_uid"].as_str().unwrap().to_string())
+        .collect();
+    let there: BTreeSet<String> = found
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|i| text(i, "00080018"))
+        .collect();
+    assert_eq!(there, sent);
+    let ct = found
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|i| text(i, "00080016") == CT && text(i, "00200013") == "3")
+        .expect("derived slice 3");
+    let r = target_client
+        .get(text(ct, "00081190"))
+        .bearer_auth(TOKEN)
+        .header(
+            "accept",
+            "multipart/related; type=\"application/dicom\"; transfer-syntax=*",
+        )
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 200);
+    let ct_type = r.headers()["content-type"].to_str().unwrap().to_string();
+    let body = r.bytes().await.unwrap();
+    let boundary = ct_type.split("boundary=").nth(1).unwrap().trim_matches('"');
+    let start = body.windows(4).position(|w| w == b"\r\n\r\n").unwrap() + 4;
+    let end = body
+        .windows(boundary.len() + 4)
+        .rposition(|w| w == format!("\r\n--{boundary}").as_bytes())
+        .unwrap();
+    let inst = ctrecon::dicom::read_bytes(
+        "slice 3",
+        &body[start..end],
+        &ctrecon::dicom::ReadLimits::default(),
+    )
+    .unwrap();
+    let s = &inst.slices[0];
+    let job_id = ok["job_id"].as_str().unwrap();
+    let npy = app
+        .get(&format!("/v1/jobs/{job_id}/result/volume.npy"))
+        .await
+        .bytes()
+        .await
+        .unwrap();
+    let vol = decode_f32(&npy).unwrap();
+    let slice = vol.index_axis(ndarray::Axis(0), 2);
+    let worst = slice
+        .iter()
+        .zip(&s.stored)
+        .map(|(&v, &st)| (v as f64 - (st as f64 * s.rescale_slope + s.rescale_intercept)).abs())
+        .fold(0.0f64, f64::max);
+    assert!(
+        worst <= s.rescale_slope / 2.0 + 1e-3,
+        "largest difference {worst} HU, step {}",
+        s.rescale_slope
+    );
+    // Without the token the target answers nothing.
+    let r = target_client
+        .get(target.url(&format!("/dicom-web/studies/{study}/instances")))
+        .send()
+        .await
+        .unwrap();
+    assert_eq!(r.status(), 401);
+}

@@ -560,3 +560,156 @@ async fn a_series_stored_into_the_service_becomes_a_series_of_the_api() {
     }
     assert!(files_in(&app.dir.path().join("dimse/complete")).is_empty());
 }
+
+/// Read from `stream` until the node ends the connection (at most 10 s, which bounds a hang): the bytes it
+/// sent and how long it took. A reset counts as the end.
+async fn until_closed(stream: &mut tokio::net::TcpStream) -> (Vec<u8>, Duration) {
+    use tokio::io::AsyncReadExt;
+    let t0 = std::time::Instant::now();
+    let mut got = Vec::new();
+    let mut buf = [0u8; 4096];
+    loop {
+        match tokio::time::timeout(Duration::from_secs(10), stream.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => return (got, t0.elapsed()),
+            Ok(Ok(n)) => got.extend_from_slice(&buf[..n]),
+            Err(_) => panic!("the node kept the connection open for 10 s; it sent {got:?}"),
+        }
+    }
+}
+
+/// What a node that answered a bad input with an A-ABORT (PDU type 07), an A-ASSOCIATE-RJ (03, before an
+/// association) or by closing sent.
+fn aborted_or_closed(got: &[u8]) -> bool {
+    got.is_empty() || got[0] == 0x07 || got[0] == 0x03
+}
+
+/// The node is still up (C-ECHO succeeds) and kept nothing of what it refused.
+async fn still_up_and_nothing_kept(node: &DicomNode, dir: &Path) {
+    let echo = echoscu(node, "TESTSCU", "CTRECON").await;
+    assert!(echo.status.success(), "{}", text(&echo));
+    assert!(files_in(&dir.join("dimse/tmp")).is_empty());
+    assert!(files_in(&dir.join("dimse/incoming")).is_empty());
+    assert!(node.arriving().is_empty());
+}
+
+#[tokio::test]
+async fn malformed_pdus_are_aborted_and_the_node_stays_up_with_nothing_kept() {
+    use tokio::io::AsyncWriteExt;
+    if !dcmtk_present() {
+        return;
+    }
+    let (node, dir) = start_node(|_| {}).await;
+    // Not DICOM at all, an unknown PDU type, and an A-ASSOCIATE-RQ whose items overrun it.
+    let mut rq = vec![0x01, 0x00, 0x00, 0x00, 0x00, 0x10, 0x00, 0x01, 0x00, 0x00];
+    rq.extend_from_slice(&[0x10, 0x00, 0x7F, 0xFF, b'1', b'.', b'2', 0, 0, 0, 0, 0]);
+    for garbage in [
+        b"GET / HTTP/1.1\r\nHost: ctrecon\r\n\r\n".to_vec(),
+        vec![0x42, 0x00, 0x00, 0x00, 0x00, 0x04, 1, 2, 3, 4],
+        rq,
+    ] {
+        let mut s = tokio::net::TcpStream::connect(node.local_addr())
+            .await
+            .unwrap();
+        s.write_all(&garbage).await.unwrap();
+        let (got, _) = until_closed(&mut s).await;
+        assert!(aborted_or_closed(&got), "{garbage:?} answered with {got:?}");
+    }
+    // Inside an association: a P-DATA-TF whose value item claims more bytes than the PDU holds.
+    let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
+    let stream = assoc.inner_stream();
+    stream
+        .write_all(&[
+            0x04, 0x00, 0x00, 0x00, 0x00, 0x0A, 0x00, 0x00, 0x03, 0xE8, 0x01, 0x03, 0, 0, 0, 0,
+        ])
+        .await
+        .unwrap();
+    let (got, _) = until_closed(stream).await;
+    assert!(aborted_or_closed(&got), "{got:?}");
+    still_up_and_nothing_kept(&node, dir.path()).await;
+}
+
+#[tokio::test]
+async fn a_caller_that_falls_silent_is_dropped_after_the_association_or_dimse_timeout() {
+    if !dcmtk_present() {
+        return;
+    }
+    let (node, dir) = start_node(|s| {
+        s.association_timeout_secs = 1;
+        s.dimse_timeout_secs = 2;
+    })
+    .await;
+    // Connected, and not a byte of A-ASSOCIATE-RQ: closed after the association timeout.
+    let mut s = tokio::net::TcpStream::connect(node.local_addr())
+        .await
+        .unwrap();
+    let (got, took) = until_closed(&mut s).await;
+    assert!(aborted_or_closed(&got), "{got:?}");
+    assert!(
+        took >= Duration::from_millis(900) && took < Duration::from_secs(5),
+        "closed after {took:?}"
+    );
+    // Associated, then silent: an A-ABORT after the DIMSE timeout.
+    let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
+    let (got, took) = until_closed(assoc.inner_stream()).await;
+    assert_eq!(got.first(), Some(&0x07), "an A-ABORT: {got:?}");
+    assert!(
+        took >= Duration::from_millis(1900) && took < Duration::from_secs(6),
+        "aborted after {took:?}"
+    );
+    // Silent halfway through an instance: the same, and nothing of the instance is kept.
+    let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
+    let src = tempfile::tempdir().unwrap();
+    let (_, files) = synthetic_series(src.path(), 1);
+    let p10 = read_part10(&files[0]).unwrap();
+    let cmd = command::store_request(1, CT, &p10.sop_instance_uid, None);
+    let pc = assoc.presentation_contexts()[0].id;
+    assoc
+        .send(&Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: pc,
+                value_type: PDataValueType::Command,
+                is_last: true,
+                data: cmd,
+            }],
+        })
+        .await
+        .unwrap();
+    let data = std::fs::read(&files[0]).unwrap();
+    assoc
+        .send(&Pdu::PData {
+            data: vec![PDataValue {
+                presentation_context_id: pc,
+                value_type: PDataValueType::Data,
+                is_last: false,
+                data: data[p10.dataset_offset as usize..][..400].to_vec(),
+            }],
+        })
+        .await
+        .unwrap();
+    let (got, _) = until_closed(assoc.inner_stream()).await;
+    assert_eq!(got.first(), Some(&0x07), "an A-ABORT: {got:?}");
+    still_up_and_nothing_kept(&node, dir.path()).await;
+}
+
+#[tokio::test]
+async fn a_pdu_over_the_maximum_length_is_aborted_and_nothing_is_kept() {
+    use tokio::io::AsyncWriteExt;
+    if !dcmtk_present() {
+        return;
+    }
+    let (node, dir) = start_node(|s| s.max_pdu_length = 16_384).await;
+    let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
+    // A P-DATA-TF of 100 000 bytes against a maximum of 16 384: refused from its header.
+    let len: u32 = 100_000;
+    let mut pdu = vec![0x04, 0x00];
+    pdu.extend_from_slice(&len.to_be_bytes());
+    pdu.extend_from_slice(&(len - 4).to_be_bytes());
+    pdu.extend_from_slice(&[1, 0x02]);
+    pdu.resize(6 + len as usize, 0);
+    let stream = assoc.inner_stream();
+    // The node may close before it has read the rest: a failed write is part of the answer.
+    let _ = stream.write_all(&pdu).await;
+    let (got, _) = until_closed(stream).await;
+    assert!(aborted_or_closed(&got), "{got:?}");
+    still_up_and_nothing_kept(&node, dir.path()).await;
+}

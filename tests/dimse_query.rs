@@ -695,7 +695,29 @@ async fn a_derived_result_is_found_next_to_its_source_and_the_index_outlives_its
     if !dcmtk_present() {
         return;
     }
-    let (app, port) = spawn(vec![peer("TESTSCU", 1, true, true)], 1).await;
+    let out_dir = tempfile::tempdir().unwrap();
+    let dest_port = free_port();
+    let _storescp = Running(
+        std::process::Command::new("storescp")
+            .args(args(&[
+                "--aetitle",
+                "DEST",
+                "--output-directory",
+                &out_dir.path().to_string_lossy(),
+                &dest_port.to_string(),
+            ]))
+            .env("TCP_NODELAY", "1")
+            .spawn()
+            .unwrap(),
+    );
+    let (app, port) = spawn(
+        vec![
+            peer("TESTSCU", 1, true, true),
+            peer("DEST", dest_port, false, false),
+        ],
+        1,
+    )
+    .await;
     let src = tempfile::tempdir().unwrap();
     let a = write_study(
         &src.path().join("a"),
@@ -752,6 +774,52 @@ async fn a_derived_result_is_found_next_to_its_source_and_the_index_outlives_its
         "one derived slice per source slice"
     );
     assert_ne!(found[1][&SERIES_UID], a.series_uid);
+    // movescu retrieves the derived series into storescp: its five slices, each with the job's HU values
+    // (within half a quantisation step).
+    let derived_uid = found[1][&SERIES_UID].clone();
+    let out = movescu(
+        port,
+        "TESTSCU",
+        "DEST",
+        &[
+            "QueryRetrieveLevel=SERIES",
+            &format!("StudyInstanceUID={}", a.study_uid),
+            &format!("SeriesInstanceUID={derived_uid}"),
+        ],
+    )
+    .await;
+    assert!(out.status.success(), "{}", text(&out));
+    let moved = files_in(out_dir.path());
+    assert_eq!(moved.len(), 5, "{}", text(&out));
+    let npy = app
+        .get(&format!("/v1/jobs/{id}/result/volume.npy"))
+        .await
+        .bytes()
+        .await
+        .unwrap();
+    let vol = ctrecon::storage::npy::decode_f32(&npy).unwrap();
+    let mut numbers = BTreeSet::new();
+    for f in &moved {
+        let i = read_path(f, &ReadLimits::default()).unwrap();
+        assert_eq!(i.series_uid, derived_uid);
+        assert_eq!(i.study_uid.as_deref(), Some(a.study_uid.as_str()));
+        let k = i.instance_number.unwrap() as usize - 1;
+        numbers.insert(k);
+        let s = &i.slices[0];
+        let want = vol.index_axis(ndarray::Axis(0), k);
+        assert_eq!(want.len(), s.stored.len());
+        let worst = want
+            .iter()
+            .zip(&s.stored)
+            .map(|(&v, &st)| (v as f64 - (st as f64 * s.rescale_slope + s.rescale_intercept)).abs())
+            .fold(0.0f64, f64::max);
+        assert!(
+            worst <= s.rescale_slope / 2.0 + 1e-3,
+            "slice {k}: largest difference {worst} HU, step {}",
+            s.rescale_slope
+        );
+    }
+    assert_eq!(numbers, (0..5).collect::<BTreeSet<_>>());
     // Study-level attributes come from the instances that have them (the derived ones carry no date).
     let (_, studies) = findscu(
         port,

@@ -704,6 +704,87 @@ async fn the_same_series_arriving_twice_runs_once_and_changed_content_runs_again
     assert_ne!(r[0]["job_id"], r[1]["job_id"]);
 }
 
+/// Set Body Part Examined (0018,0015) of every file.
+fn set_body_part(files: &[PathBuf], part: &str) {
+    for f in files {
+        let mut obj = dicom_object::open_file(f).unwrap();
+        obj.put(dicom_core::DataElement::new(
+            dicom_dictionary_std::tags::BODY_PART_EXAMINED,
+            dicom_core::VR::CS,
+            dicom_core::PrimitiveValue::from(part),
+        ));
+        obj.write_to_file(f).unwrap();
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_rule_matches_on_body_part_and_its_job_names_the_rule_and_its_deliveries() {
+    // ORTHANC is a peer that is down: the delivery is made and waits for it.
+    let app = ctrecon(free_port(), |_| {}).await;
+    post_rule(
+        &app,
+        json!({"name": "lumbar", "match": {"body_part": "L*SPINE"}, "destinations": ["ORTHANC"],
+               "job": {"products": [{"type": "projection"}]}}),
+    )
+    .await;
+    let dir = tempfile::tempdir().unwrap();
+    let chest = synthetic(&dir.path().join("chest"), 6, 0.0, None);
+    set_body_part(&chest.files, "CHEST");
+    let spine = synthetic(&dir.path().join("spine"), 6, 0.0, None);
+    set_body_part(&spine.files, "LSPINE");
+    let bare = synthetic(&dir.path().join("bare"), 6, 0.0, None);
+    for s in [&chest, &spine, &bare] {
+        upload(&app, &s.files).await;
+    }
+    // Only the series whose Body Part Examined matches ran the rule.
+    let rule = json_of(app.get("/v1/rules/lumbar").await).await;
+    let runs = rule["runs"].as_array().unwrap();
+    assert_eq!(runs.len(), 1, "{rule}");
+    assert_eq!(runs[0]["series_uid"], spine.series_uid.as_str());
+    let job_id = runs[0]["job_id"].as_str().unwrap().to_string();
+    // Its job names the rule, the source series and, once it succeeded, its delivery.
+    let job = until(&app, &format!("/v1/jobs/{job_id}"), 120, |j| {
+        j["deliveries"].as_array().is_some_and(|d| !d.is_empty())
+    })
+    .await;
+    assert_eq!(job["status"], "succeeded", "{job}");
+    assert_eq!(job["rule"]["name"], "lumbar", "{job}");
+    assert_eq!(job["rule"]["run_id"], runs[0]["id"]);
+    assert_eq!(job["rule"]["series_uid"], spine.series_uid.as_str());
+    assert_eq!(job["rule"]["series_id"], runs[0]["series_id"]);
+    assert_eq!(job["links"]["rule"], "/v1/rules/lumbar");
+    assert_eq!(
+        job["links"]["source_series"],
+        format!("/v1/series/{}", runs[0]["series_id"].as_str().unwrap()).as_str()
+    );
+    assert_eq!(
+        job["links"]["deliveries"],
+        format!("/v1/deliveries?job_id={job_id}").as_str()
+    );
+    let d = &job["deliveries"].as_array().unwrap()[0];
+    assert_eq!(d["destination"], "ORTHANC");
+    let delivery = json_of(app.get(d["links"]["self"].as_str().unwrap()).await).await;
+    assert_eq!(delivery["job_id"], job_id.as_str());
+    assert_eq!(delivery["rule"], "lumbar");
+    let listed = json_of(app.get(job["links"]["deliveries"].as_str().unwrap()).await).await;
+    assert_eq!(listed["deliveries"][0]["id"], d["id"]);
+    // A job no rule made names neither.
+    let source = json_of(
+        app.get(job["links"]["source_series"].as_str().unwrap())
+            .await,
+    )
+    .await;
+    assert_eq!(source["series_uid"], spine.series_uid.as_str());
+    let plain = app
+        .submit(&json!({"kind": "volume", "input": source["id"]}))
+        .await;
+    let plain = app.job(plain["id"].as_str().unwrap()).await;
+    assert!(
+        plain.get("rule").is_none() && plain.get("deliveries").is_none(),
+        "{plain}"
+    );
+}
+
 async fn problem(r: reqwest::Response, status: u16, code: &str) {
     assert_eq!(r.status(), status);
     assert_eq!(r.headers()["content-type"], "application/problem+json");

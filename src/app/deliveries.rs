@@ -136,19 +136,6 @@ pub fn delivery_view(d: &Delivery, with_instances: bool) -> Value {
     v
 }
 
-/// The JSON view of a configured peer.
-pub fn peer_view(p: &Peer) -> Value {
-    json!({
-        "ae_title": p.ae_title,
-        "host": p.host,
-        "port": p.port,
-        "store": p.store,
-        "query": p.query,
-        "retrieve": p.retrieve,
-        "links": {"echo": format!("/v1/peers/{}/echo", p.ae_title)},
-    })
-}
-
 fn delivery_not_found(id: &str) -> AppError {
     refused(
         ErrorCode::DeliveryNotFound,

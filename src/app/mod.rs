@@ -5,6 +5,7 @@
 //! It imports no web framework: answers are domain values or an [`AppError`], which each front door maps
 //! to its own wire form (the HTTP layer to problem+json, in one place).
 
+pub mod arrivals;
 pub mod deliveries;
 pub mod dicomweb;
 pub mod error;
@@ -15,12 +16,14 @@ pub mod jobs;
 pub mod limits;
 pub mod local;
 pub mod matching;
+pub mod peers;
 pub mod protocols;
 pub mod query;
 pub mod rules;
 pub mod series;
 pub mod stow;
 pub mod stow_client;
+pub mod stow_series;
 pub mod uploads;
 pub mod wado;
 
@@ -67,6 +70,8 @@ pub struct App {
     pub feed: feed::Feed,
     retention: Retention,
     outbound: deliveries::Outbound,
+    /// Series arriving by STOW-RS, assembled once stable.
+    stow_series: std::sync::Arc<stow_series::StowSeries>,
 }
 
 impl App {
@@ -130,6 +135,7 @@ impl App {
             },
         )
         .await?;
+        let stable_age = settings.dicom.stable_age();
         let feed = feed::Feed::new();
         feed.spawn_forwarder(engine.subscribe());
         feed.spawn_remote_forwarder(engine.subscribe_remote());
@@ -141,6 +147,7 @@ impl App {
             feed,
             retention,
             outbound: deliveries::Outbound::default(),
+            stow_series: stow_series::StowSeries::new(stable_age),
         };
         // The instance index lives in SQLite only (see `Database::node_tables`).
         if app.db.sqlite().is_some() {

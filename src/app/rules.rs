@@ -8,12 +8,13 @@ use super::error::{AppError, AppResult, refused};
 use super::{App, OpenError};
 use crate::config::ConfigError;
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::deliveries::{NewRun, RuleRun, RunState};
+use crate::jobs::deliveries::{Delivery, DeliveryFilter, NewRun, RuleRun, RunState};
 use crate::jobs::ingest::Ingested;
 use crate::jobs::model::rfc3339;
 use crate::jobs::rules::{
     RuleProblem, RuleSource, RuleSpec, SeriesFacts, StoredRule, content_hash,
 };
+use crate::storage::JobId;
 
 fn rule_problem(p: RuleProblem) -> AppError {
     match p {
@@ -75,7 +76,57 @@ pub fn run_view(r: &RuleRun, deliveries: &[String]) -> Value {
     v
 }
 
+/// The parts of a job's view that say what made it and where its results went: `rule` (the rule run that
+/// made it, with its source series) and `deliveries` (each with its destination and state), and their links.
+pub fn job_origin_view(run: Option<&RuleRun>, deliveries: &[Delivery]) -> Value {
+    let mut v = json!({
+        "deliveries": deliveries
+            .iter()
+            .map(|d| json!({
+                "id": d.id,
+                "destination": d.destination,
+                "state": d.state,
+                "links": {"self": format!("/v1/deliveries/{}", d.id)},
+            }))
+            .collect::<Vec<_>>(),
+    });
+    if let Some(r) = run {
+        v["rule"] = json!({
+            "name": r.rule_name,
+            "run_id": r.id,
+            "state": r.state,
+            "series_id": r.series_id,
+            "series_uid": r.series_uid,
+            "links": {
+                "self": format!("/v1/rules/{}", r.rule_name),
+                "series": format!("/v1/series/{}", r.series_id),
+            },
+        });
+        if let Some(ae) = &r.calling_ae {
+            v["rule"]["calling_ae"] = json!(ae);
+        }
+    }
+    v
+}
+
 impl App {
+    /// The rule run that made job `id` and the job's deliveries (none of either for a job no rule made and
+    /// that was never sent; nothing on a PostgreSQL job database, which keeps no rules).
+    pub async fn job_origin(&self, id: JobId) -> AppResult<(Option<RuleRun>, Vec<Delivery>)> {
+        let Ok(db) = self.db.node_tables() else {
+            return Ok((None, Vec::new()));
+        };
+        let run = db.run_of_job(id).await?;
+        let deliveries = db
+            .list_deliveries(&DeliveryFilter {
+                job_id: Some(id),
+                limit: 200,
+                ..DeliveryFilter::default()
+            })
+            .await?;
+        Ok((run, deliveries))
+    }
+
     fn parse_rule(&self, body: Value) -> AppResult<RuleSpec> {
         let spec: RuleSpec = super::error::parse_body(body)?;
         spec.validate_at(|ae| self.settings.dicom.is_destination(ae))

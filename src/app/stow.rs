@@ -1,14 +1,21 @@
-//! STOW-RS (PS3.18 §10.5) as a front door of the same receive path as C-STORE: each part (already written to
-//! a temporary file by the front door, within its size limits) is checked like a C-STORE data set (its
-//! header read by the same reader, a storable SOP class, the study of the request's path), and the accepted
-//! ones are recorded through [`App::ingest_received_from`] and [`App::index_received`] — assembled into
-//! series, rules fired, instances indexed for QIDO-RS, WADO-RS, C-FIND and C-MOVE. A refused part is
-//! removed; nothing of it is kept.
+//! STOW-RS (PS3.18 §10.5) as a front door of the same instance index as C-STORE: each part (already written
+//! to a temporary file by the front door, within its size limits) is checked like a C-STORE data set (its
+//! header read by the same reader, valid UIDs, a storable SOP class, the study of the request's path); the
+//! accepted ones are kept under `instances/<upload>/` and indexed at once, so QIDO-RS, WADO-RS, C-FIND and
+//! C-MOVE find them as soon as the answer is sent. Their series are assembled, and the processing rules
+//! fired, once no instance of the series arrived for the stable age ([`super::stow_series`]): a series sent
+//! in several requests is assembled once, and the answer waits only for the instances to be stored. A
+//! refused part is removed; nothing of it is kept.
 
 use std::path::PathBuf;
 
+use serde_json::json;
+
+use super::instances::indexed;
 use super::{App, AppError, AppResult};
-use crate::dicom::{STORABLE_SOP_CLASSES, UploadFile, read_header};
+use crate::dicom::{STORABLE_SOP_CLASSES, read_header};
+use crate::jobs::repo::{IndexedInstance, NewInstance};
+use crate::storage::{InstanceId, InstanceOwner, UploadId};
 
 /// PS3.18 / PS3.4 failure reasons (0008,1197) a STOW-RS answer gives.
 pub mod reason {
@@ -56,9 +63,13 @@ impl StowOutcome {
     }
 }
 
+/// A part that passed the checks: its file and its index row.
+type Accepted = (usize, PathBuf, IndexedInstance);
+
 impl App {
     /// Store the parts of a STOW-RS request (to `study` when its path names one); one outcome per part, in
-    /// order.
+    /// order. The accepted instances are kept and indexed before this returns; their series are assembled
+    /// once stable.
     pub async fn stow(
         &self,
         parts: Vec<StowPart>,
@@ -76,82 +87,124 @@ impl App {
         let checked = tokio::task::spawn_blocking(move || {
             parts
                 .into_iter()
-                .map(|p| match p {
-                    StowPart::Refused { reason, why } => (StowOutcome::failed(reason, why), None),
-                    StowPart::File { path, bytes } => {
-                        let h = match read_header(&path, max) {
-                            Ok(h) => h,
-                            Err(e) => {
-                                return (
-                                    StowOutcome::failed(reason::CANNOT_UNDERSTAND, e.to_string()),
-                                    None,
-                                );
-                            }
-                        };
-                        let mut o = StowOutcome {
-                            sop_class_uid: Some(h.sop_class_uid.clone()),
-                            sop_instance_uid: Some(h.sop_instance_uid.clone()),
-                            study_uid: Some(h.study_uid.clone()),
-                            series_uid: Some(h.series_uid.clone()),
-                            failure: None,
-                            why: String::new(),
-                        };
-                        if !STORABLE_SOP_CLASSES.contains(&h.sop_class_uid.as_str()) {
-                            o.failure = Some(reason::SOP_CLASS_NOT_SUPPORTED);
-                            o.why = format!("SOP class {} is not stored here", h.sop_class_uid);
-                            return (o, None);
-                        }
-                        if let Some(s) = &study
-                            && *s != h.study_uid
-                        {
-                            o.failure = Some(reason::PROCESSING_FAILURE);
-                            o.why =
-                                format!("the instance belongs to study {}, not {s}", h.study_uid);
-                            return (o, None);
-                        }
-                        (o, Some((path, bytes)))
-                    }
-                })
+                .map(|p| check(p, study.as_deref(), max))
                 .collect::<Vec<_>>()
         })
         .await
         .map_err(|e| AppError::Storage(std::io::Error::other(e)))?;
-        let accepted: Vec<(usize, PathBuf, u64)> = checked
+        let accepted: Vec<Accepted> = checked
             .iter()
             .enumerate()
-            .filter_map(|(i, (_, f))| f.clone().map(|(p, b)| (i, p, b)))
+            .filter_map(|(k, (_, a))| a.clone().map(|(p, i)| (k, p, i)))
             .collect();
         let mut outcomes: Vec<StowOutcome> = checked.into_iter().map(|(o, _)| o).collect();
         if accepted.is_empty() {
             return Ok(outcomes);
         }
-        let bytes: u64 = accepted.iter().map(|(_, _, b)| b).sum();
-        // Each instance is named by its SOP Instance UID in the upload's report, as HTTP uploads name theirs.
-        let files: Vec<UploadFile> = accepted
-            .iter()
-            .map(|(i, p, _)| UploadFile {
-                label: outcomes[*i]
-                    .sop_instance_uid
-                    .clone()
-                    .unwrap_or_else(|| format!("part {}", i + 1)),
-                path: p.clone(),
-            })
-            .collect();
-        let paths: Vec<PathBuf> = accepted.iter().map(|(_, p, _)| p.clone()).collect();
-        match self.ingest_received_from(files, bytes, None).await {
-            Ok(r) => {
-                let records: Vec<_> = r.ingested.ready().cloned().collect();
-                self.index_received(r.upload_id, paths, &records).await?;
-                tracing::info!(upload_id = %r.upload_id, instances = accepted.len(), "STOW-RS instances stored");
+        if let Err(e) = self.keep_stowed(&accepted).await {
+            tracing::error!(error = %e, "STOW-RS instances could not be stored");
+            for (k, _, _) in &accepted {
+                outcomes[*k].failure = Some(reason::OUT_OF_RESOURCES);
+                outcomes[*k].why = "the instance could not be stored".into();
             }
-            Err(AppError::Refused(p)) => {
-                for (i, _, _) in &accepted {
-                    outcomes[*i].failure = Some(reason::CANNOT_UNDERSTAND);
-                    outcomes[*i].why = p.detail.clone();
-                }
-            }
-            Err(e) => return Err(e),
         }
         Ok(outcomes)
     }
+
+    /// Keep the accepted instances of one request under a new upload and index them as pending assembly:
+    /// files first, then rows (a row that a query answers always has its file); then their series start
+    /// ageing.
+    async fn keep_stowed(&self, accepted: &[Accepted]) -> AppResult<()> {
+        let upload = UploadId::generate();
+        let owner = InstanceOwner::Upload(upload);
+        let rows: Vec<NewInstance> = accepted
+            .iter()
+            .map(|(_, _, i)| NewInstance {
+                id: InstanceId::generate(),
+                series_id: None,
+                instance: i.clone(),
+            })
+            .collect();
+        let store = self.store.clone();
+        let moves: Vec<(PathBuf, PathBuf)> = accepted
+            .iter()
+            .zip(&rows)
+            .map(|((_, from, _), r)| (from.clone(), store.instance_path(owner, r.id)))
+            .collect();
+        tokio::task::spawn_blocking(move || -> std::io::Result<()> {
+            std::fs::create_dir_all(store.instance_dir(upload))?;
+            for (from, to) in moves {
+                std::fs::rename(from, to)?;
+            }
+            std::fs::File::open(store.instance_dir(upload))?.sync_all()
+        })
+        .await
+        .map_err(|e| AppError::Storage(std::io::Error::other(e)))??;
+        let bytes: u64 = accepted.iter().map(|(_, _, i)| i.bytes).sum();
+        let n = accepted.len() as u32;
+        let view = json!({"upload": {
+            "id": upload, "status": "completed", "instances": n, "bytes": bytes,
+            "received_by": "STOW-RS", "series": "assembled once stable",
+        }});
+        let recorded = async {
+            self.db
+                .insert_completed_upload(upload, n, bytes, &view, &[], None)
+                .await?;
+            self.db
+                .node_tables()?
+                .insert_pending_instances(owner, &rows)
+                .await
+        }
+        .await;
+        if let Err(e) = recorded {
+            let store = self.store.clone();
+            let _ = tokio::task::spawn_blocking(move || store.remove_instances(upload)).await;
+            return Err(e.into());
+        }
+        self.stowed(accepted.iter().map(|(_, _, i)| i));
+        tracing::info!(upload_id = %upload, instances = n, bytes, "STOW-RS instances stored and indexed");
+        Ok(())
+    }
+}
+
+/// Check one part: its header read (valid UIDs), a storable SOP class, the study of the path.
+fn check(
+    p: StowPart,
+    study: Option<&str>,
+    max: u64,
+) -> (StowOutcome, Option<(PathBuf, IndexedInstance)>) {
+    let (path, bytes) = match p {
+        StowPart::Refused { reason, why } => return (StowOutcome::failed(reason, why), None),
+        StowPart::File { path, bytes } => (path, bytes),
+    };
+    let h = match read_header(&path, max) {
+        Ok(h) => h,
+        Err(e) => {
+            return (
+                StowOutcome::failed(reason::CANNOT_UNDERSTAND, e.to_string()),
+                None,
+            );
+        }
+    };
+    let mut o = StowOutcome {
+        sop_class_uid: Some(h.sop_class_uid.clone()),
+        sop_instance_uid: Some(h.sop_instance_uid.clone()),
+        study_uid: Some(h.study_uid.clone()),
+        series_uid: Some(h.series_uid.clone()),
+        failure: None,
+        why: String::new(),
+    };
+    if !STORABLE_SOP_CLASSES.contains(&h.sop_class_uid.as_str()) {
+        o.failure = Some(reason::SOP_CLASS_NOT_SUPPORTED);
+        o.why = format!("SOP class {} is not stored here", h.sop_class_uid);
+        return (o, None);
+    }
+    if let Some(s) = study
+        && s != h.study_uid
+    {
+        o.failure = Some(reason::PROCESSING_FAILURE);
+        o.why = format!("the instance belongs to study {}, not {s}", h.study_uid);
+        return (o, None);
+    }
+    (o, Some((path, indexed(&h, bytes))))
 }

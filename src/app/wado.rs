@@ -1,7 +1,7 @@
-//! What WADO-RS sends of a stored instance beside its file as it is: the file re-encoded in explicit VR little
-//! endian when the retrieval's transfer syntax asks for it, its attributes in the DICOM JSON model
-//! (`/metadata`), and a frame rendered to PNG through a window (`/rendered`). Decoding and encoding run on
-//! the engine's pool, never on the async threads.
+//! What WADO-RS sends of a stored instance beside its file as it is: the file in explicit VR little endian
+//! (compressed pixel data decoded) unless the retrieval asks for the stored syntax, its attributes in the
+//! DICOM JSON model (`/metadata`), and a frame rendered to PNG or JPEG through a window, fitted to a
+//! viewport (`/rendered`). Decoding and encoding run on the engine's pool, never on the async threads.
 
 use ndarray::Array2;
 use serde_json::Value;
@@ -14,7 +14,7 @@ use crate::dicom::{
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::repo::StoredInstance;
 use crate::jobs::views::volume_problem;
-use crate::volume::{BitDepth, Window, encode_png};
+use crate::volume::{BitDepth, Window, encode_jpeg, encode_png, fit_viewport};
 
 /// A window asked for by `window=center,width,function` (PS3.18 §8.3.5.1.3): only `linear` is offered.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -44,14 +44,89 @@ impl RenderWindow {
     }
 }
 
+/// The media type of a rendered frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RenderedMedia {
+    /// `image/png`, 8-bit greyscale.
+    Png,
+    /// `image/jpeg`, 8-bit greyscale baseline, at `quality` 1–100.
+    Jpeg { quality: u8 },
+}
+
+/// The quality of a rendered JPEG when the request names none.
+pub const DEFAULT_JPEG_QUALITY: u8 = 90;
+
+impl RenderedMedia {
+    pub fn content_type(self) -> &'static str {
+        match self {
+            RenderedMedia::Png => "image/png",
+            RenderedMedia::Jpeg { .. } => "image/jpeg",
+        }
+    }
+}
+
+/// Parse `quality` (PS3.18 §8.3.5.1.2): an integer from 1 to 100.
+pub fn parse_quality(s: &str) -> Result<u8, Problem> {
+    s.trim()
+        .parse::<u8>()
+        .ok()
+        .filter(|q| (1..=100).contains(q))
+        .ok_or_else(|| {
+            Problem::new(
+                ErrorCode::InvalidQuery,
+                "quality is an integer from 1 to 100",
+            )
+        })
+}
+
+/// The viewport of a rendering (PS3.18 §8.3.5.1.4): `vw,vh`, the picture scaled to fit it with its aspect
+/// ratio kept. The source-region form (`vw,vh,sx,sy,sw,sh`) is not offered.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Viewport {
+    pub columns: usize,
+    pub rows: usize,
+}
+
+impl Viewport {
+    pub fn parse(s: &str) -> Result<Viewport, Problem> {
+        let bad = |d: &str| Problem::new(ErrorCode::InvalidQuery, d.to_string());
+        let parts: Vec<&str> = s.split(',').map(str::trim).collect();
+        if parts.len() != 2 {
+            return Err(bad(
+                "viewport is vw,vh (the source-region form vw,vh,sx,sy,sw,sh is not offered)",
+            ));
+        }
+        let side = |v: &str| {
+            v.parse::<usize>()
+                .ok()
+                .filter(|n| (1..=crate::volume::MAX_VIEWPORT_SIDE).contains(n))
+        };
+        match (side(parts[0]), side(parts[1])) {
+            (Some(columns), Some(rows)) => Ok(Viewport { columns, rows }),
+            _ => Err(bad(&format!(
+                "viewport width and height are integers from 1 to {}",
+                crate::volume::MAX_VIEWPORT_SIDE
+            ))),
+        }
+    }
+}
+
+/// How a frame is rendered: media type, window and viewport.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Rendering {
+    pub media: RenderedMedia,
+    /// `None`: a window spanning the frame's values.
+    pub window: Option<RenderWindow>,
+    pub viewport: Option<Viewport>,
+}
+
 /// The transfer syntax each instance of a retrieval is sent in.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum RetrieveSyntax {
-    /// As stored, except implicit VR little endian, re-encoded in explicit VR little endian (no parameter).
-    Default,
     /// As stored (`transfer-syntax=*`).
     Stored,
-    /// Explicit VR little endian, or refused.
+    /// Explicit VR little endian, compressed pixel data decoded (`transfer-syntax=1.2.840.10008.1.2.1`, and
+    /// the PS3.18 default of `application/dicom` when no syntax is named).
     ExplicitLe,
 }
 
@@ -60,13 +135,12 @@ impl RetrieveSyntax {
     fn transcodes(self, ts: &str) -> bool {
         match self {
             RetrieveSyntax::Stored => false,
-            RetrieveSyntax::Default => transcodable_to_explicit_le(ts) && ts != EXPLICIT_LE,
             RetrieveSyntax::ExplicitLe => ts != EXPLICIT_LE,
         }
     }
 
     /// Refuse (`not_acceptable`) a retrieval in explicit VR little endian of instances stored in a syntax
-    /// that is not re-encoded (compressed ones), naming the first.
+    /// the reader does not decode, naming the first.
     pub fn check(self, instances: &[StoredInstance]) -> Result<(), Problem> {
         if self != RetrieveSyntax::ExplicitLe {
             return Ok(());
@@ -78,7 +152,7 @@ impl RetrieveSyntax {
             Some(i) => Err(Problem::new(
                 ErrorCode::NotAcceptable,
                 format!(
-                    "instance {} is stored in {}, which is not re-encoded: ask for transfer-syntax=*",
+                    "instance {} is stored in {}, which is not decoded here: ask for transfer-syntax=*",
                     i.instance.sop_instance_uid, i.instance.transfer_syntax
                 ),
             )),
@@ -113,13 +187,24 @@ impl App {
             .saturating_add(64 << 10)
     }
 
-    /// The stored instance `i` as a Part 10 file in explicit VR little endian.
+    /// The stored instance `i` as a Part 10 file in explicit VR little endian, its pixel data decoded when
+    /// it is stored compressed (one instance in memory at a time: the decoded pixels are held in the
+    /// engine's memory budget while they exist).
     pub async fn instance_explicit_le(&self, i: &StoredInstance) -> AppResult<Vec<u8>> {
         let (path, max) = (self.instance_file(i), self.instance_limit());
+        let compressed = i.instance.transfer_syntax != EXPLICIT_LE
+            && !crate::dicom::le_interchangeable(&i.instance.transfer_syntax, EXPLICIT_LE);
+        // The file, its decoded pixels (up to 20 × a compressed file) and the answer.
+        let held = if compressed {
+            i.instance.bytes.saturating_mul(22)
+        } else {
+            i.instance.bytes.saturating_mul(3)
+        };
+        let _held = self.engine.reserve_memory(held).await;
         Ok(self
             .engine
             .compute(move || {
-                explicit_le_bytes(&path, max).map_err(|e| {
+                explicit_le_bytes(&path, max, &ReadLimits::default()).map_err(|e| {
                     Problem::new(
                         ErrorCode::NotAcceptable,
                         format!("cannot be sent in explicit VR little endian: {e}"),
@@ -143,13 +228,14 @@ impl App {
             .await?)
     }
 
-    /// Frame `frame` (1-based) of the stored instance `i` as an 8-bit PNG, in Hounsfield units (stored values
-    /// after the rescale) through `window`, or a window spanning the frame's values when none is given.
+    /// Frame `frame` (1-based) of the stored instance `i` rendered as `how` says: Hounsfield units (stored
+    /// values after the rescale) through its window, or a window spanning the frame's values when none is
+    /// given, fitted to its viewport, as an 8-bit greyscale PNG or JPEG.
     pub async fn render_instance(
         &self,
         i: &StoredInstance,
         frame: usize,
-        window: Option<RenderWindow>,
+        how: Rendering,
     ) -> AppResult<Vec<u8>> {
         let path = self.instance_file(i);
         Ok(self
@@ -174,15 +260,23 @@ impl App {
                         "only grey images are rendered",
                     ));
                 }
-                let hu = Array2::from_shape_fn((slice.rows, slice.columns), |(r, c)| {
+                let mut hu = Array2::from_shape_fn((slice.rows, slice.columns), |(r, c)| {
                     (slice.stored[r * slice.columns + c] as f64 * slice.rescale_slope
                         + slice.rescale_intercept) as f32
                 });
-                let w = match window {
+                let w = match how.window {
                     Some(w) => Window::new(w.width, w.center).map_err(|e| volume_problem(&e))?,
                     None => Window::auto(hu.view()),
                 };
-                encode_png(hu.view(), w, BitDepth::Eight).map_err(|e| volume_problem(&e))
+                if let Some(v) = how.viewport {
+                    hu = fit_viewport(hu.view(), v.rows, v.columns)
+                        .map_err(|e| volume_problem(&e))?;
+                }
+                match how.media {
+                    RenderedMedia::Png => encode_png(hu.view(), w, BitDepth::Eight),
+                    RenderedMedia::Jpeg { quality } => encode_jpeg(hu.view(), w, quality),
+                }
+                .map_err(|e| volume_problem(&e))
             })
             .await?)
     }
@@ -191,6 +285,26 @@ impl App {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn quality_and_viewport_are_parsed_as_ps3_18_defines_them() {
+        assert_eq!(parse_quality("90").unwrap(), 90);
+        assert_eq!(parse_quality("1").unwrap(), 1);
+        assert_eq!(parse_quality("100").unwrap(), 100);
+        for bad in ["0", "101", "-5", "9.5", "high", ""] {
+            assert!(parse_quality(bad).is_err(), "{bad}");
+        }
+        assert_eq!(
+            Viewport::parse("256, 128").unwrap(),
+            Viewport {
+                columns: 256,
+                rows: 128
+            }
+        );
+        for bad in ["256", "0,10", "10,-1", "a,b", "10,10,0,0,5,5", "99999,10"] {
+            assert!(Viewport::parse(bad).is_err(), "{bad}");
+        }
+    }
 
     #[test]
     fn windows_are_center_width_and_linear() {

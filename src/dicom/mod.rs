@@ -12,14 +12,16 @@
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
 //!   file), [`write_secondary_capture`] (a 2D image), [`write_secondary_capture_rgb`] (rendered RGB frames), [`write_encapsulated_stl`] and [`write_zip`].
 //!
-//! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model and re-encoded in
-//!   explicit VR little endian (DICOMweb); [`multipart`]: streamed `multipart/related` bodies (pure).
+//! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model, and in explicit
+//!   VR little endian with native pixel data, compressed ones decoded by the reader's decoders (DICOMweb);
+//!   [`multipart`]: streamed `multipart/related` bodies (pure).
 //! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
 //! - [`data_set_as`]: a stored data set re-encoded between explicit and implicit VR little endian (C-STORE to
 //!   a peer that accepted only the other).
 //!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
+mod decompress;
 mod error;
 mod framing;
 mod fuzz;
@@ -37,6 +39,7 @@ mod upload;
 mod web;
 mod write;
 
+pub use decompress::{explicit_le_bytes, transcodable_to_explicit_le};
 pub use error::DicomError;
 #[doc(hidden)]
 pub use fuzz::fuzz_zip_entry;
@@ -51,10 +54,7 @@ pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpac
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };
-pub use web::{
-    EXPLICIT_LE, IMPLICIT_LE, MAX_INLINE_BINARY, explicit_le_bytes, instance_json,
-    transcodable_to_explicit_le,
-};
+pub use web::{EXPLICIT_LE, IMPLICIT_LE, MAX_INLINE_BINARY, instance_json};
 pub use write::{
     DerivedSeries, RgbFrames, ScOrientation, SeriesMeta, new_uid, write_ct_series,
     write_encapsulated_stl, write_enhanced_ct, write_secondary_capture,

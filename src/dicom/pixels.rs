@@ -35,6 +35,11 @@ pub(super) struct Decoded<'a> {
     pub samples_per_pixel: usize,
     /// Bytes of one frame in [`Decoded::bytes`].
     pub frame_bytes: usize,
+    /// Photometric Interpretation of the decoded samples: the declared one, except colour decoded from a
+    /// compressed stream, which is RGB.
+    pub photometric_out: String,
+    /// Planar Configuration of the decoded samples (0: interleaved, as every codec gives them).
+    pub planar_out: u16,
     big_endian: bool,
     data: Data<'a>,
 }
@@ -49,6 +54,20 @@ impl Decoded<'_> {
         match &self.data {
             Data::JpegLs(v) => v,
             Data::Codec(d) => d.data(),
+        }
+    }
+
+    /// The decoded frames as native little-endian pixel data (every frame, no more): what a Pixel Data
+    /// element of an uncompressed little-endian data set holds.
+    pub fn native_le(&self) -> Vec<u8> {
+        let all = &self.bytes()[..self.frame_bytes * self.layout.frames];
+        if self.big_endian && self.layout.bits_allocated == 32 {
+            // 16-bit words in host order: swap the words of each 32-bit sample, as `frame_values` does.
+            all.chunks_exact(4)
+                .flat_map(|c| [c[2], c[3], c[0], c[1]])
+                .collect()
+        } else {
+            all.to_vec()
         }
     }
 
@@ -275,7 +294,8 @@ pub(super) fn decode<'a>(
         transfer_syntax: transfer_syntax.clone(),
         reason,
     };
-    let (data, decoded_spp, decoded_bits) = if jpeg_ls::is_jpeg_ls(&transfer_syntax) {
+    let (data, decoded_spp, decoded_bits, decoded_colour) = if jpeg_ls::is_jpeg_ls(&transfer_syntax)
+    {
         let fragments: Vec<&[u8]> = pixel
             .fragments()
             .into_iter()
@@ -291,7 +311,7 @@ pub(super) fn decode<'a>(
             bits_allocated as u16,
         )
         .map_err(decode_err)?;
-        (Data::JpegLs(jls), 1, bits_allocated as usize)
+        (Data::JpegLs(jls), 1, bits_allocated as usize, None)
     } else {
         let decoded = match catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data())) {
             Ok(Ok(d)) => d,
@@ -310,7 +330,14 @@ pub(super) fn decode<'a>(
             decoded.samples_per_pixel() as usize,
             decoded.bits_allocated() as usize,
         );
-        (Data::Codec(decoded), spp, bits)
+        let colour = (
+            decoded.photometric_interpretation().to_string(),
+            match decoded.planar_configuration() {
+                dicom_pixeldata::PlanarConfiguration::Standard => 0,
+                _ => 1,
+            },
+        );
+        (Data::Codec(decoded), spp, bits, Some(colour))
     };
     let bytes_per = bits_allocated as usize / 8;
     let frame_len = rows * columns * spp;
@@ -332,6 +359,10 @@ pub(super) fn decode<'a>(
             "decoder returned {decoded_bits}-bit samples for {bits_allocated}-bit data"
         )));
     }
+    let (photometric_out, planar_out) = match decoded_colour {
+        Some((pi, planar)) => (pi, planar),
+        None => (photometric.clone(), 0),
+    };
     Ok(Decoded {
         layout: Layout {
             rows,
@@ -344,6 +375,8 @@ pub(super) fn decode<'a>(
         },
         samples_per_pixel: decoded_spp,
         frame_bytes,
+        photometric_out,
+        planar_out,
         big_endian,
         data,
     })

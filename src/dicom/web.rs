@@ -1,5 +1,5 @@
-//! What DICOMweb needs from a stored instance: its attributes in the DICOM JSON model (PS3.18 §F.2), and its
-//! bytes re-encoded in explicit VR little endian when it is stored in another uncompressed syntax.
+//! What DICOMweb needs from a stored instance: its attributes in the DICOM JSON model (PS3.18 §F.2); its
+//! bytes in explicit VR little endian are [`super::decompress`]'s.
 //!
 //! The JSON model: every attribute of the data set but the pixel data (retrieved with the instance), keyed by
 //! its tag as eight upper-case hex digits, with its VR and its values: strings for text VRs, numbers for IS,
@@ -24,11 +24,6 @@ pub const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
 pub const IMPLICIT_LE: &str = "1.2.840.10008.1.2";
 /// Longest binary value written inline in the JSON model (bytes).
 pub const MAX_INLINE_BINARY: usize = 64 << 10;
-
-/// Whether an instance stored in `ts` can be sent as explicit VR little endian (its pixel data is native).
-pub fn transcodable_to_explicit_le(ts: &str) -> bool {
-    ts == EXPLICIT_LE || ts == IMPLICIT_LE
-}
 
 /// The DICOM JSON model of the instance at `path` (files over `max_bytes` are refused unread).
 pub fn instance_json(path: &Path, max_bytes: u64) -> Result<Value, DicomError> {
@@ -135,35 +130,6 @@ fn data_set_json(obj: &InMemDicomObject) -> Map<String, Value> {
         out.insert(key, Value::Object(attr));
     }
     out
-}
-
-/// The instance at `path` as a Part 10 file in explicit VR little endian: the file as it is when it is
-/// stored so, re-encoded when it is stored in implicit VR little endian; other syntaxes are refused.
-pub fn explicit_le_bytes(path: &Path, max_bytes: u64) -> Result<Vec<u8>, DicomError> {
-    let ts = super::header::read_part10(path)?.transfer_syntax;
-    let (label, bytes) = super::header::read_bounded(path, max_bytes)?;
-    if ts == EXPLICIT_LE {
-        return Ok(bytes);
-    }
-    if !transcodable_to_explicit_le(&ts) {
-        return Err(DicomError::UnsupportedTransferSyntax {
-            label,
-            uid: ts,
-            name: "not transcoded to explicit VR little endian".into(),
-        });
-    }
-    let Opened { mut obj, .. } = open(
-        &label,
-        &bytes,
-        header_inflate_limit(bytes.len()),
-        None,
-    )?;
-    obj.meta_mut()
-        .set_transfer_syntax(&dicom_transfer_syntax_registry::entries::EXPLICIT_VR_LITTLE_ENDIAN);
-    let mut out = Vec::with_capacity(bytes.len() + 1024);
-    obj.write_all(&mut out)
-        .map_err(|e| DicomError::Write(e.to_string()))?;
-    Ok(out)
 }
 
 #[cfg(test)]

@@ -62,7 +62,12 @@ pub async fn serve(
     loop {
         let pdu = match tokio::time::timeout(grant.dimse_timeout, assoc.receive()).await {
             Ok(Ok(pdu)) => pdu,
-            Ok(Err(e)) => return Err(AssociationEnd::Network(e.to_string())),
+            Ok(Err(e)) => {
+                // A PDU that cannot be read (malformed, or over the negotiated maximum length) ends the
+                // association with an A-ABORT (PS3.8 §9.3.8); a connection already gone takes none.
+                let _ = assoc.abort().await;
+                return Err(AssociationEnd::Network(e.to_string()));
+            }
             Err(_) => {
                 let _ = assoc.abort().await;
                 return Err(AssociationEnd::Timeout(grant.dimse_timeout));
@@ -245,8 +250,8 @@ async fn on_command(
                 identifier: Some(Vec::new()),
             });
         }
-        // Matches and sub-operations are answered before the next request is read, so a cancel always
-        // comes after the operation ended: there is nothing left to cancel, and a cancel has no response.
+        // A cancel that arrives while a C-FIND or C-MOVE answers is taken by that operation (`cancel`); one
+        // read here came after its operation ended: there is nothing left to cancel, and it has no response.
         command::C_CANCEL_RQ => {}
         _ => {
             reply(

@@ -19,8 +19,10 @@ pub async fn serve_node(app: App) -> Result<Option<SocketAddr>, NodeError> {
     app.start_deliveries(std::sync::Arc::new(super::sender::ScuCaller::new(
         &app.settings.dicom,
     )));
-    // Derived results are indexed (QIDO-RS, WADO-RS) whether or not the node listens.
+    // Derived results are indexed (QIDO-RS, WADO-RS), and series received by STOW-RS assembled once
+    // stable, whether or not the node listens.
     app.spawn_result_indexer();
+    app.spawn_stow_assembly();
     if app.settings.dicom.port.is_none() {
         return Ok(None);
     }

@@ -1,13 +1,15 @@
-//! Series completion by stable age (as Orthanc's `StableAge`): a series is complete when no instance of it
-//! arrived for the configured time; it is then sealed (its folder handed over) and announced.
+//! Series completion by stable age (as Orthanc's `StableAge`, the rule of [`crate::app::arrivals`], which
+//! STOW-RS shares): a series is complete when no instance of it arrived for the configured time; it is then
+//! sealed (its folder handed over) and announced.
 
-use std::collections::{HashMap, HashSet};
+use std::collections::HashSet;
 use std::io;
 use std::path::{Path, PathBuf};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use super::inbox::Inbox;
+use crate::app::arrivals::{self, Arrivals, Arriving};
 
 /// A series that stopped arriving: its instances are the `.dcm` files of `folder`.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -21,21 +23,11 @@ pub struct CompletedSeries {
     pub calling_ae: String,
 }
 
-#[derive(Debug)]
-struct Arriving {
-    study_uid: String,
-    last: Instant,
-    instances: usize,
-    bytes: u64,
-    calling_ae: String,
-}
-
 /// The series still arriving, and the inbox they are filed in.
 #[derive(Debug)]
 pub struct Tracker {
     inbox: Inbox,
-    stable_age: Duration,
-    arriving: Mutex<HashMap<String, Arriving>>,
+    arriving: Mutex<Arrivals>,
     /// Series a pull waits for: never sealed by their stable age, taken by the pull itself.
     claimed: Mutex<HashSet<String>>,
 }
@@ -53,11 +45,11 @@ pub struct Arrival<'a> {
 impl Tracker {
     /// A tracker over `inbox`; series left in `incoming/` by a restart count as arriving now.
     pub fn new(inbox: Inbox, stable_age: Duration) -> io::Result<Self> {
-        let mut arriving = HashMap::new();
+        let mut arriving = Arrivals::new(stable_age);
         for (uid, folder) in inbox.leftover_incoming()? {
             let (instances, bytes) = count(&folder)?;
-            arriving.insert(
-                uid,
+            arriving.resume(
+                &uid,
                 Arriving {
                     study_uid: String::new(),
                     last: Instant::now(),
@@ -69,7 +61,6 @@ impl Tracker {
         }
         Ok(Self {
             inbox,
-            stable_age,
             arriving: Mutex::new(arriving),
             claimed: Mutex::new(HashSet::new()),
         })
@@ -87,36 +78,22 @@ impl Tracker {
             .lock()
             .map_err(|_| io::Error::other("series tracker poisoned"))?;
         let (dest, existed) = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
-        let entry = arriving
-            .entry(a.series_uid.to_string())
-            .or_insert_with(|| Arriving {
-                study_uid: a.study_uid.to_string(),
-                last: Instant::now(),
-                instances: 0,
-                bytes: 0,
-                calling_ae: a.calling_ae.to_string(),
-            });
-        entry.last = Instant::now();
-        if !existed {
-            entry.instances += 1;
-            entry.bytes += a.bytes;
-        }
-        entry.study_uid = a.study_uid.to_string();
-        entry.calling_ae = a.calling_ae.to_string();
+        arriving.note(
+            arrivals::Arrival {
+                study_uid: a.study_uid,
+                series_uid: a.series_uid,
+                calling_ae: a.calling_ae,
+                bytes: a.bytes,
+                new: !existed,
+            },
+            Instant::now(),
+        );
         Ok(dest)
     }
 
     /// Series arriving now: (series UID, instances so far).
     pub fn arriving(&self) -> Vec<(String, usize)> {
-        let Ok(arriving) = self.arriving.lock() else {
-            return Vec::new();
-        };
-        let mut v: Vec<_> = arriving
-            .iter()
-            .map(|(k, a)| (k.clone(), a.instances))
-            .collect();
-        v.sort();
-        v
+        self.arriving.lock().map(|a| a.list()).unwrap_or_default()
     }
 
     /// Seal every series whose last instance is older than the stable age at `now` (blocking).
@@ -129,12 +106,7 @@ impl Tracker {
             .claimed
             .lock()
             .map_err(|_| io::Error::other("series tracker poisoned"))?;
-        let due: Vec<String> = arriving
-            .iter()
-            .filter(|(uid, _)| !claimed.contains(*uid))
-            .filter(|(_, a)| now.saturating_duration_since(a.last) >= self.stable_age)
-            .map(|(k, _)| k.clone())
-            .collect();
+        let due = arriving.due(now, |uid| claimed.contains(uid));
         let mut out = Vec::new();
         for uid in due {
             let Some(a) = arriving.remove(&uid) else {

@@ -1,5 +1,5 @@
 //! Image-domain volume operations: slices, MPR, MIP/MinIP/average projections, window/level, resampling,
-//! smoothing, PNG encoding.
+//! smoothing, PNG and JPEG encoding, pictures fitted to a viewport.
 //!
 //! [`Volume`] is the one 3D image type shared by reconstructions, DICOM series and meshes: samples
 //! `[z][y][x]` (slice, row, column) and a [`Frame`] that places every voxel in patient space (LPS, mm).
@@ -10,6 +10,7 @@ mod filter;
 mod frame;
 mod mpr;
 mod orient;
+mod picture;
 mod resample;
 mod rotating;
 mod window;
@@ -24,6 +25,7 @@ pub use orient::{
     direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice,
     to_closest_canonical,
 };
+pub use picture::{MAX_VIEWPORT_SIDE, encode_jpeg, fit_viewport};
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};
 pub use rotating::{rotating_axes, rotating_projection};
 pub use window::{

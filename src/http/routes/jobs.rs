@@ -230,9 +230,23 @@ pub async fn post_job(
     Ok(accepted(&submitted.job))
 }
 
+/// A job, with the rule run that made it and its deliveries when it has any.
 pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
-    let job = st.get_job(job_id(&id)?).await?;
-    Ok(axum::Json(job_view(&job)).into_response())
+    let id = job_id(&id)?;
+    let job = st.get_job(id).await?;
+    let mut v = job_view(&job);
+    let (run, deliveries) = st.job_origin(id).await?;
+    if run.is_some() || !deliveries.is_empty() {
+        let origin = crate::app::rules::job_origin_view(run.as_ref(), &deliveries);
+        if let Some(r) = origin.get("rule") {
+            v["rule"] = r.clone();
+            v["links"]["rule"] = r["links"]["self"].clone();
+            v["links"]["source_series"] = r["links"]["series"].clone();
+        }
+        v["deliveries"] = origin["deliveries"].clone();
+        v["links"]["deliveries"] = json!(format!("/v1/deliveries?job_id={id}"));
+    }
+    Ok(axum::Json(v).into_response())
 }
 
 /// Filters and page of `GET /v1/jobs`.

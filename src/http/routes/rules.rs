@@ -10,7 +10,8 @@ use serde_json::{Value, json};
 use super::super::AppState;
 use super::super::extract::{ApiJson, ApiQuery, job_id};
 use super::super::problem::{ApiResult, api_error};
-use crate::app::deliveries::{delivery_view, peer_view};
+use crate::app::deliveries::delivery_view;
+use crate::app::peers::{peer_view, web_peer_view};
 use crate::app::rules::rule_view;
 use crate::error_code::ErrorCode;
 use crate::jobs::deliveries::{DeliveryFilter, DeliveryState};
@@ -157,9 +158,11 @@ pub async fn retry_delivery(
 }
 
 pub async fn list_peers(State(st): State<AppState>) -> ApiResult<Response> {
-    let peers: Vec<Value> = st.settings.dicom.peers.iter().map(peer_view).collect();
+    let d = &st.settings.dicom;
+    let peers: Vec<Value> = d.peers.iter().map(peer_view).collect();
+    let web_peers: Vec<Value> = d.web_peers.iter().map(web_peer_view).collect();
     Ok(
-        axum::Json(json!({ "ae_title": st.settings.dicom.ae_title, "peers": peers }))
+        axum::Json(json!({ "ae_title": d.ae_title, "peers": peers, "web_peers": web_peers }))
             .into_response(),
     )
 }

@@ -122,6 +122,24 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
     ) -> Result<(), DbError> {
+        self.insert_rows(owner, rows, false).await
+    }
+
+    /// Index received `rows` of upload `owner` whose series is still to be assembled (STOW-RS).
+    pub async fn insert_pending_instances(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+    ) -> Result<(), DbError> {
+        self.insert_rows(owner, rows, true).await
+    }
+
+    async fn insert_rows(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+        pending: bool,
+    ) -> Result<(), DbError> {
         let mut tx = self.write_tx().await?;
         let (upload, job) = match owner {
             InstanceOwner::Upload(u) => (Some(u.to_string()), None),
@@ -135,8 +153,8 @@ impl Db {
                  transfer_syntax, study_uid, series_uid, patient_id, patient_name, patient_birth_date,
                  patient_sex, study_date, study_time, accession_number, study_description,
                  referring_physician, study_id, modality, series_number, series_description, body_part,
-                 instance_number, bytes, created_us)
-                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                 instance_number, bytes, created_us, pending)
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             )
             .bind(r.id.to_string())
             .bind(&upload)
@@ -164,6 +182,7 @@ impl Db {
             .bind(i.instance_number)
             .bind(i.bytes as i64)
             .bind(now)
+            .bind(pending as i64)
             .execute(&mut *tx)
             .await?;
         }
@@ -228,6 +247,39 @@ impl Db {
     /// Mark a job as indexed without instances (its results carry no patient).
     pub async fn mark_job_indexed(&self, id: JobId) -> Result<(), DbError> {
         self.insert_instances(InstanceOwner::Job(id), &[]).await
+    }
+
+    /// Series (UID, study UID) with received instances not yet assembled, oldest first.
+    pub async fn pending_series(&self) -> Result<Vec<(String, String)>, DbError> {
+        let rows = sqlx::query(
+            "SELECT series_uid, MIN(study_uid) AS study_uid FROM instances WHERE pending = 1
+             GROUP BY series_uid ORDER BY MIN(created_us)",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("series_uid")?, r.try_get("study_uid")?)))
+            .collect()
+    }
+
+    /// Received instances `ids` were assembled: no longer pending, and members of `series` when one was made.
+    pub async fn settle_instances(
+        &self,
+        ids: &[InstanceId],
+        series: Option<SeriesId>,
+    ) -> Result<(), DbError> {
+        let mut tx = self.write_tx().await?;
+        for id in ids {
+            sqlx::query(
+                "UPDATE instances SET pending = 0, series_id = COALESCE(?, series_id) WHERE id = ?",
+            )
+            .bind(series.map(|s| s.to_string()))
+            .bind(id.to_string())
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(())
     }
 
     /// Uploads that own indexed instances (for pairing `instances/<upload>/` folders with rows).

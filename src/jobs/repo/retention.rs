@@ -113,7 +113,8 @@ impl Db {
             .collect()
     }
 
-    /// Retention: delete the uploads completed before `before_us` that no series comes from any more.
+    /// Retention: delete the uploads completed before `before_us` that no series comes from any more and that
+    /// own no indexed instance (a STOW-RS request's instances belong to its upload, their series to another).
     pub async fn delete_uploads_without_series(
         &self,
         before_us: i64,
@@ -121,7 +122,8 @@ impl Db {
         let ids = self
             .delete_returning(
                 "DELETE FROM uploads WHERE status = 'completed' AND completed_us < ?
-                 AND id NOT IN (SELECT upload_id FROM series) RETURNING id",
+                 AND id NOT IN (SELECT upload_id FROM series)
+                 AND id NOT IN (SELECT upload_id FROM instances WHERE upload_id IS NOT NULL) RETURNING id",
                 before_us,
             )
             .await?;

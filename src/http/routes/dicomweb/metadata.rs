@@ -1,12 +1,14 @@
-//! WADO-RS `/metadata` of a study, series or instance: each instance's attributes in the DICOM JSON model.
+//! WADO-RS `/metadata` of a study, series or instance: each instance's attributes in the DICOM JSON model,
+//! with the resource's Content-Location.
 
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::Response;
 
 use super::super::super::AppState;
 use super::super::super::problem::ApiResult;
-use super::negotiation::{DICOM_JSON, accepts_any, dicom_json_response, not_acceptable};
+use super::negotiation::{DICOM_JSON, accepts_any, base_url, dicom_json_response, not_acceptable};
+use crate::app::dicomweb::resource_path;
 
 async fn metadata(
     state: &AppState,
@@ -23,7 +25,16 @@ async fn metadata(
     for i in &found {
         out.push(state.instance_metadata(i).await?);
     }
-    Ok(dicom_json_response(StatusCode::OK, &out.into()))
+    let mut r = dicom_json_response(StatusCode::OK, &out.into());
+    let location = format!(
+        "{}{}/metadata",
+        base_url(headers),
+        resource_path(study, series, instance)
+    );
+    if let Ok(v) = HeaderValue::from_str(&location) {
+        r.headers_mut().insert(header::CONTENT_LOCATION, v);
+    }
+    Ok(r)
 }
 
 #[tracing::instrument(skip_all, fields(study = %study))]

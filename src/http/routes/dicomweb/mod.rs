@@ -2,13 +2,13 @@
 //! `application/dicom+json`; WADO-RS retrieval of a study, series or instance as `multipart/related;
 //! type="application/dicom"` streamed from the stored files (one part per instance, each with its
 //! Content-Type, Content-Length and Content-Location), `/metadata` in `application/dicom+json`, and
-//! `/rendered` frames as PNG. STOW-RS is in [`super::stow`].
+//! `/rendered` frames as PNG or JPEG (`quality`, `window`, `viewport`). STOW-RS is in [`super::stow`].
 //!
 //! `Accept` is honoured: a request that accepts none of what a route offers gets 406. On retrieval,
-//! `transfer-syntax=*` sends each instance in its stored syntax, `transfer-syntax=1.2.840.10008.1.2.1`
-//! (explicit VR little endian) re-encodes those stored in implicit VR little endian and refuses (406)
-//! compressed ones; without the parameter, implicit VR little endian is re-encoded and the others go as
-//! stored. RetrieveURLs and Content-Locations are absolute, on the host the request named.
+//! `transfer-syntax=*` sends each instance in its stored syntax; `transfer-syntax=1.2.840.10008.1.2.1`
+//! (explicit VR little endian), which is also what no parameter means, re-encodes every other syntax,
+//! compressed pixel data decoded. RetrieveURLs and Content-Locations (on each part, `/metadata` and
+//! `/rendered`) are absolute, on the host the request named.
 //!
 //! `negotiation` holds `Accept` handling shared by the routes (and STOW-RS); `qido`, `retrieve`,
 //! `metadata` and `rendered` one resource family each.

@@ -1,7 +1,8 @@
 //! WADO-RS retrieval of a study, series or instance as `multipart/related; type="application/dicom"`,
 //! streamed from the stored files (one part per instance, each with its Content-Type, Content-Length and
 //! Content-Location). The transfer syntax asked for in `Accept` decides which instances are re-encoded
-//! (`app::wado::RetrieveSyntax`).
+//! (`app::wado::RetrieveSyntax`): explicit VR little endian unless `transfer-syntax=*` asks for the stored
+//! one.
 
 use axum::body::{Body, Bytes};
 use axum::extract::{Path, State};
@@ -29,8 +30,10 @@ fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {
         if !dicom {
             continue;
         }
+        // PS3.18 §8.7.3.5.2: without a transfer-syntax parameter, application/dicom is explicit VR
+        // little endian.
         return match param(&p, "transfer-syntax") {
-            None => Ok(RetrieveSyntax::Default),
+            None => Ok(RetrieveSyntax::ExplicitLe),
             Some("*") => Ok(RetrieveSyntax::Stored),
             Some(EXPLICIT_LE) => Ok(RetrieveSyntax::ExplicitLe),
             Some(other) => Err(api_error(
@@ -58,9 +61,19 @@ async fn retrieve(
     let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(4);
     let app = state.app.clone();
     let b = boundary.clone();
+    // The first instance is made ready before the answer starts, so that one that cannot be sent in the
+    // syntax asked for (a single-instance retrieval above all) is a problem, not a cut-off body.
+    let mut first = match instances.first() {
+        Some(i) => Some(state.retrieved_instance(i, syntax).await?),
+        None => None,
+    };
     tokio::spawn(async move {
         for i in instances {
-            let (bytes, ts) = match app.retrieved_instance(&i, syntax).await {
+            let ready = match first.take() {
+                Some(v) => Ok(v),
+                None => app.retrieved_instance(&i, syntax).await,
+            };
+            let (bytes, ts) = match ready {
                 Ok(v) => v,
                 Err(e) => {
                     tracing::error!(error = %e, "an instance cannot be sent");
