@@ -8,7 +8,6 @@ use axum::body::{Body, Bytes};
 use axum::extract::{Path, State};
 use axum::http::{HeaderMap, HeaderValue, header};
 use axum::response::Response;
-use tokio::io::AsyncReadExt;
 
 use super::super::super::AppState;
 use super::super::super::problem::{ApiResult, api_error};
@@ -47,8 +46,43 @@ fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {
     ))
 }
 
+/// Largest chunk of a file handed to the response at once.
+const CHUNK: usize = 1 << 20;
+
+/// Hand the file at `path` to `tx` in chunks of up to [`CHUNK`] bytes, read on the calling (blocking)
+/// thread: one task per file rather than one per chunk. False when the response is gone or the file could
+/// not be read (the error is sent, which cuts the body off).
+fn send_file(path: &std::path::Path, tx: &Chunks) -> bool {
+    use std::io::Read;
+    let mut f = match std::fs::File::open(path) {
+        Ok(f) => f,
+        Err(e) => {
+            let _ = tx.blocking_send(Err(e));
+            return false;
+        }
+    };
+    loop {
+        let mut buf = Vec::with_capacity(CHUNK);
+        match (&mut f).take(CHUNK as u64).read_to_end(&mut buf) {
+            Ok(0) => return true,
+            Ok(_) => {
+                if tx.blocking_send(Ok(Bytes::from(buf))).is_err() {
+                    return false;
+                }
+            }
+            Err(e) => {
+                let _ = tx.blocking_send(Err(e));
+                return false;
+            }
+        }
+    }
+}
+
+type Chunks = tokio::sync::mpsc::Sender<Result<Bytes, std::io::Error>>;
+
 /// Stream `instances` as one `multipart/related` body: the parts are produced one at a time by a task,
-/// files read in 256 KiB chunks through a channel of four, so memory stays flat in the retrieval's size.
+/// files read in chunks of up to 1 MiB through a channel of four, so memory stays flat in the retrieval's
+/// size.
 async fn retrieve(
     state: AppState,
     headers: HeaderMap,
@@ -109,28 +143,10 @@ async fn retrieve(
                     }
                 }
                 None => {
-                    let mut f = match tokio::fs::File::open(&path).await {
-                        Ok(f) => f,
-                        Err(e) => {
-                            let _ = tx.send(Err(e)).await;
-                            return;
-                        }
-                    };
-                    loop {
-                        let mut buf = vec![0u8; 256 << 10];
-                        match f.read(&mut buf).await {
-                            Ok(0) => break,
-                            Ok(n) => {
-                                buf.truncate(n);
-                                if tx.send(Ok(Bytes::from(buf))).await.is_err() {
-                                    return;
-                                }
-                            }
-                            Err(e) => {
-                                let _ = tx.send(Err(e)).await;
-                                return;
-                            }
-                        }
+                    let tx = tx.clone();
+                    let sent = tokio::task::spawn_blocking(move || send_file(&path, &tx)).await;
+                    if !matches!(sent, Ok(true)) {
+                        return;
                     }
                 }
             }
