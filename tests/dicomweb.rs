@@ -771,28 +771,6 @@ async fn an_instance_stored_in_implicit_vr_is_sent_as_stored_or_re_encoded_in_ex
     assert_eq!(re_encoded, pixels(&files[1]).1, "the same pixel data");
 }
 
-/// The fenced blocks of README.md with info string `lang`.
-fn readme_blocks(lang: &str) -> Vec<String> {
-    let text =
-        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md"))
-            .unwrap();
-    let mut out = Vec::new();
-    let mut open: Option<(String, String)> = None;
-    for line in text.lines() {
-        if let Some(fence) = line.trim_start().strip_prefix("```") {
-            match open.take() {
-                None => open = Some((fence.trim().to_string(), String::new())),
-                Some((l, t)) if l == lang => out.push(t),
-                Some(_) => {}
-            }
-        } else if let Some((_, t)) = open.as_mut() {
-            t.push_str(line);
-            t.push('\n');
-        }
-    }
-    out
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_readme_orthanc_dicomweb_client_example_runs_as_written() {
     if !orthanc_dicomweb_present() {
@@ -817,7 +795,7 @@ async fn the_readme_orthanc_dicomweb_client_example_runs_as_written() {
         eprintln!("skipped: the README's Orthanc example needs curl and jq");
         return;
     }
-    let scripts = readme_blocks("sh dicomweb-orthanc");
+    let scripts = common::readme_blocks("sh dicomweb-orthanc");
     assert_eq!(scripts.len(), 1, "one script");
     // ctrecon as the README shows it (no token); Orthanc with the README's server entry for it.
     let app = common::spawn_app_with(|s| {

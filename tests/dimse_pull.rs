@@ -365,27 +365,6 @@ async fn a_pull_is_refused_at_submission_without_the_node_a_known_peer_retrieve_
     assert_eq!(list["jobs"].as_array().map(Vec::len), Some(0), "{list}");
 }
 
-/// The fenced blocks of README.md with info string `lang`.
-fn readme_blocks(lang: &str) -> Vec<String> {
-    let text =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
-    let mut out = Vec::new();
-    let mut open: Option<(String, String)> = None;
-    for line in text.lines() {
-        if let Some(fence) = line.trim_start().strip_prefix("```") {
-            match open.take() {
-                None => open = Some((fence.trim().to_string(), String::new())),
-                Some((l, t)) if l == lang => out.push(t),
-                Some(_) => {}
-            }
-        } else if let Some((_, t)) = open.as_mut() {
-            t.push_str(line);
-            t.push('\n');
-        }
-    }
-    out
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn the_readme_pull_example_runs_as_written_against_orthanc() {
     if !orthanc_present() {
@@ -405,8 +384,8 @@ async fn the_readme_pull_example_runs_as_written_against_orthanc() {
         eprintln!("skipped: the README's pull example needs curl, jq and dcmdump");
         return;
     }
-    let config = readme_blocks("json pacs-config");
-    let scripts = readme_blocks("sh pacs-pull");
+    let config = common::readme_blocks("json pacs-config");
+    let scripts = common::readme_blocks("sh pacs-pull");
     assert_eq!((config.len(), scripts.len()), (1, 1));
     let config: Value = serde_json::from_str(&config[0]).unwrap();
     let mut node: ctrecon::dimse::NodeSettings =

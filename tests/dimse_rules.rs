@@ -931,27 +931,6 @@ async fn bad_input_to_rules_deliveries_and_peers_gets_stable_problem_codes() {
     .await;
 }
 
-/// The fenced blocks of README.md with info string `lang`.
-fn readme_blocks(lang: &str) -> Vec<String> {
-    let text =
-        std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md")).unwrap();
-    let mut out = Vec::new();
-    let mut open: Option<(String, String)> = None;
-    for line in text.lines() {
-        if let Some(fence) = line.trim_start().strip_prefix("```") {
-            match open.take() {
-                None => open = Some((fence.trim().to_string(), String::new())),
-                Some((l, t)) if l == lang => out.push(t),
-                Some(_) => {}
-            }
-        } else if let Some((_, t)) = open.as_mut() {
-            t.push_str(line);
-            t.push('\n');
-        }
-    }
-    out
-}
-
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn the_readme_pacs_example_runs_as_written_against_orthanc() {
     if !orthanc_present() {
@@ -967,8 +946,8 @@ async fn the_readme_pacs_example_runs_as_written_against_orthanc() {
         eprintln!("skipped: the README's PACS example needs curl and jq");
         return;
     }
-    let config = readme_blocks("json pacs-config");
-    let scripts = readme_blocks("sh pacs");
+    let config = common::readme_blocks("json pacs-config");
+    let scripts = common::readme_blocks("sh pacs");
     assert_eq!(
         (config.len(), scripts.len()),
         (1, 1),

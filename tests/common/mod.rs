@@ -224,3 +224,25 @@ pub fn weld_stl(stl: &[u8]) -> ctrecon::mesh::Mesh {
     }
     out
 }
+
+/// The fenced blocks of README.md with info string `lang` (for the README examples run against real peers).
+pub fn readme_blocks(lang: &str) -> Vec<String> {
+    let text =
+        std::fs::read_to_string(std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("README.md"))
+            .unwrap();
+    let mut out = Vec::new();
+    let mut open: Option<(String, String)> = None;
+    for line in text.lines() {
+        if let Some(fence) = line.trim_start().strip_prefix("```") {
+            match open.take() {
+                None => open = Some((fence.trim().to_string(), String::new())),
+                Some((l, t)) if l == lang => out.push(t),
+                Some(_) => {}
+            }
+        } else if let Some((_, t)) = open.as_mut() {
+            t.push_str(line);
+            t.push('\n');
+        }
+    }
+    out
+}
