@@ -12,6 +12,9 @@ use ctrecon::config::Settings;
 use ctrecon::http::Application;
 use libfuzzer_sys::fuzz_target;
 
+#[path = "contained.rs"]
+mod contained;
+
 /// The server, started once per fuzzing process in a data directory of its own under `fuzz/target`.
 static SERVER: LazyLock<SocketAddr> = LazyLock::new(|| {
     let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/upload-data");
@@ -66,7 +69,7 @@ fn post(addr: SocketAddr, media_type: &str, body: &[u8]) -> u16 {
         .unwrap_or_else(|| panic!("no HTTP answer: {line:?}"))
 }
 
-fuzz_target!(|data: &[u8]| {
+fuzz_target!(init: contained::let_contained_panics_through(), |data: &[u8]| {
     let (media_type, body) = ctrecon::http::upload::fuzz_upload_request(data);
     let status = post(*SERVER, media_type, body);
     assert!(status < 500, "POST /v1/series answered {status}");

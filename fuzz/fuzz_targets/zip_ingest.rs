@@ -4,6 +4,9 @@
 
 use libfuzzer_sys::fuzz_target;
 
-fuzz_target!(|data: &[u8]| {
+#[path = "contained.rs"]
+mod contained;
+
+fuzz_target!(init: contained::let_contained_panics_through(), |data: &[u8]| {
     ctrecon::dicom::fuzz_zip_entry(data);
 });

@@ -7,8 +7,6 @@
 //! checks the frame size against the DICOM header, NEAR, MAXVAL and the LSE thresholds before it
 //! allocates, and ctrecon catches a panic inside it as a decode error.
 
-use std::panic::{AssertUnwindSafe, catch_unwind};
-
 pub const LOSSLESS: &str = "1.2.840.10008.1.2.4.80";
 pub const NEAR_LOSSLESS: &str = "1.2.840.10008.1.2.4.81";
 
@@ -100,7 +98,7 @@ pub fn decode_frames(
     let mut out = Vec::with_capacity(frames * rows * columns * bytes_per);
     for (i, stream) in streams.iter().enumerate() {
         let stream = without_fill_before_eoi(stream);
-        let decoded = catch_unwind(AssertUnwindSafe(|| jpegls::decode(&stream, w, h)))
+        let decoded = super::contain::contained(|| jpegls::decode(&stream, w, h))
             .map_err(|_| {
                 format!(
                     "frame {}: the JPEG-LS decoder failed on malformed data",

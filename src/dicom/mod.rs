@@ -21,6 +21,7 @@
 //!
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
+mod contain;
 mod decompress;
 mod error;
 mod framing;
@@ -39,6 +40,7 @@ mod upload;
 mod web;
 mod write;
 
+pub use contain::panic_is_contained;
 pub use decompress::{explicit_le_bytes, transcodable_to_explicit_le};
 pub use error::DicomError;
 #[doc(hidden)]

@@ -3,8 +3,6 @@
 //! RGB JPEG colour markers), then decoded (JPEG-LS here, every other codec by dicom-pixeldata, whose panics on
 //! hostile data become errors), and each frame's samples read as stored values.
 
-use std::panic::{AssertUnwindSafe, catch_unwind};
-
 use dicom_dictionary_std::tags;
 use dicom_object::FileDicomObject;
 use dicom_object::InMemDicomObject;
@@ -313,7 +311,7 @@ pub(super) fn decode<'a>(
         .map_err(decode_err)?;
         (Data::JpegLs(jls), 1, bits_allocated as usize, None)
     } else {
-        let decoded = match catch_unwind(AssertUnwindSafe(|| obj.decode_pixel_data())) {
+        let decoded = match super::contain::contained(|| obj.decode_pixel_data()) {
             Ok(Ok(d)) => d,
             Ok(Err(e)) => return Err(decode_err(e.to_string())),
             Err(_) => return Err(decode_err("the codec failed on malformed data".into())),

@@ -1,6 +1,5 @@
 //! One DICOM file into an [`Instance`]: attributes and decoded frames as [`Slice`]s.
 
-use std::panic::{AssertUnwindSafe, catch_unwind};
 use std::path::Path;
 
 use dicom_core::Tag;
@@ -194,7 +193,7 @@ pub(super) fn open<'a>(
         };
         options.from_reader(&framed.bytes[..])
     };
-    let obj = match catch_unwind(AssertUnwindSafe(parse)) {
+    let obj = match super::contain::contained(parse) {
         Ok(Ok(o)) => o,
         Ok(Err(e)) => {
             return Err(DicomError::Parse {
