@@ -13,10 +13,10 @@ use serde_json::{Value, json};
 
 use common::{TestApp, assert_problem, cone_geometry, parallel_geometry, spawn_app_with};
 use ctrecon::dicom::{SeriesMeta, write_ct_series, write_zip};
-use ctrecon::jobs::imaging::{MAX_CURVE_POINTS, MAX_ITEMS, MAX_ROTATING_FRAMES, MAX_SIGMA_MM};
-use ctrecon::jobs::render_products::MAX_RENDER_FRAMES;
+use ctrecon::jobs::model::MAX_RENDER_FRAMES;
+use ctrecon::jobs::model::ProductSpec;
+use ctrecon::jobs::model::{MAX_CURVE_POINTS, MAX_ITEMS, MAX_ROTATING_FRAMES, MAX_SIGMA_MM};
 use ctrecon::jobs::rules::{JobTemplate, Protocol};
-use ctrecon::jobs::volume_spec::ProductSpec;
 use ctrecon::recon::geometry::angles::MAX_VIEWS;
 use ctrecon::recon::grid::MAX_AXIS;
 use ctrecon::recon::iterative::params::{MAX_ITERATIONS, MAX_TV_ITERATIONS};

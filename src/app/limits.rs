@@ -5,8 +5,9 @@
 use serde::Serialize;
 
 use crate::config::Settings;
-use crate::jobs::imaging::{MAX_CURVE_POINTS, MAX_ITEMS, MAX_ROTATING_FRAMES, MAX_SIGMA_MM};
-use crate::jobs::render_products::MAX_RENDER_FRAMES;
+use crate::jobs::model::{
+    MAX_CURVE_POINTS, MAX_ITEMS, MAX_RENDER_FRAMES, MAX_ROTATING_FRAMES, MAX_SIGMA_MM,
+};
 use crate::recon::geometry::angles::MAX_VIEWS;
 use crate::recon::grid::MAX_AXIS;
 use crate::recon::iterative::params::{MAX_ITERATIONS, MAX_TV_ITERATIONS};

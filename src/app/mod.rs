@@ -7,6 +7,7 @@
 
 pub mod arrivals;
 pub mod deliveries;
+pub mod dicom_caller;
 pub mod dicomweb;
 pub mod error;
 pub mod feed;
@@ -104,7 +105,7 @@ impl App {
             None => store,
             Some(url) => store.with_mirror(open_object_storage(&settings, url).await?),
         };
-        let swept = crate::jobs::repo::sweep_blobs(&db, &store).await?;
+        let swept = crate::jobs::sweep::sweep_blobs(&db, &store).await?;
         tracing::info!(?swept, "blob files paired with their rows");
         let retention = Retention::from_secs(
             settings.retain_finished_jobs_secs,

@@ -21,9 +21,9 @@ use crate::app::{App, AppError};
 use crate::config::dicom::Peer;
 use crate::dicom::IdentifierElement;
 use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::model::PacsSeries;
 use crate::jobs::pull::{PullFuture, SeriesPuller};
 use crate::jobs::run::RunError;
-use crate::jobs::volume_spec::PacsSeries;
 use crate::recon::control::{Cancel, Progress};
 use crate::storage::SeriesId;
 

@@ -254,7 +254,7 @@ fn export_product(
         let (_, b) = write_encapsulated_stl(bytes, m, &title).map_err(|e| dicom_problem(&e))?;
         return out.add(&b);
     }
-    if super::render_outputs::is_rendering(p) {
+    if super::views::rgb::is_rendering(p) {
         let q = ProductQuery {
             format: Some(ProductFormat::Dicom),
             frame: None,
@@ -269,8 +269,7 @@ fn export_product(
             meta: m.clone(),
             ..ctx.clone()
         };
-        let b =
-            super::render_outputs::render_rgb_product(bytes, p, &q, ProductFormat::Dicom, &ctx)?;
+        let b = super::views::rgb::render_rgb_product(bytes, p, &q, ProductFormat::Dicom, &ctx)?;
         return out.add(&b);
     }
     let stack = to_hu(decode_stack(bytes)?, ctx);

@@ -7,9 +7,9 @@
 //! series pulled from a PACS, smoothing that lowered the ridge). Samples equal to the iso-value are inside, so
 //! an iso-value at the maximum still shows them.
 
-use super::imaging::{ProductSpec, VolumeJobRequest};
 use super::model::{Notice, VolumeUnits};
-use super::render_products::{ValueUnits, to_volume_units};
+use super::model::{ProductSpec, VolumeJobRequest};
+use super::model::{ValueUnits, to_volume_units};
 use crate::error_code::{ErrorCode, Problem};
 
 /// Why an iso-value is refused or warned about: "`what` iso is above every value of the volume (at most max):

@@ -1,10 +1,22 @@
-//! Jobs, layered inside: `model` (and `volume_spec`, the volume request) ← `lifecycle` (typed states, the one
-//! table of legal transitions) ← `store` (the `JobStore` port and its conformance suite) ← `repo` (the
-//! SQLite adapter, with datasets, uploads and series), `pg` (its PostgreSQL twin), `database` (the one of
-//! them the service runs on) ← `engine` (pool, scheduling, leases, cancel, progress)
-//! → the job kinds it runs: `run` (reconstruction, simulation; admission in `plan`), `imaging` (volume
-//! jobs and their products; `iso_range` checks their iso-values against the data), `views` (rendered 2D images
-//! and meshes of results), `ingest` (DICOM → series).
+//! Jobs, in layers that import only downwards (`tests/purity.rs` checks that the modules of this folder import
+//! each other without a cycle):
+//!
+//! 1. `model`: what a job is — requests (the volume and rendering requests among them), statuses, results,
+//!    products and the stored records of series, uploads and datasets. Beside it, depending only on it:
+//!    `lifecycle` (typed states, the one table of legal transitions), `rules` and `deliveries` (the DICOM
+//!    node's rules and what they send), `plan` and `quality` (admission and figures of reconstructions),
+//!    `iso_range`, `ingest` (DICOM → series problems), `cache`.
+//! 2. `store`: the `JobStore` port, the outcomes both databases answer, and the conformance suite.
+//! 3. Adapters: `repo` (SQLite, with datasets, uploads, series and the DICOM node's tables), `pg` (its
+//!    PostgreSQL twin); `database` holds the one the service runs on; `sweep` and `retention` work on it.
+//! 4. What jobs make: `run` (reconstruction, simulation), `views` (a *view*: a 2D image, a mesh or a derived
+//!    series rendered from a result on request, and the renderings of stored products), `render_products`
+//!    (volume and surface renderings made by a job), `imaging` (volume jobs: planning, steps, products),
+//!    `export` (a job's DICOM results), `pull` (series fetched from a PACS).
+//! 5. `engine`: the pool, scheduling, leases, cancel and progress; it runs the job kinds above.
+//!
+//! Words: a *product* is what a job makes and keeps (`product-{i}`); a *view* is rendered from a result or a
+//! product when asked for, and cached.
 
 pub mod cache;
 pub mod database;
@@ -20,15 +32,14 @@ pub mod pg;
 pub mod plan;
 pub mod pull;
 pub mod quality;
-pub mod render_outputs;
 pub mod render_products;
 pub mod repo;
 pub mod retention;
 pub mod rules;
 pub mod run;
 pub mod store;
+pub mod sweep;
 pub mod views;
-pub mod volume_spec;
 
 pub use database::Database;
 pub use engine::{CancelError, Engine, EngineConfig, JobEvent, Remote, StartError};

@@ -25,10 +25,9 @@ use rows::{
 };
 
 use super::model::{Dataset, Job, JobStatus, JobSummary, now_us};
-pub use super::repo::{
-    Appended, Completed, DbError, IdempotencyKey, Inserted, JobFilter, UploadDeleted,
-};
-use super::repo::{corrupt, to_json};
+pub use super::model::{IdempotencyKey, Inserted, JobFilter};
+pub use super::store::{Appended, Completed, DbError, UploadDeleted};
+use super::store::{corrupt, to_json};
 use crate::storage::{DatasetId, JobId};
 
 /// The channel on which a new or re-queued job is announced (payload: the job id).

@@ -6,8 +6,8 @@
 use std::future::Future;
 use std::pin::Pin;
 
+use super::model::PacsSeries;
 use super::run::RunError;
-use super::volume_spec::PacsSeries;
 use crate::recon::control::{Cancel, Progress};
 use crate::storage::SeriesId;
 

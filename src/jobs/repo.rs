@@ -16,195 +16,25 @@ mod blobs;
 mod instances;
 mod job_store;
 mod retention;
+mod rows;
 mod rules;
 mod uploads;
 
-pub use blobs::{Deleted, SweepReport, sweep_blobs};
+pub use super::store::{Appended, Completed, DbError, Deleted, UploadDeleted};
+pub(crate) use super::store::{corrupt, product_indexes, to_json};
 pub use instances::{IndexScope, IndexedInstance, NewInstance, StoredInstance};
+use rows::*;
 
 use super::cache::JobCache;
-use super::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary, now_us};
+use super::model::{Dataset, Job, JobStatus, JobSummary, now_us};
 pub use super::model::{IdempotencyKey, Inserted, JobFilter};
 use crate::error_code::Problem;
 use crate::storage::{DatasetId, JobId};
-
-/// A database failure (logged; answered as a 500 without detail).
-#[derive(Debug, thiserror::Error)]
-pub enum DbError {
-    #[error(transparent)]
-    Sql(#[from] sqlx::Error),
-    #[error(transparent)]
-    Migrate(#[from] sqlx::migrate::MigrateError),
-    #[error("corrupt row in {table}: {reason}")]
-    Corrupt { table: &'static str, reason: String },
-    /// The database server could not be reached at start (`target`: the URL without its password).
-    #[error("cannot connect to {target}: {reason}")]
-    Unreachable { target: String, reason: String },
-    /// Tables of the DICOM node (rules, deliveries, the instance index) have no PostgreSQL twin yet.
-    #[error(
-        "{what} are kept in the SQLite database only; with a PostgreSQL job database they are not available yet"
-    )]
-    SqliteOnly { what: &'static str },
-}
-
-/// Outcome of appending an instance to an open upload.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Appended {
-    /// Added; the upload now holds this many instances.
-    Added(u32),
-    /// The same bytes were already appended (nothing changed).
-    Duplicate(u32),
-    /// The upload is completed.
-    Closed,
-    NotFound,
-    /// The upload would exceed this many bytes.
-    TooLarge(u64),
-}
-
-/// Outcome of deleting an open upload.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum UploadDeleted {
-    /// The upload and its instance rows are gone.
-    Done,
-    /// The upload is completed: it goes with its series, not by itself.
-    Completed,
-    NotFound,
-}
-
-/// Outcome of completing an upload.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Completed {
-    Done,
-    /// Completed by someone else, or unknown.
-    Closed,
-    /// Instances were appended while the series were assembled.
-    Changed,
-}
 
 #[derive(Clone, Debug)]
 pub struct Db {
     pool: SqlitePool,
     cache: std::sync::Arc<JobCache>,
-}
-
-/// A job summary's product indexes, as both backends aggregate them: comma-separated, in product order.
-pub(crate) fn product_indexes(list: Option<&str>) -> Result<Vec<usize>, DbError> {
-    list.iter()
-        .flat_map(|p| p.split(','))
-        .map(|i| {
-            i.trim()
-                .parse::<usize>()
-                .map_err(|e| corrupt("jobs", format!("product index {i}: {e}")))
-        })
-        .collect()
-}
-
-pub(crate) fn corrupt(table: &'static str, reason: impl ToString) -> DbError {
-    DbError::Corrupt {
-        table,
-        reason: reason.to_string(),
-    }
-}
-
-fn json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
-    col: &str,
-    table: &'static str,
-) -> Result<T, DbError> {
-    let text: String = row.try_get(col)?;
-    serde_json::from_str(&text).map_err(|e| corrupt(table, format!("{col}: {e}")))
-}
-
-fn opt_json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
-    col: &str,
-    table: &'static str,
-) -> Result<Option<T>, DbError> {
-    let text: Option<String> = row.try_get(col)?;
-    text.map(|t| serde_json::from_str(&t).map_err(|e| corrupt(table, format!("{col}: {e}"))))
-        .transpose()
-}
-
-pub(crate) fn to_json<T: serde::Serialize>(v: &T) -> String {
-    serde_json::to_string(v).unwrap_or_else(|_| "null".into())
-}
-
-fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
-    let id: String = row.try_get("id")?;
-    let kind: String = row.try_get("kind")?;
-    let bytes: i64 = row.try_get("bytes")?;
-    Ok(Dataset {
-        id: DatasetId::parse(&id).map_err(|e| corrupt("datasets", e))?,
-        kind: match kind.as_str() {
-            "upload" => DatasetKind::Upload,
-            "simulation" => DatasetKind::Simulation,
-            other => return Err(corrupt("datasets", format!("kind {other}"))),
-        },
-        geometry: json_col(row, "geometry", "datasets")?,
-        shape: json_col(row, "shape", "datasets")?,
-        dtype: row.try_get("dtype")?,
-        bytes: bytes as u64,
-        sha256: row.try_get("sha256")?,
-        phantom: opt_json_col(row, "phantom", "datasets")?,
-        noise: opt_json_col(row, "noise", "datasets")?,
-        created_us: row.try_get("created_us")?,
-    })
-}
-
-fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let estimate: i64 = row.try_get("estimate_bytes")?;
-    let attempts: i64 = row.try_get("attempts")?;
-    let cancel: i64 = row.try_get("cancel_requested")?;
-    Ok(Job {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
-        kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
-        stage: row.try_get("stage")?,
-        request: json_col::<JobSpec>(row, "spec", "jobs")?,
-        estimate_bytes: estimate.max(0) as u64,
-        attempts: attempts.max(0) as u32,
-        cancel_requested: cancel != 0,
-        error: opt_json_col::<Problem>(row, "error", "jobs")?,
-        result: opt_json_col::<JobResult>(row, "result", "jobs")?,
-        created_us: row.try_get("created_us")?,
-        started_us: row.try_get("started_us")?,
-        finished_us: row.try_get("finished_us")?,
-    })
-}
-
-/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
-/// (comma-separated).
-const SUMMARY_COLUMNS: &str =
-    "id, kind, status, progress, stage, created_us, started_us, finished_us,
-    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
-    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
-        AS product_indexes";
-
-fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let has_metrics: i64 = row.try_get("has_metrics")?;
-    let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = product_indexes(products.as_deref())?;
-    Ok(JobSummary {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
-        kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
-        stage: row.try_get("stage")?,
-        created_us: row.try_get("created_us")?,
-        started_us: row.try_get("started_us")?,
-        finished_us: row.try_get("finished_us")?,
-        has_metrics: has_metrics != 0,
-        product_indexes,
-    })
 }
 
 impl Db {

@@ -8,6 +8,7 @@ mod display;
 mod error;
 mod filter;
 mod frame;
+mod image_plane;
 mod mpr;
 mod orient;
 mod picture;
@@ -19,11 +20,11 @@ pub use display::{Axis, ProjectionKind, project, slice};
 pub use error::VolumeError;
 pub use filter::{gaussian, largest_component, median3, threshold};
 pub use frame::{Frame, IndexMap, Volume};
+pub use image_plane::{ImagePlane, ScreenSides, direction_label};
 pub use mpr::{MAX_SIDE, Plane, Slab, curved, reformat, series_count, slab_series, whole_ceil};
 pub use orient::{
-    AXIS_ALIGNED_TOLERANCE, DisplayGrid, ImagePlane, Reorientation, ScreenSides, closest_canonical,
-    direction_label, flip_rows, is_axis_aligned, oriented_projection, oriented_slice,
-    to_closest_canonical,
+    AXIS_ALIGNED_TOLERANCE, DisplayGrid, Reorientation, closest_canonical, flip_rows,
+    is_axis_aligned, oriented_projection, oriented_slice, to_closest_canonical,
 };
 pub use picture::{MAX_VIEWPORT_SIDE, encode_jpeg, fit_viewport};
 pub use resample::{isotropic_grid, resample_isotropic, trilinear};

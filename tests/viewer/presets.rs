@@ -6,8 +6,8 @@
 //! the API's product values through the chosen window.
 
 use ctrecon::dicom::{SeriesMeta, write_ct_series, write_zip};
+use ctrecon::jobs::model::ProductSpec;
 use ctrecon::jobs::rules::JobTemplate;
-use ctrecon::jobs::volume_spec::ProductSpec;
 use ctrecon::volume::{Frame, Volume};
 use ndarray::Array3;
 use serde_json::{Value, json};

@@ -6,9 +6,9 @@ use std::sync::{Arc, Mutex};
 use super::progress::{Latest, Sink};
 use super::{Engine, heartbeat_interval};
 use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::model::PacsSeries;
 use crate::jobs::pull::{PULL_SHARE, Scaled, SeriesPuller};
 use crate::jobs::run::RunError;
-use crate::jobs::volume_spec::PacsSeries;
 use crate::recon::control::Cancel;
 use crate::storage::{JobId, SeriesId};
 

@@ -13,7 +13,7 @@ use tokio::sync::mpsc;
 
 use super::{Engine, JobEvent};
 use crate::jobs::database::Database;
-use crate::jobs::{Job, JobSummary};
+use crate::jobs::model::{Job, JobSummary};
 use crate::storage::JobId;
 
 /// Notifications queued for sending at most; beyond that they are dropped (counted in the log).

@@ -1,4 +1,4 @@
-//! Rows that own blob files, on PostgreSQL: what the start-up sweep ([`crate::jobs::repo::sweep_blobs`])
+//! Rows that own blob files, on PostgreSQL: what the start-up sweep ([`crate::jobs::sweep::sweep_blobs`])
 //! reads and marks, and the deletion of series and datasets that no queued or running job uses.
 
 use std::collections::HashSet;
@@ -7,7 +7,7 @@ use sqlx::Row;
 
 use super::{DbError, PgDb};
 use crate::jobs::model::now_us;
-pub use crate::jobs::repo::Deleted;
+pub use crate::jobs::store::Deleted;
 use crate::storage::sweep::BlobKind;
 use crate::storage::{DatasetId, SeriesId};
 

@@ -13,8 +13,8 @@ use crate::jobs::lifecycle::{
     IllegalTransition, JobState, Lease, Outcome, Transition, sources, transition,
 };
 use crate::jobs::model::{Job, JobStatus, now_us};
-use crate::jobs::repo::{corrupt, to_json};
 use crate::jobs::store::{Expired, JobStore, Renewed, StoreError, StoreResult};
+use crate::jobs::store::{corrupt, to_json};
 use crate::storage::JobId;
 
 /// `status IN ('…', …)` for the statuses `event` is legal from (fixed words from the lifecycle table).

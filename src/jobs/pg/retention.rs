@@ -4,7 +4,7 @@
 use sqlx::Row;
 
 use super::{DbError, PgDb};
-use crate::jobs::repo::corrupt;
+use crate::jobs::store::corrupt;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
 
 /// The inputs (datasets, series, jobs) of queued and running jobs: never removed.

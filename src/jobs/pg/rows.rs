@@ -6,7 +6,7 @@ use sqlx::postgres::PgRow;
 use super::DbError;
 use crate::error_code::Problem;
 use crate::jobs::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary};
-use crate::jobs::repo::{corrupt, product_indexes};
+use crate::jobs::store::{corrupt, product_indexes};
 use crate::storage::{DatasetId, JobId};
 
 pub(super) fn json_col<T: serde::de::DeserializeOwned>(

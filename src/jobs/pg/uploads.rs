@@ -7,7 +7,7 @@ use super::{
     opt_json_col,
 };
 use crate::jobs::model::{SeriesRecord, UploadRecord, now_us};
-use crate::jobs::repo::to_json;
+use crate::jobs::store::to_json;
 use crate::storage::{SeriesId, UploadId};
 
 impl PgDb {

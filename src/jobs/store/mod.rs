@@ -9,6 +9,9 @@
 //! any adapter as `Arc<dyn JobStore>`.
 
 pub mod conformance;
+mod records;
+
+pub use records::*;
 
 use futures_util::future::BoxFuture;
 

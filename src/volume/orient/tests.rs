@@ -1,4 +1,7 @@
 use super::*;
+use crate::volume::{ScreenSides, direction_label};
+
+type V3 = [f64; 3];
 use ndarray::Array3;
 
 /// The 48 signed permutation matrices, as direction rows (index axis → patient unit vector).

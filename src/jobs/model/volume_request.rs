@@ -126,9 +126,9 @@ pub enum ProductSpec {
     /// An iso-surface (mm, LPS) with its measurements.
     Mesh(MeshOptions),
     /// Volume rendering (ray casting through a transfer function), RGB.
-    VolumeRender(super::render_products::VolumeRenderSpec),
+    VolumeRender(super::render_request::VolumeRenderSpec),
     /// Shaded iso-surfaces, opaque or transparent, RGB.
-    SurfaceRender(super::render_products::SurfaceRenderSpec),
+    SurfaceRender(super::render_request::SurfaceRenderSpec),
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

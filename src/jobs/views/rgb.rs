@@ -4,11 +4,11 @@
 
 use sha2::{Digest, Sha256};
 
-use super::ingest::dicom_problem;
-use super::model::{FileInfo, ProductResult};
-use super::views::{ProductFormat, ProductQuery, RenderContext};
+use super::query::{ProductFormat, ProductQuery, RenderContext};
 use crate::dicom::{RgbFrames, write_secondary_capture_rgb};
 use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::ingest::dicom_problem;
+use crate::jobs::model::{FileInfo, ProductResult};
 use crate::render::{RenderError, RgbImage, encode_rgb_apng, encode_rgb_png};
 use crate::storage::npy::hex;
 

@@ -1,0 +1,106 @@
+//! Rows of the SQLite job database decoded into the model: datasets, jobs and job summaries.
+
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+use super::{DbError, corrupt, product_indexes};
+use crate::error_code::Problem;
+use crate::jobs::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary};
+use crate::storage::{DatasetId, JobId};
+
+pub(super) fn json_col<T: serde::de::DeserializeOwned>(
+    row: &SqliteRow,
+    col: &str,
+    table: &'static str,
+) -> Result<T, DbError> {
+    let text: String = row.try_get(col)?;
+    serde_json::from_str(&text).map_err(|e| corrupt(table, format!("{col}: {e}")))
+}
+
+pub(super) fn opt_json_col<T: serde::de::DeserializeOwned>(
+    row: &SqliteRow,
+    col: &str,
+    table: &'static str,
+) -> Result<Option<T>, DbError> {
+    let text: Option<String> = row.try_get(col)?;
+    text.map(|t| serde_json::from_str(&t).map_err(|e| corrupt(table, format!("{col}: {e}"))))
+        .transpose()
+}
+
+pub(super) fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
+    let id: String = row.try_get("id")?;
+    let kind: String = row.try_get("kind")?;
+    let bytes: i64 = row.try_get("bytes")?;
+    Ok(Dataset {
+        id: DatasetId::parse(&id).map_err(|e| corrupt("datasets", e))?,
+        kind: match kind.as_str() {
+            "upload" => DatasetKind::Upload,
+            "simulation" => DatasetKind::Simulation,
+            other => return Err(corrupt("datasets", format!("kind {other}"))),
+        },
+        geometry: json_col(row, "geometry", "datasets")?,
+        shape: json_col(row, "shape", "datasets")?,
+        dtype: row.try_get("dtype")?,
+        bytes: bytes as u64,
+        sha256: row.try_get("sha256")?,
+        phantom: opt_json_col(row, "phantom", "datasets")?,
+        noise: opt_json_col(row, "noise", "datasets")?,
+        created_us: row.try_get("created_us")?,
+    })
+}
+
+pub(super) fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
+    let id: String = row.try_get("id")?;
+    let status: String = row.try_get("status")?;
+    let progress: i64 = row.try_get("progress")?;
+    let estimate: i64 = row.try_get("estimate_bytes")?;
+    let attempts: i64 = row.try_get("attempts")?;
+    let cancel: i64 = row.try_get("cancel_requested")?;
+    Ok(Job {
+        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        kind: row.try_get("kind")?,
+        status: JobStatus::parse(&status)
+            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
+        progress: progress.clamp(0, 100) as u8,
+        stage: row.try_get("stage")?,
+        request: json_col::<JobSpec>(row, "spec", "jobs")?,
+        estimate_bytes: estimate.max(0) as u64,
+        attempts: attempts.max(0) as u32,
+        cancel_requested: cancel != 0,
+        error: opt_json_col::<Problem>(row, "error", "jobs")?,
+        result: opt_json_col::<JobResult>(row, "result", "jobs")?,
+        created_us: row.try_get("created_us")?,
+        started_us: row.try_get("started_us")?,
+        finished_us: row.try_get("finished_us")?,
+    })
+}
+
+/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
+/// (comma-separated).
+pub(super) const SUMMARY_COLUMNS: &str =
+    "id, kind, status, progress, stage, created_us, started_us, finished_us,
+    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
+    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
+        AS product_indexes";
+
+pub(super) fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
+    let id: String = row.try_get("id")?;
+    let status: String = row.try_get("status")?;
+    let progress: i64 = row.try_get("progress")?;
+    let has_metrics: i64 = row.try_get("has_metrics")?;
+    let products: Option<String> = row.try_get("product_indexes")?;
+    let product_indexes = product_indexes(products.as_deref())?;
+    Ok(JobSummary {
+        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        kind: row.try_get("kind")?,
+        status: JobStatus::parse(&status)
+            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
+        progress: progress.clamp(0, 100) as u8,
+        stage: row.try_get("stage")?,
+        created_us: row.try_get("created_us")?,
+        started_us: row.try_get("started_us")?,
+        finished_us: row.try_get("finished_us")?,
+        has_metrics: has_metrics != 0,
+        product_indexes,
+    })
+}
