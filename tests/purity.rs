@@ -4,7 +4,8 @@
 //! - the application layer (`app`) imports no front door (`http`, `cli`) and no web framework;
 //! - the job-store adapter (`jobs`) and the blob-store adapter (`storage`) do not import each other's
 //!   backends, and nothing below the front doors imports them;
-//! - the top-level modules import each other without a cycle.
+//! - the top-level modules import each other without a cycle, and so do the modules inside `src/jobs`;
+//! - no source file outside tests is over 500 lines.
 
 use std::path::{Path, PathBuf};
 
@@ -91,47 +92,146 @@ fn pure_modules_import_no_service_dicom_clock_env_or_filesystem() {
     );
 }
 
-/// Top-level modules of `src/` (a folder or a file) and the other top-level modules each one names as
-/// `crate::<module>`.
-fn module_graph(
-    root: &Path,
-) -> std::collections::BTreeMap<String, std::collections::BTreeSet<String>> {
+type Graph = std::collections::BTreeMap<String, std::collections::BTreeSet<String>>;
+
+/// Module path of a source file under `src`: `jobs/engine/relay.rs` → `["jobs", "engine", "relay"]`,
+/// `jobs/imaging/mod.rs` → `["jobs", "imaging"]`.
+fn module_path(src: &Path, file: &Path) -> Vec<String> {
+    let rel = file.strip_prefix(src).expect("under src");
+    let mut parts: Vec<String> = rel
+        .components()
+        .map(|c| {
+            c.as_os_str()
+                .to_string_lossy()
+                .trim_end_matches(".rs")
+                .to_string()
+        })
+        .collect();
+    if parts
+        .last()
+        .is_some_and(|p| p == "mod" || p == "lib" || p == "main")
+    {
+        parts.pop();
+    }
+    parts
+}
+
+/// The code of a file outside comments and outside its `#[cfg(test)]` module (tests may import anything).
+fn non_test_code(text: &str) -> String {
+    let body = text.split("#[cfg(test)]").next().unwrap_or("");
+    body.lines().map(code).collect::<Vec<_>>().join("\n")
+}
+
+/// The absolute module paths that `text` (the code of module `module`) names through `crate::`, `super::`
+/// or `self::`; each member of a brace group (`use super::{a, b::c}`) counts.
+fn named_paths(module: &[String], text: &str) -> Vec<Vec<String>> {
+    let is_ident = |ch: char| ch.is_ascii_alphanumeric() || ch == '_';
+    let ident_at = |rest: &str| -> String { rest.chars().take_while(|&ch| is_ident(ch)).collect() };
+    let mut out = Vec::new();
+    let mut i = 0;
+    while i < text.len() {
+        let rest = &text[i..];
+        let boundary = text[..i]
+            .chars()
+            .next_back()
+            .is_none_or(|ch| !is_ident(ch) && ch != ':');
+        let (mut base, mut at) = if boundary && rest.starts_with("crate::") {
+            (Vec::new(), 7)
+        } else if boundary && rest.starts_with("self::") {
+            (module.to_vec(), 6)
+        } else if boundary && rest.starts_with("super::") {
+            (module[..module.len().saturating_sub(1)].to_vec(), 7)
+        } else {
+            i += rest.chars().next().map_or(1, char::len_utf8);
+            continue;
+        };
+        while rest[at..].starts_with("super::") {
+            base.pop();
+            at += 7;
+        }
+        // Segments `a::b::` extend the base; a brace group or a last name ends the path.
+        loop {
+            if rest[at..].starts_with('{') {
+                let group = &rest[at + 1..rest[at..].find('}').map_or(rest.len(), |e| at + e)];
+                for member in group.split(',') {
+                    let name = ident_at(member.trim());
+                    if !name.is_empty() && name != "self" {
+                        out.push([base.clone(), vec![name]].concat());
+                    }
+                }
+                break;
+            }
+            let name = ident_at(&rest[at..]);
+            if name.is_empty() {
+                break;
+            }
+            at += name.len();
+            base.push(name);
+            if rest[at..].starts_with("::") {
+                at += 2;
+            } else {
+                out.push(base);
+                break;
+            }
+        }
+        i += at;
+    }
+    out
+}
+
+/// The modules directly inside `within` (`[]`: the top-level modules of `src/`) and the others of them that
+/// each one's code names, by `crate::`, `super::` or `self::` paths. Test modules (`tests.rs`, `#[cfg(test)]`)
+/// are left out.
+fn module_graph_within(root: &Path, within: &[&str]) -> Graph {
     let src = root.join("src");
     let mut files = Vec::new();
     rust_files(&src, &mut files);
-    let mut graph = std::collections::BTreeMap::<String, std::collections::BTreeSet<String>>::new();
+    let depth = within.len();
+    let mut graph = Graph::new();
     for file in files {
-        let rel = file.strip_prefix(&src).expect("under src");
-        let first = rel.components().next().expect("a component");
-        let top = first
-            .as_os_str()
-            .to_string_lossy()
-            .trim_end_matches(".rs")
-            .to_string();
-        let text = std::fs::read_to_string(&file).expect("read source");
-        let deps = graph.entry(top.clone()).or_default();
-        for line in text.lines() {
-            let c = code(line);
-            for (i, _) in c.match_indices("crate::") {
-                let name: String = c[i + 7..]
-                    .chars()
-                    .take_while(|ch| ch.is_ascii_lowercase() || *ch == '_')
-                    .collect();
-                if !name.is_empty() && name != top {
-                    deps.insert(name);
-                }
+        let module = module_path(&src, &file);
+        let inside = module.len() > depth && module.iter().zip(within).all(|(m, w)| m == w);
+        if !inside || module.last().is_some_and(|m| m == "tests") {
+            continue;
+        }
+        let own = module[depth].clone();
+        let text = non_test_code(&std::fs::read_to_string(&file).expect("read source"));
+        let deps = graph.entry(own.clone()).or_default();
+        for path in named_paths(&module, &text) {
+            let under = path.len() > depth && path.iter().zip(within).all(|(p, w)| p == w);
+            if under && path[depth] != own {
+                deps.insert(path[depth].clone());
             }
         }
+    }
+    // Only modules that exist (a path's next segment may be an item of `within`, not a module).
+    let known: std::collections::BTreeSet<String> = graph.keys().cloned().collect();
+    for deps in graph.values_mut() {
+        deps.retain(|d| known.contains(d));
     }
     graph
 }
 
+/// Top-level modules of `src/` and the other top-level modules each one names.
+fn module_graph(root: &Path) -> Graph {
+    module_graph_within(root, &[])
+}
+
+/// Every `a → b → … → a` in `graph`, one line per edge on a cycle.
+fn cycles(graph: &Graph) -> Vec<String> {
+    let mut found = Vec::new();
+    for (m, deps) in graph {
+        for d in deps {
+            if reaches(graph, d, m) {
+                found.push(format!("{m} → {d} → … → {m}"));
+            }
+        }
+    }
+    found
+}
+
 /// Whether `to` is reachable from `from` in `graph`.
-fn reaches(
-    graph: &std::collections::BTreeMap<String, std::collections::BTreeSet<String>>,
-    from: &str,
-    to: &str,
-) -> bool {
+fn reaches(graph: &Graph, from: &str, to: &str) -> bool {
     let mut seen = std::collections::BTreeSet::new();
     let mut stack = vec![from.to_string()];
     while let Some(m) = stack.pop() {
@@ -154,15 +254,55 @@ fn top_level_modules_import_each_other_without_a_cycle() {
         graph.contains_key("app") && graph.contains_key("jobs"),
         "{graph:?}"
     );
-    let mut cycles = Vec::new();
-    for (m, deps) in &graph {
-        for d in deps {
-            if graph.contains_key(d) && reaches(&graph, d, m) {
-                cycles.push(format!("{m} → {d} → … → {m}"));
-            }
-        }
+    let found = cycles(&graph);
+    assert!(found.is_empty(), "module cycles:\n{}", found.join("\n"));
+}
+
+#[test]
+fn the_modules_of_jobs_import_each_other_without_a_cycle() {
+    let graph = module_graph_within(Path::new(env!("CARGO_MANIFEST_DIR")), &["jobs"]);
+    for layer in ["model", "store", "repo", "engine", "imaging", "views"] {
+        assert!(graph.contains_key(layer), "{layer} missing: {graph:?}");
     }
-    assert!(cycles.is_empty(), "module cycles:\n{}", cycles.join("\n"));
+    // The layers point one way: the model names none of the others, the store only the model's neighbours.
+    assert!(
+        graph["model"].is_empty(),
+        "model imports {:?}",
+        graph["model"]
+    );
+    assert!(!reaches(&graph, "store", "repo") && !reaches(&graph, "store", "pg"));
+    assert!(!reaches(&graph, "repo", "pg") && !reaches(&graph, "pg", "repo"));
+    assert!(!reaches(&graph, "imaging", "engine") && !reaches(&graph, "views", "imaging"));
+    let found = cycles(&graph);
+    assert!(
+        found.is_empty(),
+        "cycles inside src/jobs:\n{}",
+        found.join("\n")
+    );
+}
+
+#[test]
+fn no_source_file_is_over_500_lines_outside_tests() {
+    let src = Path::new(env!("CARGO_MANIFEST_DIR")).join("src");
+    let mut files = Vec::new();
+    rust_files(&src, &mut files);
+    let mut long: Vec<String> = files
+        .iter()
+        .filter(|f| module_path(&src, f).last().is_none_or(|m| m != "tests"))
+        .filter_map(|f| {
+            let lines = std::fs::read_to_string(f)
+                .expect("read source")
+                .lines()
+                .count();
+            (lines > 500).then(|| format!("{} ({lines} lines)", f.display()))
+        })
+        .collect();
+    long.sort();
+    assert!(
+        long.is_empty(),
+        "files over 500 lines:\n{}",
+        long.join("\n")
+    );
 }
 
 #[test]
@@ -211,6 +351,30 @@ fn adapters_and_lower_layers_import_no_front_door_and_the_stores_not_each_other(
     assert!(!reaches(&graph, "dimse", "http"), "dimse reaches http");
     // The blob store knows nothing of the job store (the job store may name blob ids).
     assert!(!reaches(&graph, "storage", "jobs"), "storage reaches jobs");
+}
+
+#[test]
+fn paths_resolve_from_the_module_that_names_them() {
+    let m: Vec<String> = ["jobs", "engine", "relay"].map(String::from).to_vec();
+    let text = "use super::{Engine, progress::Sink};\nuse super::super::model::Job;\nuse crate::jobs::{store, self};\nlet x = self::helper; my_super::x; a::crate::b";
+    let got: Vec<String> = named_paths(&m, text).iter().map(|p| p.join("::")).collect();
+    assert_eq!(
+        got,
+        [
+            "jobs::engine::Engine",
+            "jobs::engine::progress",
+            "jobs::model::Job",
+            "jobs::store",
+            "jobs::engine::relay::helper"
+        ]
+    );
+    let cyclic: Graph = [("a", "b"), ("b", "c"), ("c", "a"), ("c", "d")]
+        .iter()
+        .fold(Graph::new(), |mut g, (x, y)| {
+            g.entry(x.to_string()).or_default().insert(y.to_string());
+            g
+        });
+    assert_eq!(cycles(&cyclic).len(), 3, "{:?}", cycles(&cyclic));
 }
 
 #[test]
