@@ -64,8 +64,8 @@ impl std::fmt::Debug for Outbound {
     }
 }
 
-/// The JSON view of a delivery (with its instances when they were loaded).
-pub fn delivery_view(d: &Delivery, with_instances: bool) -> Value {
+/// The JSON representation of a delivery (with its instances when they were loaded).
+pub fn delivery_json(d: &Delivery, with_instances: bool) -> Value {
     let mut v = json!({
         "id": d.id,
         "job_id": d.job_id,

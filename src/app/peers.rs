@@ -5,8 +5,8 @@ use serde_json::{Value, json};
 
 use crate::config::dicom::{Peer, WebPeer};
 
-/// The JSON view of a configured DIMSE peer.
-pub fn peer_view(p: &Peer) -> Value {
+/// The JSON representation of a configured DIMSE peer.
+pub fn peer_json(p: &Peer) -> Value {
     json!({
         "kind": "dimse",
         "ae_title": p.ae_title,
@@ -19,9 +19,9 @@ pub fn peer_view(p: &Peer) -> Value {
     })
 }
 
-/// The JSON view of a configured DICOMweb origin: its name, its root (any user information in the URL left
+/// The JSON representation of a configured DICOMweb origin: its name, its root (any user information in the URL left
 /// out) and which credentials it is sent, never their values.
-pub fn web_peer_view(p: &WebPeer) -> Value {
+pub fn web_peer_json(p: &WebPeer) -> Value {
     let auth = if p.bearer_token.is_some() {
         "bearer"
     } else if p.username.is_some() {
@@ -62,7 +62,7 @@ mod tests {
             "bearer_token": "s3cr3t-token"
         }))
         .unwrap();
-        let v = web_peer_view(&p);
+        let v = web_peer_json(&p);
         assert_eq!(v["kind"], "dicomweb");
         assert_eq!(v["url"], "https://pacs.example/dicom-web");
         assert_eq!(v["auth"], "bearer");

@@ -31,8 +31,8 @@ fn not_found(name: &str) -> AppError {
     )
 }
 
-/// The JSON view of a rule, with its recent runs (each with its delivery ids) when given.
-pub fn rule_view(r: &StoredRule, runs: Option<&[(RuleRun, Vec<String>)]>) -> Value {
+/// The JSON representation of a rule, with its recent runs (each with its delivery ids) when given.
+pub fn rule_json(r: &StoredRule, runs: Option<&[(RuleRun, Vec<String>)]>) -> Value {
     let mut v = serde_json::to_value(&r.spec).unwrap_or_default();
     if let Some(m) = v.as_object_mut() {
         m.insert("source".into(), json!(r.source));
@@ -46,7 +46,7 @@ pub fn rule_view(r: &StoredRule, runs: Option<&[(RuleRun, Vec<String>)]>) -> Val
         if let Some(runs) = runs {
             m.insert(
                 "runs".into(),
-                runs.iter().map(|(run, d)| run_view(run, d)).collect(),
+                runs.iter().map(|(run, d)| run_json(run, d)).collect(),
             );
         }
     }
@@ -54,7 +54,7 @@ pub fn rule_view(r: &StoredRule, runs: Option<&[(RuleRun, Vec<String>)]>) -> Val
 }
 
 /// A rule run: the series it fired for, the job it started and the deliveries of its results.
-pub fn run_view(r: &RuleRun, deliveries: &[String]) -> Value {
+pub fn run_json(r: &RuleRun, deliveries: &[String]) -> Value {
     let mut v = json!({
         "id": r.id,
         "series_id": r.series_id,
@@ -78,7 +78,7 @@ pub fn run_view(r: &RuleRun, deliveries: &[String]) -> Value {
 
 /// The parts of a job's view that say what made it and where its results went: `rule` (the rule run that
 /// made it, with its source series) and `deliveries` (each with its destination and state), and their links.
-pub fn job_origin_view(run: Option<&RuleRun>, deliveries: &[Delivery]) -> Value {
+pub fn job_origin_json(run: Option<&RuleRun>, deliveries: &[Delivery]) -> Value {
     let mut v = json!({
         "deliveries": deliveries
             .iter()

@@ -20,7 +20,7 @@ use crate::storage::sweep::BlobKind;
 use crate::storage::{SeriesId, UploadId};
 
 /// The JSON document of a stored series (also part of an upload's outcome).
-pub fn series_view(r: &SeriesRecord) -> Value {
+pub fn series_json(r: &SeriesRecord) -> Value {
     let mut v = serde_json::to_value(r).unwrap_or_default();
     if let Some(m) = v.as_object_mut() {
         m.insert("created_at".into(), rfc3339(r.created_us).into());
@@ -38,14 +38,14 @@ pub fn series_view(r: &SeriesRecord) -> Value {
 
 /// The outcome document of a completed upload: the upload, each series (with links when stored) and the
 /// refused files.
-pub fn outcome_view(id: UploadId, instances: u32, bytes: u64, ingested: &Ingested) -> Value {
+pub fn outcome_json(id: UploadId, instances: u32, bytes: u64, ingested: &Ingested) -> Value {
     let series: Vec<Value> = ingested
         .series
         .iter()
         .map(|s| {
             let mut v = json!({ "status": s.status, "report": s.report });
             if let Some(r) = &s.series {
-                v["series"] = series_view(r);
+                v["series"] = series_json(r);
             }
             if let Some(e) = &s.error {
                 v["error"] = json!(e);
@@ -160,7 +160,7 @@ impl App {
         let (ingested, staged) = self.ingest_files(id, files, None).await?;
         let instances = ingested.files() as u32;
         let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
-        let view = outcome_view(id, instances, bytes, &ingested);
+        let view = outcome_json(id, instances, bytes, &ingested);
         match self
             .db
             .insert_completed_upload(id, instances, bytes, &view, &records, None)

@@ -1,6 +1,6 @@
 //! DICOM uploads as application commands: a whole upload received in one request (files or ZIPs, already on
 //! disk as temporary files), one instance appended to an open upload, the completion of an open upload, and
-//! the upload's JSON view.
+//! the upload's JSON representation.
 //!
 //! Received files are decoded on the worker pool, split by SeriesInstanceUID and assembled into HU volumes;
 //! a file or member that cannot be read is listed as rejected with its reason and the others go on.
@@ -15,7 +15,7 @@ use serde_json::{Value, json};
 use super::error::refused;
 use super::idempotency::settle;
 use super::instances::StagedInstances;
-use super::series::outcome_view;
+use super::series::outcome_json;
 use super::{App, AppError, AppResult, Replay};
 use crate::dicom::UploadFile;
 use crate::error_code::ErrorCode;
@@ -56,7 +56,7 @@ pub enum AppendAnswer {
 }
 
 /// The JSON document of an upload: its outcome once completed, else its state and links.
-pub fn upload_view(u: &UploadRecord) -> Value {
+pub fn upload_json(u: &UploadRecord) -> Value {
     if let Some(outcome) = &u.outcome {
         return outcome.clone();
     }
@@ -172,7 +172,7 @@ impl App {
             staged.discard().await;
             return Err(ingested.failure().into());
         }
-        let view = outcome_view(id, instances, bytes, &ingested);
+        let view = outcome_json(id, instances, bytes, &ingested);
         let recorded = self
             .record_upload(id, (instances, bytes), &view, &records, key.as_ref())
             .await;

@@ -10,10 +10,10 @@
 
 use serde_json::{Value, json};
 
-use super::{AppendAnswer, upload_not_found, upload_view};
+use super::{AppendAnswer, upload_json, upload_not_found};
 use crate::app::error::refused;
 use crate::app::idempotency::settle;
-use crate::app::series::outcome_view;
+use crate::app::series::outcome_json;
 use crate::app::{App, AppResult, Replay};
 use crate::dicom::{ReadLimits, UploadFile, read_upload_file};
 use crate::error_code::{ErrorCode, Problem};
@@ -119,7 +119,7 @@ impl App {
             return Err(upload_not_found(id));
         };
         tracing::info!(upload_id = %id, instances, duplicate, "instance appended");
-        let mut view = upload_view(&record);
+        let mut view = upload_json(&record);
         view["appended"] = json!({"file": name, "series_uid": series_uid, "duplicate": duplicate});
         Ok(AppendAnswer::Appended { id, view, opened })
     }
@@ -183,7 +183,7 @@ impl App {
             staged.discard().await;
             return Err(ingested.failure().into());
         }
-        let view = outcome_view(id, instances, bytes, &ingested);
+        let view = outcome_json(id, instances, bytes, &ingested);
         let recorded = match self
             .db
             .complete_upload(id, instances, &view, &records)

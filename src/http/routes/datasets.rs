@@ -30,8 +30,8 @@ use crate::storage::{DatasetId, TempBlob};
 const ROUTE_SIMULATIONS: &str = "POST /v1/simulations";
 const ROUTE_SINOGRAMS: &str = "POST /v1/sinograms";
 
-/// The JSON view of a dataset.
-pub fn dataset_view(d: &Dataset) -> serde_json::Value {
+/// The JSON representation of a dataset.
+pub fn dataset_json(d: &Dataset) -> serde_json::Value {
     let mut v = serde_json::to_value(d).unwrap_or_default();
     if let Some(map) = v.as_object_mut() {
         map.insert(
@@ -47,7 +47,7 @@ pub fn dataset_view(d: &Dataset) -> serde_json::Value {
 }
 
 fn created(d: &Dataset) -> Response {
-    let mut r = (StatusCode::CREATED, axum::Json(dataset_view(d))).into_response();
+    let mut r = (StatusCode::CREATED, axum::Json(dataset_json(d))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/datasets/{}", d.id)) {
         r.headers_mut().insert(header::LOCATION, loc);
     }
@@ -352,7 +352,7 @@ pub async fn get_dataset(
                 .db
                 .blob_missing(BlobKind::Dataset, &id.to_string())
                 .await?;
-            let mut view = dataset_view(&d);
+            let mut view = dataset_json(&d);
             view["available"] = serde_json::json!(!missing);
             Ok(axum::Json(view).into_response())
         }

@@ -13,7 +13,7 @@ use tokio::sync::{broadcast, mpsc};
 use super::super::AppState;
 use super::super::extract::job_id;
 use super::super::problem::{ApiResult, api_error};
-use super::jobs::job_view;
+use super::jobs::job_json;
 use crate::error_code::ErrorCode;
 use crate::jobs::{Job, JobEvent};
 use crate::storage::JobId;
@@ -31,7 +31,7 @@ fn progress_event(e: &JobEvent) -> Event {
 fn final_event(job: &Job) -> Event {
     Event::default()
         .event("final")
-        .json_data(job_view(job))
+        .json_data(job_json(job))
         .unwrap_or_default()
 }
 

@@ -21,7 +21,7 @@ use serde_json::json;
 use tokio::sync::mpsc;
 
 use super::super::AppState;
-use super::jobs::summary_view;
+use super::jobs::summary_json;
 use crate::app::feed::{Feed, FeedItem, Since};
 
 /// Time between heartbeat comments.
@@ -33,7 +33,7 @@ const BATCH: usize = 64;
 
 fn event(feed: &Feed, seq: u64, item: &FeedItem) -> Event {
     let (name, data) = match item {
-        FeedItem::Created(s) => ("created", summary_view(s)),
+        FeedItem::Created(s) => ("created", summary_json(s)),
         FeedItem::Status(e) => ("status", serde_json::to_value(e).unwrap_or_default()),
         FeedItem::Progress(e) => ("progress", serde_json::to_value(e).unwrap_or_default()),
         FeedItem::Deleted(id) => ("deleted", json!({ "id": id })),

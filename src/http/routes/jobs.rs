@@ -48,7 +48,7 @@ fn links(job: &JobSummary) -> serde_json::Value {
     l
 }
 
-/// A field of a job's JSON view. `request` stands for the request's own fields (`input`, `algorithm`,
+/// A field of a job's JSON representation. `request` stands for the request's own fields (`input`, `algorithm`,
 /// `grid`, `outputs`; or `input`, `steps`, `products`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Field {
@@ -128,7 +128,7 @@ impl FieldSet {
         Ok(set)
     }
 
-    /// The view `GET /v1/jobs` answers for `fields` (exactly these, and the id) and `expand` (the summary
+    /// The representation `GET /v1/jobs` answers for `fields` (exactly these, and the id) and `expand` (the summary
     /// and these); both absent: the summary.
     pub fn of_query(fields: Option<&str>, expand: Option<&str>) -> Result<FieldSet, String> {
         let base = match fields {
@@ -140,12 +140,12 @@ impl FieldSet {
     }
 }
 
-/// The JSON view of a job.
-pub fn job_view(job: &Job) -> serde_json::Value {
+/// The JSON representation of a job.
+pub fn job_json(job: &Job) -> serde_json::Value {
     job_fields(job, FieldSet::ALL)
 }
 
-/// The fields `set` of a job's JSON view (only those are computed).
+/// The fields `set` of a job's JSON representation (only those are computed).
 pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
     let mut m = serde_json::Map::new();
     summary_fields(&mut m, &JobSummary::of(job), set);
@@ -173,8 +173,8 @@ pub fn job_fields(job: &Job, set: FieldSet) -> serde_json::Value {
     serde_json::Value::Object(m)
 }
 
-/// The summary view of a job, as `GET /v1/jobs` lists it.
-pub fn summary_view(job: &JobSummary) -> serde_json::Value {
+/// The summary representation of a job, as `GET /v1/jobs` lists it.
+pub fn summary_json(job: &JobSummary) -> serde_json::Value {
     let mut m = serde_json::Map::new();
     summary_fields(&mut m, job, FieldSet::SUMMARY);
     serde_json::Value::Object(m)
@@ -209,7 +209,7 @@ fn summary_fields(
 }
 
 fn accepted(job: &Job) -> Response {
-    let mut r = (StatusCode::ACCEPTED, axum::Json(job_view(job))).into_response();
+    let mut r = (StatusCode::ACCEPTED, axum::Json(job_json(job))).into_response();
     if let Ok(loc) = HeaderValue::from_str(&format!("/v1/jobs/{}", job.id)) {
         r.headers_mut().insert(header::LOCATION, loc);
     }
@@ -234,10 +234,10 @@ pub async fn post_job(
 pub async fn get_job(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
     let id = job_id(&id)?;
     let job = st.get_job(id).await?;
-    let mut v = job_view(&job);
+    let mut v = job_json(&job);
     let (run, deliveries) = st.job_origin(id).await?;
     if run.is_some() || !deliveries.is_empty() {
-        let origin = crate::app::rules::job_origin_view(run.as_ref(), &deliveries);
+        let origin = crate::app::rules::job_origin_json(run.as_ref(), &deliveries);
         if let Some(r) = origin.get("rule") {
             v["rule"] = r.clone();
             v["links"]["rule"] = r["links"]["self"].clone();
@@ -325,7 +325,7 @@ pub async fn list_jobs(
         before_id,
         limit,
     };
-    // A summary view reads neither requests nor results (most lists: status polls).
+    // A summary reads neither requests nor results (most lists: status polls).
     let (items, next) = if view.within(FieldSet::SUMMARY) {
         let page = st.list_job_summaries(&filter).await?;
         let items: Vec<_> = page

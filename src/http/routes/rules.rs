@@ -10,9 +10,9 @@ use serde_json::{Value, json};
 use super::super::AppState;
 use super::super::extract::{ApiJson, ApiQuery, job_id};
 use super::super::problem::{ApiResult, api_error};
-use crate::app::deliveries::delivery_view;
-use crate::app::peers::{peer_view, web_peer_view};
-use crate::app::rules::rule_view;
+use crate::app::deliveries::delivery_json;
+use crate::app::peers::{peer_json, web_peer_json};
+use crate::app::rules::rule_json;
 use crate::error_code::ErrorCode;
 use crate::jobs::deliveries::{DeliveryFilter, DeliveryState};
 use crate::storage::JobId;
@@ -33,20 +33,20 @@ pub async fn post_rule(State(st): State<AppState>, body: ApiJson<Value>) -> ApiR
     Ok(with_location(
         StatusCode::CREATED,
         &format!("/v1/rules/{}", r.spec.name),
-        rule_view(&r, Some(&[])),
+        rule_json(&r, Some(&[])),
     ))
 }
 
 pub async fn list_rules(State(st): State<AppState>) -> ApiResult<Response> {
     let rules = st.list_rules().await?;
-    let items: Vec<Value> = rules.iter().map(|r| rule_view(r, None)).collect();
+    let items: Vec<Value> = rules.iter().map(|r| rule_json(r, None)).collect();
     Ok(axum::Json(json!({ "rules": items })).into_response())
 }
 
 pub async fn get_rule(State(st): State<AppState>, Path(name): Path<String>) -> ApiResult<Response> {
     let r = st.get_rule(&name).await?;
     let runs = st.rule_runs(&name, RULE_RUNS).await?;
-    Ok(axum::Json(rule_view(&r, Some(&runs))).into_response())
+    Ok(axum::Json(rule_json(&r, Some(&runs))).into_response())
 }
 
 pub async fn put_rule(
@@ -56,7 +56,7 @@ pub async fn put_rule(
 ) -> ApiResult<Response> {
     let r = st.replace_rule(&name, body.value).await?;
     let runs = st.rule_runs(&name, RULE_RUNS).await?;
-    Ok(axum::Json(rule_view(&r, Some(&runs))).into_response())
+    Ok(axum::Json(rule_json(&r, Some(&runs))).into_response())
 }
 
 pub async fn delete_rule(
@@ -110,7 +110,7 @@ pub async fn list_deliveries(
         .list_deliveries(&f)
         .await?
         .iter()
-        .map(|d| delivery_view(d, false))
+        .map(|d| delivery_json(d, false))
         .collect();
     Ok(axum::Json(json!({ "deliveries": items })).into_response())
 }
@@ -120,7 +120,7 @@ pub async fn get_delivery(
     Path(id): Path<String>,
 ) -> ApiResult<Response> {
     let d = st.get_delivery(&delivery_id(&id)?).await?;
-    Ok(axum::Json(delivery_view(&d, true)).into_response())
+    Ok(axum::Json(delivery_json(&d, true)).into_response())
 }
 
 /// `POST /v1/deliveries`: send a succeeded job's DICOM results to a peer.
@@ -141,7 +141,7 @@ pub async fn post_delivery(
     Ok(with_location(
         StatusCode::ACCEPTED,
         &format!("/v1/deliveries/{}", d.id),
-        delivery_view(&d, true),
+        delivery_json(&d, true),
     ))
 }
 
@@ -153,14 +153,14 @@ pub async fn retry_delivery(
     Ok(with_location(
         StatusCode::ACCEPTED,
         &format!("/v1/deliveries/{}", d.id),
-        delivery_view(&d, true),
+        delivery_json(&d, true),
     ))
 }
 
 pub async fn list_peers(State(st): State<AppState>) -> ApiResult<Response> {
     let d = &st.settings.dicom;
-    let peers: Vec<Value> = d.peers.iter().map(peer_view).collect();
-    let web_peers: Vec<Value> = d.web_peers.iter().map(web_peer_view).collect();
+    let peers: Vec<Value> = d.peers.iter().map(peer_json).collect();
+    let web_peers: Vec<Value> = d.web_peers.iter().map(web_peer_json).collect();
     Ok(
         axum::Json(json!({ "ae_title": d.ae_title, "peers": peers, "web_peers": web_peers }))
             .into_response(),

@@ -9,7 +9,7 @@ use serde_json::json;
 use super::super::AppState;
 use super::super::files::{FileMeta, serve_stored};
 use super::super::problem::{ApiResult, api_error};
-use crate::app::series::series_view;
+use crate::app::series::series_json;
 use crate::error_code::ErrorCode;
 use crate::storage::SeriesId;
 
@@ -19,7 +19,7 @@ fn series_id(s: &str) -> ApiResult<SeriesId> {
 
 pub async fn get_series(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
     let s = st.get_series(series_id(&id)?).await?;
-    let mut view = series_view(&s.record);
+    let mut view = series_json(&s.record);
     view["available"] = json!(s.available);
     Ok(axum::Json(view).into_response())
 }

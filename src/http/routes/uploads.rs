@@ -15,7 +15,7 @@ use super::super::AppState;
 use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::problem::{ApiResult, api_error};
 use super::super::upload::{Spooled, paced, spool, too_large};
-use crate::app::uploads::{AppendAnswer, ReceivedFile, UploadAnswer, upload_view};
+use crate::app::uploads::{AppendAnswer, ReceivedFile, UploadAnswer, upload_json};
 use crate::error_code::ErrorCode;
 use crate::jobs::{IdempotencyKey, UploadRecord};
 use crate::series::UnevenPolicy;
@@ -143,9 +143,9 @@ fn created(location: &str, body: Value) -> Response {
     r
 }
 
-/// 201 with the view of an upload an earlier request created.
+/// 201 with the representation of an upload an earlier request created.
 fn replayed(u: &UploadRecord) -> Response {
-    created(&format!("/v1/uploads/{}", u.id), upload_view(u))
+    created(&format!("/v1/uploads/{}", u.id), upload_json(u))
 }
 
 /// Fingerprint of an upload: the media type, options and the SHA-256 of every file in order.
@@ -256,7 +256,7 @@ async fn append(
 
 pub async fn get_upload(State(st): State<AppState>, Path(id): Path<String>) -> ApiResult<Response> {
     let u = st.upload(upload_id(&id)?).await?;
-    Ok(axum::Json(upload_view(&u)).into_response())
+    Ok(axum::Json(upload_json(&u)).into_response())
 }
 
 pub async fn complete_upload(
