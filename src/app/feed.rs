@@ -55,7 +55,13 @@ struct Ring {
     items: VecDeque<(u64, FeedItem)>,
     /// The last status, progress and stage seen of each job that is not finished.
     seen: HashMap<JobId, (JobStatus, u8, String)>,
+    /// The final status of the jobs that finished most recently (at most [`FINISHED_KEPT`]), for a
+    /// submission announced after its job's end.
+    finished: VecDeque<(JobId, JobStatus)>,
 }
+
+/// Finished jobs whose final status the feed remembers.
+const FINISHED_KEPT: usize = 1024;
 
 /// The feed; cheap to clone.
 #[derive(Clone)]
@@ -135,13 +141,25 @@ impl Feed {
         self.created_elsewhere(JobSummary::of(job));
     }
 
-    /// Record a job submitted through another process, by the summary it relayed.
-    pub fn created_elsewhere(&self, summary: JobSummary) {
+    /// Record a job submitted through another process, by the summary it relayed. Notifications of
+    /// different processes are not ordered: when the job's status was heard first (a worker claimed it, or
+    /// even finished it, before the submission's announcement arrived), the submission is shown with that
+    /// status, so that no job's row goes back.
+    pub fn created_elsewhere(&self, mut summary: JobSummary) {
         let mut ring = self.lock();
-        ring.seen.insert(
-            summary.id,
-            (summary.status, summary.progress, summary.stage.clone()),
-        );
+        if let Some((status, progress, stage)) = ring.seen.get(&summary.id) {
+            summary.status = *status;
+            summary.progress = *progress;
+            summary.stage = stage.clone();
+        } else if let Some((_, status)) = ring.finished.iter().find(|(id, _)| *id == summary.id) {
+            summary.status = *status;
+            summary.progress = 100;
+        } else {
+            ring.seen.insert(
+                summary.id,
+                (summary.status, summary.progress, summary.stage.clone()),
+            );
+        }
         self.push(&mut ring, FeedItem::Created(summary));
     }
 
@@ -158,6 +176,10 @@ impl Feed {
         let mut ring = self.lock();
         let now = (e.status, e.progress, e.stage.clone());
         let before = if e.status.is_terminal() {
+            ring.finished.push_back((e.id, e.status));
+            if ring.finished.len() > FINISHED_KEPT {
+                ring.finished.pop_front();
+            }
             ring.seen.remove(&e.id)
         } else {
             ring.seen.insert(e.id, now.clone())
@@ -235,6 +257,75 @@ mod tests {
             iteration: None,
             residual: None,
         }
+    }
+
+    /// `(kind, status)` of every item in the feed.
+    fn shown(feed: &Feed) -> Vec<(&'static str, JobStatus)> {
+        let Since::Items(items) = feed.since(0, 100) else {
+            panic!("nothing left the ring")
+        };
+        items
+            .iter()
+            .filter_map(|(_, i)| match i {
+                FeedItem::Created(s) => Some(("created", s.status)),
+                FeedItem::Status(e) => Some(("status", e.status)),
+                FeedItem::Progress(e) => Some(("progress", e.status)),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_submission_announced_after_its_job_started_or_ended_does_not_send_the_job_back() {
+        let summary = |id: JobId| JobSummary {
+            id,
+            kind: "reconstruction".into(),
+            status: JobStatus::Queued,
+            progress: 0,
+            stage: String::new(),
+            created_us: 0,
+            started_us: None,
+            finished_us: None,
+            has_metrics: false,
+            product_indexes: vec![],
+        };
+        // Running heard before the submission: the submission shows running, and the next progress is
+        // progress, not a second start.
+        let feed = Feed::new();
+        let id = JobId::generate();
+        feed.engine_event(event(id, JobStatus::Running, 10));
+        feed.created_elsewhere(summary(id));
+        feed.engine_event(event(id, JobStatus::Running, 20));
+        feed.engine_event(event(id, JobStatus::Succeeded, 100));
+        assert_eq!(
+            shown(&feed),
+            [
+                ("status", JobStatus::Running),
+                ("created", JobStatus::Running),
+                ("progress", JobStatus::Running),
+                ("status", JobStatus::Succeeded),
+            ]
+        );
+        // The whole run heard before the submission: it is shown finished and nothing stays tracked.
+        let feed = Feed::new();
+        let id = JobId::generate();
+        feed.engine_event(event(id, JobStatus::Running, 0));
+        feed.engine_event(event(id, JobStatus::Failed, 100));
+        feed.created_elsewhere(summary(id));
+        assert_eq!(shown(&feed).last(), Some(&("created", JobStatus::Failed)));
+        assert!(feed.lock().seen.is_empty());
+        // In order, nothing changes.
+        let feed = Feed::new();
+        let id = JobId::generate();
+        feed.created_elsewhere(summary(id));
+        feed.engine_event(event(id, JobStatus::Running, 0));
+        assert_eq!(
+            shown(&feed),
+            [
+                ("created", JobStatus::Queued),
+                ("status", JobStatus::Running)
+            ]
+        );
     }
 
     #[test]
