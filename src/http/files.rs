@@ -6,8 +6,7 @@ use std::path::PathBuf;
 use axum::body::Body;
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::Response;
-use tokio::io::{AsyncReadExt, AsyncSeekExt};
-use tokio_util::io::ReaderStream;
+use bytes::Bytes;
 
 use super::problem::{ApiResult, api_error};
 use crate::error_code::ErrorCode;
@@ -135,9 +134,52 @@ pub async fn serve_stored(
     serve_from(req, meta, Some(store)).await
 }
 
+/// Largest piece of a file read at once for a response body.
+pub(crate) const CHUNK: usize = 1 << 20;
+
+/// Pieces of a response body, read off the async runtime.
+pub(crate) type Chunks = tokio::sync::mpsc::Sender<Result<Bytes, std::io::Error>>;
+
+/// Hand `n` bytes of `file` from `start` to `tx` in pieces of up to [`CHUNK`] bytes, read on the calling
+/// (blocking) thread: one blocking task per file rather than one per piece. False when the response is gone
+/// or the file could not be read (the error is sent, which cuts the body off).
+pub(crate) fn send_file_range(mut file: std::fs::File, start: u64, n: u64, tx: &Chunks) -> bool {
+    use std::io::{Read, Seek};
+    if let Err(e) = file.seek(std::io::SeekFrom::Start(start)) {
+        let _ = tx.blocking_send(Err(e));
+        return false;
+    }
+    let mut left = file.take(n);
+    loop {
+        let mut buf = Vec::with_capacity(CHUNK);
+        match (&mut left).take(CHUNK as u64).read_to_end(&mut buf) {
+            Ok(0) => return true,
+            Ok(_) => {
+                if tx.blocking_send(Ok(Bytes::from(buf))).is_err() {
+                    return false;
+                }
+            }
+            Err(e) => {
+                let _ = tx.blocking_send(Err(e));
+                return false;
+            }
+        }
+    }
+}
+
+/// A body of `n` bytes of `file` from `start`, read by one blocking task through a channel of four pieces
+/// (memory stays within a few MiB whatever the file's size).
+fn file_body(file: std::fs::File, start: u64, n: u64) -> Body {
+    let (tx, rx) = tokio::sync::mpsc::channel::<Result<Bytes, std::io::Error>>(4);
+    tokio::task::spawn_blocking(move || send_file_range(file, start, n, &tx));
+    Body::from_stream(futures_util::stream::unfold(rx, |mut rx| async move {
+        rx.recv().await.map(|c| (c, rx))
+    }))
+}
+
 /// Where the bytes come from: an open local file, or the object behind the path.
 enum Source<'a> {
-    File(tokio::fs::File),
+    File(std::fs::File),
     Object(&'a BlobStore),
 }
 
@@ -160,7 +202,7 @@ async fn serve_from(
         None => {
             let file = tokio::fs::File::open(&meta.path).await?;
             let len = file.metadata().await?.len();
-            (Source::File(file), len)
+            (Source::File(file.into_std().await), len)
         }
     };
     let if_range_ok = req
@@ -191,7 +233,7 @@ async fn serve_from(
         }
         ByteRange::Full => {
             let body = match source {
-                Source::File(file) => Body::from_stream(ReaderStream::new(file)),
+                Source::File(file) => file_body(file, 0, len),
                 Source::Object(s) => Body::from_stream(s.object_get(&meta.path, None).await?),
             };
             builder
@@ -202,10 +244,7 @@ async fn serve_from(
         ByteRange::Part(start, end) => {
             let n = end - start + 1;
             let body = match source {
-                Source::File(mut file) => {
-                    file.seek(std::io::SeekFrom::Start(start)).await?;
-                    Body::from_stream(ReaderStream::new(file.take(n)))
-                }
+                Source::File(file) => file_body(file, start, n),
                 Source::Object(s) => {
                     Body::from_stream(s.object_get(&meta.path, Some(start..end + 1)).await?)
                 }
@@ -226,6 +265,38 @@ async fn serve_from(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_range_across_pieces_comes_back_byte_for_byte() {
+        let dir = tempfile::tempdir().expect("temp dir");
+        let path = dir.path().join("blob");
+        let bytes: Vec<u8> = (0..(3 * CHUNK + 12345))
+            .map(|i| (i * 7 % 251) as u8)
+            .collect();
+        std::fs::write(&path, &bytes).expect("write");
+        for (start, n) in [
+            (0, bytes.len()),
+            (1000, 2 * CHUNK + 5),
+            (CHUNK - 1, 2),
+            (17, 0),
+        ] {
+            let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+            let file = std::fs::File::open(&path).expect("open");
+            assert!(send_file_range(file, start as u64, n as u64, &tx));
+            drop(tx);
+            let mut got = Vec::new();
+            let mut pieces = 0;
+            while let Ok(piece) = rx.try_recv() {
+                let piece = piece.expect("read");
+                assert!(piece.len() <= CHUNK);
+                got.extend_from_slice(&piece);
+                pieces += 1;
+            }
+            assert_eq!(got.len(), n, "{start}+{n}");
+            assert!(got == bytes[start..start + n], "{start}+{n}");
+            assert_eq!(pieces, n.div_ceil(CHUNK), "{start}+{n}");
+        }
+    }
 
     #[test]
     fn byte_ranges_follow_rfc_9110() {

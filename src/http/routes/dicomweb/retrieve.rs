@@ -16,6 +16,7 @@ use crate::app::dicomweb::resource_path;
 use crate::app::wado::RetrieveSyntax;
 use crate::dicom::EXPLICIT_LE;
 use crate::error_code::ErrorCode;
+use crate::http::files::{Chunks, send_file_range};
 use crate::jobs::repo::StoredInstance;
 
 /// The syntax a retrieval's `Accept` asks for, or 406.
@@ -46,39 +47,16 @@ fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {
     ))
 }
 
-/// Largest chunk of a file handed to the response at once.
-const CHUNK: usize = 1 << 20;
-
-/// Hand the file at `path` to `tx` in chunks of up to [`CHUNK`] bytes, read on the calling (blocking)
-/// thread: one task per file rather than one per chunk. False when the response is gone or the file could
-/// not be read (the error is sent, which cuts the body off).
+/// Hand the file at `path` to `tx` in chunks (see [`send_file_range`]).
 fn send_file(path: &std::path::Path, tx: &Chunks) -> bool {
-    use std::io::Read;
-    let mut f = match std::fs::File::open(path) {
-        Ok(f) => f,
+    match std::fs::File::open(path).and_then(|f| Ok((f.metadata()?.len(), f))) {
+        Ok((len, f)) => send_file_range(f, 0, len, tx),
         Err(e) => {
             let _ = tx.blocking_send(Err(e));
-            return false;
-        }
-    };
-    loop {
-        let mut buf = Vec::with_capacity(CHUNK);
-        match (&mut f).take(CHUNK as u64).read_to_end(&mut buf) {
-            Ok(0) => return true,
-            Ok(_) => {
-                if tx.blocking_send(Ok(Bytes::from(buf))).is_err() {
-                    return false;
-                }
-            }
-            Err(e) => {
-                let _ = tx.blocking_send(Err(e));
-                return false;
-            }
+            false
         }
     }
 }
-
-type Chunks = tokio::sync::mpsc::Sender<Result<Bytes, std::io::Error>>;
 
 /// Stream `instances` as one `multipart/related` body: the parts are produced one at a time by a task,
 /// files read in chunks of up to 1 MiB through a channel of four, so memory stays flat in the retrieval's
