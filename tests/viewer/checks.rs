@@ -345,6 +345,16 @@ pub async fn mesh_and_figures(b: &Browser, app: &TestApp, token: &str, job: &Val
     b.goto("about:blank").await;
     b.goto(&app.url(&format!("/#/job/{id}"))).await;
     let first = b.wait_for("#slice-panel[data-first-slice-ms]", 60).await;
+    // The middle slice came with the header (its offset foreseen from the job's result shape), not after it.
+    assert_eq!(
+        first
+            .attr("data-first-slice-early")
+            .await
+            .expect("attr")
+            .as_deref(),
+        Some("true"),
+        "the first slice waited for the header"
+    );
     let first_ms: f64 = first
         .attr("data-first-slice-ms")
         .await
@@ -360,6 +370,17 @@ pub async fn mesh_and_figures(b: &Browser, app: &TestApp, token: &str, job: &Val
         )
         .await;
     let (ready_ms, load_ms) = (load[0].as_f64().expect("ms"), load[1].as_f64().expect("ms"));
+    // Where the first slice's time goes: every request the page made before it, in ms since navigation.
+    let timeline = b
+        .js(
+            "const first = Number(arguments[0]);
+             return performance.getEntriesByType('resource')
+               .filter((r) => r.startTime < first)
+               .map((r) => `${new URL(r.name).pathname.replace(/[0-9a-f-]{36}/, '{id}')} ${r.startTime.toFixed(0)}–${r.responseEnd.toFixed(0)}`)
+               .join(', ');",
+            vec![serde_json::json!(first_ms)],
+        )
+        .await;
     // Loose bounds that hold on a loaded machine but not on a broken page (the figures are below).
     assert!(load_ms < 5000.0, "page load took {load_ms} ms");
     assert!(first_ms < 5000.0, "the first slice took {first_ms} ms");
@@ -499,5 +520,9 @@ pub async fn mesh_and_figures(b: &Browser, app: &TestApp, token: &str, job: &Val
          after opening the finished job; page {page_raw} bytes in {page_files} files ({page_gz} sent), \
          {all_raw} bytes in {all_files} files with three.js ({all_gz} sent); scrolling {scroll_fps:.1} slices/s; \
          mesh of {triangles} triangles turning at {rotate_fps:.1} frames/s"
+    );
+    eprintln!(
+        "FIGURES viewer first slice: requests before it (ms since navigation, start–end): {}",
+        timeline.as_str().unwrap_or_default()
     );
 }

@@ -21,6 +21,18 @@ export function parseHeader(buf) {
   return { dtype: descr[1], shape: dims, offset: start + len };
 }
 
+/**
+ * Where the data of a float32 C-order `.npy` of `shape` start when the server wrote it: magic, version 1.0,
+ * header length and the header dictionary, padded to a multiple of 64 bytes as numpy pads it. A guess to be
+ * checked against the header read ({@link parseHeader}).
+ */
+export function expectedOffset(shape) {
+  const dims = shape.length === 1 ? `(${shape[0]},)` : `(${shape.join(', ')})`;
+  const dict = `{'descr': '<f4', 'fortran_order': False, 'shape': ${dims}, }`;
+  const unpadded = 10 + dict.length + 1;
+  return unpadded + ((64 - (unpadded % 64)) % 64);
+}
+
 /** The float32 values of a whole .npy body. */
 export function decode(buf) {
   const h = parseHeader(buf);

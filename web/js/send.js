@@ -162,7 +162,7 @@ export async function showSeries(main, id, signal) {
     h('dl.facts', facts.map(([k, v]) => [h('dt', k), h('dd', v)])),
     (s.warnings || []).length ? h('ul.warnings', s.warnings.map((w) => h('li.warn', h('code', w.code), ' ', w.message))) : null,
     protocolForm(s.id)), viewer);
-  const sv = new SliceViewer(viewer, { url: `/v1/series/${id}/volume.npy`, frame: s.frame, units: 'hu' });
+  const sv = new SliceViewer(viewer, { url: `/v1/series/${id}/volume.npy`, shape: s.shape, frame: s.frame, units: 'hu' });
   signal.addEventListener('abort', () => sv.destroy());
   await sv.start(signal);
 }
