@@ -578,9 +578,13 @@ async fn retention_removes_what_aged_out_at_start_and_periodically_but_never_an_
     // Sweeping every second: a finished job and its dataset go; a dataset a running job uses stays.
     let server = Server::start(data, retain_one_second(1)).await;
     let b = server.simulate(cone_geometry(360, 128)).await;
+    // Long enough to be running through every check below on any machine (it is canceled at the end): an FDK
+    // of 160³ finished before them on a quiet one.
     let long = server
-        .submit(&json!({"input": b, "algorithm": {"name": "fdk"},
-                        "grid": {"nx": 160, "ny": 160, "nz": 160, "spacing_mm": [0.5, 0.5, 0.5]}}))
+        .submit(
+            &json!({"input": b, "algorithm": {"name": "sirt", "iterations": 10000},
+                        "grid": {"nx": 160, "ny": 160, "nz": 160, "spacing_mm": [0.5, 0.5, 0.5]}}),
+        )
         .await;
     let b_bytes = server.get_json(&format!("/v1/datasets/{b}")).await["bytes"]
         .as_u64()
