@@ -47,10 +47,10 @@ fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {
     ))
 }
 
-/// Hand the file at `path` to `tx` in chunks (see [`send_file_range`]).
+/// Hand the whole file at `path` to `tx` in chunks (see [`send_file_range`]; read to its end, no stat).
 fn send_file(path: &std::path::Path, tx: &Chunks) -> bool {
-    match std::fs::File::open(path).and_then(|f| Ok((f.metadata()?.len(), f))) {
-        Ok((len, f)) => send_file_range(f, 0, len, tx),
+    match std::fs::File::open(path) {
+        Ok(f) => send_file_range(f, 0, u64::MAX, tx),
         Err(e) => {
             let _ = tx.blocking_send(Err(e));
             false
