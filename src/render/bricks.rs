@@ -134,40 +134,108 @@ const HALF_NEIGHBOURS: [(isize, isize, isize); 13] = [
 
 impl BrickMask {
     /// The brick holding fractional index `idx` (clamped to the grid), per axis.
-    #[inline]
+    #[inline(always)]
     fn brick(&self, idx: [f32; 3]) -> [usize; 3] {
-        std::array::from_fn(|a| (idx[a].max(0.0) as usize / BRICK).min(self.nb[a] - 1))
+        // Through u32: a cheaper conversion than to usize, and a grid has fewer than 2³² voxels a side.
+        std::array::from_fn(|a| (idx[a].max(0.0) as u32 as usize / BRICK).min(self.nb[a] - 1))
     }
 
-    /// Whether the brick holding fractional index `idx` is busy (outside the grid: not busy).
-    #[inline]
-    pub(crate) fn busy_at(&self, idx: [f32; 3]) -> bool {
-        if idx.iter().any(|&x| x < 0.0) {
-            return false;
-        }
-        let b = self.brick(idx);
-        self.dist[(b[0] * self.nb[1] + b[1]) * self.nb[2] + b[2]] == 0
-    }
-
-    /// The ray parameter (mm) where a ray at fractional index `idx`, moving `dir` index units per mm, leaves
-    /// the block of empty bricks about the brick that holds `idx` (the bricks closer to it than its distance to
-    /// the nearest busy brick; just that brick when it is busy); measured from `idx`.
-    #[inline]
-    pub(crate) fn exit(&self, idx: [f32; 3], dir: V3) -> f64 {
+    /// Where a ray at fractional index `idx`, moving along `dir`, stands: whether the brick holding `idx` is
+    /// busy (outside the grid: not busy), and the ray parameter (mm, measured from `idx`) where it leaves the
+    /// block of empty bricks about that brick (the bricks closer to it than its distance to the nearest busy
+    /// brick; just that brick when it is busy). One lookup for both.
+    #[inline(always)]
+    pub(crate) fn step(&self, idx: [f32; 3], dir: &RayDir) -> (bool, f64) {
         let b = self.brick(idx);
         let d = self.dist[(b[0] * self.nb[1] + b[1]) * self.nb[2] + b[2]];
-        let reach = d.saturating_sub(1) as f64;
+        let busy = d == 0 && idx.iter().all(|&x| x >= 0.0);
+        let reach = d.saturating_sub(1) as usize;
+        let lo = b.map(|b| (b as f64 - reach as f64) * BRICK as f64);
+        let t = dir.exit(idx, lo, ((2 * reach + 1) * BRICK) as f64);
+        (busy, t)
+    }
+}
+
+/// A ray's direction in index units per millimetre, with its reciprocal per axis, for [`BrickMask::step`].
+pub(crate) struct RayDir {
+    /// `+1`, `-1`, or `0` for an axis the ray (nearly) does not move along.
+    sign: [i8; 3],
+    /// `1 / dir` where the ray moves along the axis.
+    inv: [f64; 3],
+}
+
+impl RayDir {
+    pub(crate) fn new(dir: V3) -> Self {
+        let sign = dir.map(|x| {
+            if x > 1e-12 {
+                1
+            } else if x < -1e-12 {
+                -1
+            } else {
+                0
+            }
+        });
+        let inv = std::array::from_fn(|a| if sign[a] == 0 { 0.0 } else { 1.0 / dir[a] });
+        Self { sign, inv }
+    }
+
+    /// The ray parameter (mm, from fractional index `idx` inside the cube) where the ray leaves the cube of
+    /// index side `size` whose lowest corner is `lo`; never negative.
+    #[inline(always)]
+    pub(crate) fn exit(&self, idx: [f32; 3], lo: [f64; 3], size: f64) -> f64 {
         let mut t = f64::INFINITY;
         for a in 0..3 {
-            let b = b[a] as f64;
             let x = idx[a] as f64;
-            if dir[a] > 1e-12 {
-                t = t.min(((b + 1.0 + reach) * BRICK as f64 - x) / dir[a]);
-            } else if dir[a] < -1e-12 {
-                t = t.min((x - (b - reach) * BRICK as f64) / -dir[a]);
+            let ta = if self.sign[a] > 0 {
+                (lo[a] + size - x) * self.inv[a]
+            } else if self.sign[a] < 0 {
+                (lo[a] - x) * self.inv[a]
+            } else {
+                continue;
+            };
+            // Plain comparisons: no operand is NaN (finite index, finite reciprocal).
+            if ta < t {
+                t = ta;
             }
         }
-        t.max(0.0)
+        if t > 0.0 { t } else { 0.0 }
+    }
+}
+
+/// Samples `t0 + k·step` along a ray span, and the reciprocal of the step. Sample numbers stay below 2⁶³
+/// (a span is finite and the step at least 1/64 of the smallest spacing), so they convert through `i64`, a
+/// cheaper conversion than from `u64`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Samples {
+    step: f64,
+    inv_step: f64,
+}
+
+impl Samples {
+    pub(crate) fn new(step: f64) -> Self {
+        Self {
+            step,
+            inv_step: 1.0 / step,
+        }
+    }
+
+    /// `k·step`.
+    #[inline(always)]
+    pub(crate) fn offset(&self, k: u64) -> f64 {
+        k as i64 as f64 * self.step
+    }
+
+    /// The index of the first sample `t0 + k·step` beyond `exit` (mm). Skipped samples lie in empty space, so
+    /// a sample exactly at `exit` (on the face of what is skipped) may go either way.
+    #[inline(always)]
+    pub(crate) fn first_beyond(&self, exit: f64, t0: f64) -> u64 {
+        let x = (exit - t0) * self.inv_step;
+        // Truncation floors a non-negative number; beyond 2⁶² (an unbounded exit) the span has ended anyway.
+        if x >= 0.0 {
+            x.min(4.6e18) as i64 as u64 + 1
+        } else {
+            1
+        }
     }
 }
 

@@ -2,6 +2,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::bricks::{RayDir, Samples};
 use super::clip::Span;
 use super::image::render_tiles;
 use super::scene::Scene;
@@ -46,7 +47,7 @@ impl VrOptions {
 /// Ray-cast `scene` for `rays` with `opts`. The depth of a pixel is where its first visible sample lies.
 ///
 /// Samples lie at `t0 + k·step` along each kept span of a ray. Runs of empty bricks (no value with opacity) are
-/// crossed in one jump to the first sample beyond them ([`BrickMask::exit`](super::bricks)); inside a busy brick
+/// crossed in one jump to the first sample beyond them ([`BrickMask::step`](super::bricks)); inside a busy brick
 /// the samples go on without looking at the mask again until the ray leaves that brick, and a sample whose cell
 /// lies wholly outside the visible window (the scene's occupancy bits) is passed without reading the volume. The
 /// gradient, and with it the shading, is computed only for samples with opacity.
@@ -57,6 +58,7 @@ pub fn volume_render(
 ) -> Result<RgbImage, RenderError> {
     opts.validate()?;
     let step = scene.step(opts.step_mm)?;
+    let samples = Samples::new(step);
     let tf = &opts.transfer_function;
     let lut = Lut::new(tf, step);
     let window = lut.window();
@@ -96,6 +98,7 @@ pub fn volume_render(
             opts.clip.spans(o, d, b0.max(0.0), b1, spans);
             let io = s.index(o);
             let id = s.index_direction(d);
+            let ray_dir = RayDir::new(id);
             let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
             let view = d.map(|x| -x as f32);
             let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
@@ -104,24 +107,32 @@ pub fn volume_render(
                 // Samples up to this `t` lie in a busy brick already checked.
                 let mut busy_until = f64::NEG_INFINITY;
                 loop {
-                    let t = sp.t0 + k as f64 * step;
+                    let t = sp.t0 + samples.offset(k);
                     if t > sp.t1 {
                         break;
                     }
                     let idx = at(t);
                     if t > busy_until {
-                        if !mask.busy_at(idx) {
-                            let exit = t + mask.exit(idx, id);
-                            k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
+                        let (busy, exit) = mask.step(idx, &ray_dir);
+                        if !busy {
+                            k = (k + 1).max(samples.first_beyond(t + exit, sp.t0));
                             continue;
                         }
-                        busy_until = t + mask.exit(idx, id);
+                        busy_until = t + exit;
                     }
                     k += 1;
                     let (cell, f) = s.cell(idx);
-                    // A sample in a cell outside the visible window is transparent: not read.
-                    if cells.is_some_and(|o| !o.busy(cell)) {
-                        continue;
+                    // A sample in a cell outside the visible window is transparent: not read; nor are the
+                    // next samples in a block of such cells.
+                    if let Some(o) = cells {
+                        if !o.block_busy(cell) {
+                            let exit = t + o.block_exit(idx, cell, &ray_dir);
+                            k = k.max(samples.first_beyond(exit, sp.t0));
+                            continue;
+                        }
+                        if !o.busy(cell) {
+                            continue;
+                        }
                     }
                     let v = s.at_cell(cell, f);
                     if !lut.visible(v) {

@@ -59,7 +59,8 @@ impl<'a> Sampler<'a> {
     pub(crate) fn cell(&self, idx: [f32; 3]) -> ([usize; 3], [f32; 3]) {
         let base = |x: f32, n: usize| -> (usize, f32) {
             let x = x.clamp(0.0, (n - 1) as f32);
-            let b = (x as usize).min(n - 2);
+            // Through u32: a cheaper conversion than to usize, and a grid has fewer than 2³² voxels a side.
+            let b = (x as u32 as usize).min(n - 2);
             (b, x - b as f32)
         };
         let (k, fk) = base(idx[0], self.n[0]);
@@ -102,13 +103,19 @@ impl<'a> Sampler<'a> {
 
     /// Gradient (value per millimetre, patient axes x, y, z) at fractional index `idx` by central differences of
     /// trilinear samples one index step apart.
-    #[inline]
+    #[inline(always)]
     pub fn gradient(&self, idx: [f32; 3]) -> V3 {
         let g_idx = self
             .index_gradient_inside(idx)
             .unwrap_or_else(|| self.index_gradient_clamped(idx));
         // ∂f/∂p_c = Σ_a ∂f/∂idx_a · ∂idx_a/∂p_c.
-        std::array::from_fn(|c| (0..3).map(|a| g_idx[a] as f64 * self.lin[a][c]).sum())
+        let g = g_idx.map(f64::from);
+        let l = &self.lin;
+        [
+            g[0] * l[0][0] + g[1] * l[1][0] + g[2] * l[2][0],
+            g[0] * l[0][1] + g[1] * l[1][1] + g[2] * l[2][1],
+            g[0] * l[0][2] + g[1] * l[1][2] + g[2] * l[2][2],
+        ]
     }
 
     /// The index-space gradient `(T(idx + e_a) − T(idx − e_a)) / 2` of the trilinear field `T`, sample by sample
@@ -124,14 +131,14 @@ impl<'a> Sampler<'a> {
 
     /// [`Sampler::index_gradient_clamped`] where none of its six samples is clamped, from the 32 voxels they
     /// touch (each loaded once); `None` within a voxel of the grid's faces.
-    #[inline]
+    #[inline(always)]
     fn index_gradient_inside(&self, idx: [f32; 3]) -> Option<[f32; 3]> {
         let [nz, ny, nx] = self.n;
         let base = |x: f32, n: usize| -> Option<(usize, f32)> {
             if x.is_nan() || x < 1.0 {
                 return None;
             }
-            let b = x as usize;
+            let b = x as u32 as usize;
             (b + 2 < n).then_some((b, x - b as f32))
         };
         let (k, fk) = base(idx[0], nz)?;
@@ -139,32 +146,39 @@ impl<'a> Sampler<'a> {
         let (i, fi) = base(idx[2], nx)?;
         let (row, plane) = (nx, ny * nx);
         let d = self.data;
-        let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
-        // Along x: the rows (k + dk, j + dj) from i − 1 to i + 2.
-        let mut v = [[0.0f32; 2]; 2]; // trilinear-in-x value of the row at i + fi, [dk][dj]
+        #[inline(always)]
+        fn lerp(a: f32, b: f32, t: f32) -> f32 {
+            a + (b - a) * t
+        }
+        // The value at i + fi of the row whose voxel i is at offset `o`.
+        #[inline(always)]
+        fn row_at(d: &[f32], o: usize, fi: f32) -> f32 {
+            lerp(d[o], d[o + 1], fi)
+        }
+        let at_row = |o: usize| row_at(d, o, fi);
+        let o00 = k * plane + j * row + i;
+        // Along x: the rows (k + dk, j + dj) from i − 1 to i + 2; `v` their values at i + fi, `gx` their
+        // differences one voxel either side.
+        let mut v = [[0.0f32; 2]; 2];
         let mut gx = [[0.0f32; 2]; 2];
         for dk in 0..2 {
             for dj in 0..2 {
-                let o = (k + dk) * plane + (j + dj) * row + i;
+                let o = o00 + dk * plane + dj * row;
                 let x = &d[o - 1..o + 3];
                 v[dk][dj] = lerp(x[1], x[2], fi);
                 gx[dk][dj] = lerp(x[2], x[3], fi) - lerp(x[0], x[1], fi);
             }
         }
-        let at_row = |kk: usize, jj: usize| {
-            let o = kk * plane + jj * row + i;
-            lerp(d[o], d[o + 1], fi)
-        };
-        let gy: [f32; 2] = std::array::from_fn(|dk| {
-            let below = at_row(k + dk, j - 1);
-            let above = at_row(k + dk, j + 2);
-            lerp(v[dk][1], above, fj) - lerp(below, v[dk][0], fj)
-        });
-        let gz: [f32; 2] = std::array::from_fn(|dj| {
-            let below = at_row(k - 1, j + dj);
-            let above = at_row(k + 2, j + dj);
-            lerp(v[1][dj], above, fk) - lerp(below, v[0][dj], fk)
-        });
+        let mut gy = [0.0f32; 2];
+        let mut gz = [0.0f32; 2];
+        for n in 0..2 {
+            let below = at_row(o00 + n * plane - row);
+            let above = at_row(o00 + n * plane + 2 * row);
+            gy[n] = lerp(v[n][1], above, fj) - lerp(below, v[n][0], fj);
+            let below = at_row(o00 - plane + n * row);
+            let above = at_row(o00 + 2 * plane + n * row);
+            gz[n] = lerp(v[1][n], above, fk) - lerp(below, v[0][n], fk);
+        }
         Some([
             lerp(gz[0], gz[1], fj) / 2.0,
             lerp(gy[0], gy[1], fk) / 2.0,

@@ -8,6 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use super::bricks::{RayDir, Samples};
 use super::clip::Span;
 use super::image::render_tiles;
 use super::scene::Scene;
@@ -95,6 +96,7 @@ pub fn surface_render(
 ) -> Result<RgbImage, RenderError> {
     opts.validate()?;
     let step = scene.step(opts.step_mm)?;
+    let samples = Samples::new(step);
     let isos: Vec<f32> = opts.surfaces.iter().map(|s| s.iso as f32).collect();
     let mut key = vec![1];
     key.extend(isos.iter().map(|iso| u64::from(iso.to_bits())));
@@ -124,6 +126,7 @@ pub fn surface_render(
             opts.clip.spans(o, d, b0.max(0.0), b1, spans);
             let io = s.index(o);
             let id = s.index_direction(d);
+            let ray_dir = RayDir::new(id);
             let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
             let value = |t: f64| s.at_index(at(t));
             // Depth cue over the bounding sphere as seen along this ray.
@@ -175,19 +178,20 @@ pub fn surface_render(
                 // Samples up to this `t` lie in a busy brick already checked.
                 let mut busy_until = f64::NEG_INFINITY;
                 loop {
-                    let t = (sp.t0 + k as f64 * step).min(sp.t1);
+                    let t = (sp.t0 + samples.offset(k)).min(sp.t1);
                     let idx = at(t);
                     if t > busy_until && t < sp.t1 {
-                        if !mask.busy_at(idx) {
-                            let exit = (t + mask.exit(idx, id)).min(sp.t1);
+                        let (busy, exit) = mask.step(idx, &ray_dir);
+                        if !busy {
+                            let exit = (t + exit).min(sp.t1);
                             // The field keeps its side of every iso-value through quiet bricks.
                             t_prev = exit;
                             v_prev = value(exit);
                             prev_exact = true;
-                            k = (k + 1).max(((exit - sp.t0) / step).floor() as u64 + 1);
+                            k = (k + 1).max(samples.first_beyond(exit, sp.t0));
                             continue;
                         }
-                        busy_until = t + mask.exit(idx, id);
+                        busy_until = t + exit;
                     }
                     let (cell, f) = s.cell(idx);
                     let (v, exact) = match cells {
