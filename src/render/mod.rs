@@ -13,7 +13,8 @@
 //!   ambient, diffuse, specular with a head light), early termination at accumulated α ≥ 0.99 and
 //!   empty-space skipping over a min/max [`BrickGrid`] of 8³ voxels and, inside busy bricks, over the voxel
 //!   cells whose eight corners all lie outside the transfer function's visible window (one bit a cell, built
-//!   once per transfer function and kept by the [`Scene`]);
+//!   once per transfer function and kept by the [`Scene`]), a clear block of 2 × 2 × 2 such cells crossed in
+//!   one jump;
 //! - [`surface_render`]: the iso-surfaces crossed by each ray, each hit refined between samples by secant steps on
 //!   the trilinear field, Phong shading with the gradient as normal and depth cueing; several iso-values with
 //!   their own colours and opacities are composited front to back (a transparent skin over bone); a clip that
