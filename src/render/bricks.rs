@@ -156,7 +156,8 @@ impl BrickMask {
     }
 }
 
-/// A ray's direction in index units per millimetre, with its reciprocal per axis, for [`BrickMask::step`].
+/// A ray's direction in index units per millimetre, with its reciprocal per axis: where the ray leaves a brick
+/// ([`BrickMask::step`]) or a block of cells (`Occupancy::block_exit`).
 pub(crate) struct RayDir {
     /// `+1`, `-1`, or `0` for an axis the ray (nearly) does not move along.
     sign: [i8; 3],

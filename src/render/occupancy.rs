@@ -246,8 +246,6 @@ mod tests {
             }
             if !windows.is_empty() {
                 assert!(clear_blocks > 0, "{windows:?}: no clear block to test");
-            }
-            if !windows.is_empty() {
                 assert!(
                     busy > 0 && busy < (nz - 1) * (ny - 1) * (nx - 1),
                     "{windows:?}: {busy}"
