@@ -58,7 +58,7 @@ pub fn explicit_le_bytes(
         limits.max_pixel_bytes.saturating_add(MAX_HEADER_BYTES),
         None,
     )?;
-    let has_pixels = obj.element_opt(tags::PIXEL_DATA).ok().flatten().is_some();
+    let has_pixels = obj.get(tags::PIXEL_DATA).is_some();
     if has_pixels && !headers_only(&framed.transfer_syntax) {
         let decoded = super::pixels::decode(&obj, &framed, limits, &label)?;
         let (samples, photometric, planar, bits) = (

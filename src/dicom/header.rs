@@ -129,9 +129,7 @@ pub fn header_of(label: &str, bytes: &[u8]) -> Result<InstanceHeader, DicomError
     let study_uid = uid(tags::STUDY_INSTANCE_UID, "Study Instance UID (0020,000D)")?;
     let series_uid = uid(tags::SERIES_INSTANCE_UID, "Series Instance UID (0020,000E)")?;
     let image_type = obj
-        .element_opt(tags::IMAGE_TYPE)
-        .ok()
-        .flatten()
+        .get(tags::IMAGE_TYPE)
         .and_then(|e| e.to_multi_str().ok().map(|v| v.to_vec()))
         .unwrap_or_default()
         .into_iter()

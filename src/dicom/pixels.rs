@@ -128,16 +128,14 @@ pub(super) fn decode<'a>(
     };
     // Header checks before any pixel buffer exists.
     let pixel = obj
-        .element_opt(tags::PIXEL_DATA)
-        .ok()
-        .flatten()
+        .get(tags::PIXEL_DATA)
         .ok_or_else(|| DicomError::NoPixelData {
             label: label_s.clone(),
         })?;
     let rows = int(obj, tags::ROWS).ok_or_else(|| missing("Rows (0028,0010)"))?;
     let columns = int(obj, tags::COLUMNS).ok_or_else(|| missing("Columns (0028,0011)"))?;
     // Absent means one frame; present but unreadable, zero or negative is refused, never taken as one.
-    let frames = match obj.element_opt(tags::NUMBER_OF_FRAMES).ok().flatten() {
+    let frames = match obj.get(tags::NUMBER_OF_FRAMES) {
         None => 1,
         Some(e) => match e.to_int::<i64>() {
             Ok(f) if f >= 1 => f,

@@ -76,14 +76,14 @@ pub struct Instance {
 }
 
 pub(super) fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
-    let e = obj.element_opt(tag).ok()??;
+    let e = obj.get(tag)?;
     let s = e.to_str().ok()?;
     let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
     (!s.is_empty()).then(|| s.to_string())
 }
 
 fn floats(obj: &InMemDicomObject, tag: Tag) -> Option<Vec<f64>> {
-    obj.element_opt(tag).ok()??.to_multi_float64().ok()
+    obj.get(tag)?.to_multi_float64().ok()
 }
 
 pub(super) fn float(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
@@ -91,11 +91,11 @@ pub(super) fn float(obj: &InMemDicomObject, tag: Tag) -> Option<f64> {
 }
 
 pub(super) fn int(obj: &InMemDicomObject, tag: Tag) -> Option<i64> {
-    obj.element_opt(tag).ok()??.to_int::<i64>().ok()
+    obj.get(tag)?.to_int::<i64>().ok()
 }
 
 fn items(obj: &InMemDicomObject, tag: Tag) -> Option<&[InMemDicomObject]> {
-    obj.element_opt(tag).ok()??.items()
+    obj.get(tag)?.items()
 }
 
 /// The first item of sequence `seq` in `group`, falling back to `shared`.
@@ -370,9 +370,7 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         instance_number: int(&obj, tags::INSTANCE_NUMBER),
         body_part: text(&obj, tags::BODY_PART_EXAMINED),
         image_type: obj
-            .element_opt(tags::IMAGE_TYPE)
-            .ok()
-            .flatten()
+            .get(tags::IMAGE_TYPE)
             .and_then(|e| e.to_multi_str().ok().map(|v| v.to_vec()))
             .unwrap_or_default()
             .into_iter()

@@ -75,13 +75,13 @@ pub struct Command {
 pub struct CommandError(String);
 
 fn text(obj: &InMemDicomObject, tag: Tag) -> Option<String> {
-    let s = obj.element_opt(tag).ok()??.to_str().ok()?.into_owned();
+    let s = obj.get(tag)?.to_str().ok()?.into_owned();
     let s = s.trim_matches(|c: char| c.is_whitespace() || c == '\0');
     (!s.is_empty()).then(|| s.to_string())
 }
 
 fn uint(obj: &InMemDicomObject, tag: Tag) -> Option<u16> {
-    obj.element_opt(tag).ok()??.to_int::<u16>().ok()
+    obj.get(tag)?.to_int::<u16>().ok()
 }
 
 /// Read a command set.
