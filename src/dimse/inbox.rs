@@ -90,20 +90,28 @@ impl Inbox {
     }
 
     /// Put a received, checked instance in its series folder, replacing an earlier copy of the same
-    /// instance; returns its path and whether it replaced one. Both UIDs must be valid UIDs (digits and
-    /// dots), which makes them safe as names.
-    pub fn file(
-        &self,
-        temp: &Path,
-        series_uid: &str,
-        sop_instance_uid: &str,
-    ) -> io::Result<(PathBuf, bool)> {
-        let dir = self.root.join("incoming").join(series_uid);
-        std::fs::create_dir_all(&dir)?;
+    /// instance. Both UIDs must be valid UIDs (digits and dots), which makes them safe as names. The move
+    /// is durable once [`Filed::sync`] returned (the instance itself is synced before, by
+    /// [`InstanceSink::finish`]).
+    pub fn file(&self, temp: &Path, series_uid: &str, sop_instance_uid: &str) -> io::Result<Filed> {
+        let incoming = self.root.join("incoming");
+        let dir = incoming.join(series_uid);
+        match std::fs::create_dir(&dir) {
+            Ok(()) => sync_dir(&incoming)?,
+            Err(e) if e.kind() == io::ErrorKind::AlreadyExists => {}
+            Err(e) => return Err(e),
+        }
         let dest = dir.join(format!("{sop_instance_uid}.dcm"));
         let replaced = dest.exists();
+        // The folder is opened before the rename: its handle stays valid when the series is sealed
+        // (renamed) right after, so the caller may sync it outside its lock.
+        let folder = std::fs::File::open(&dir)?;
         std::fs::rename(temp, &dest)?;
-        Ok((dest, replaced))
+        Ok(Filed {
+            path: dest,
+            replaced,
+            folder,
+        })
     }
 
     /// Hand a series over: its `incoming/` folder becomes a new `complete/` folder.
@@ -114,6 +122,34 @@ impl Inbox {
             .join(uuid::Uuid::new_v4().to_string());
         std::fs::rename(self.root.join("incoming").join(series_uid), &dest)?;
         Ok(dest)
+    }
+}
+
+/// An instance moved into its series folder.
+#[derive(Debug)]
+pub struct Filed {
+    pub path: PathBuf,
+    /// An earlier copy of the same instance was replaced.
+    pub replaced: bool,
+    folder: std::fs::File,
+}
+
+impl Filed {
+    /// Make the move durable: sync the series folder.
+    pub fn sync(&self) -> io::Result<()> {
+        sync_folder(&self.folder)
+    }
+}
+
+fn sync_dir(dir: &Path) -> io::Result<()> {
+    sync_folder(&std::fs::File::open(dir)?)
+}
+
+fn sync_folder(folder: &std::fs::File) -> io::Result<()> {
+    match folder.sync_all() {
+        // A file system that cannot sync a directory (EINVAL) keeps renames as well as it can.
+        Err(e) if e.kind() == io::ErrorKind::InvalidInput => Ok(()),
+        other => other,
     }
 }
 
@@ -220,10 +256,11 @@ mod tests {
         let mut whole = inbox.begin(b"AB", 1 << 20).await.unwrap();
         whole.write(b"CD").await.unwrap();
         let received = whole.finish().await.unwrap();
-        let (dest, replaced) = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
-        assert!(!replaced);
+        let filed = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
+        assert!(!filed.replaced);
+        filed.sync().unwrap();
         received.keep();
-        assert_eq!(std::fs::read(&dest).unwrap(), b"ABCD");
+        assert_eq!(std::fs::read(&filed.path).unwrap(), b"ABCD");
         assert_eq!(count("tmp"), 0);
 
         let sealed = inbox.seal("1.2.3").unwrap();

@@ -71,24 +71,29 @@ impl Tracker {
     }
 
     /// File a checked instance (blocking: call off the async threads). An instance filed again replaces
-    /// its earlier copy and does not count twice.
+    /// its earlier copy and does not count twice. Returns once the instance is durably in its series
+    /// folder (that folder synced after the lock is released).
     pub fn file(&self, temp: &Path, a: Arrival<'_>) -> io::Result<PathBuf> {
-        let mut arriving = self
-            .arriving
-            .lock()
-            .map_err(|_| io::Error::other("series tracker poisoned"))?;
-        let (dest, existed) = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
-        arriving.note(
-            arrivals::Arrival {
-                study_uid: a.study_uid,
-                series_uid: a.series_uid,
-                calling_ae: a.calling_ae,
-                bytes: a.bytes,
-                new: !existed,
-            },
-            Instant::now(),
-        );
-        Ok(dest)
+        let filed = {
+            let mut arriving = self
+                .arriving
+                .lock()
+                .map_err(|_| io::Error::other("series tracker poisoned"))?;
+            let filed = self.inbox.file(temp, a.series_uid, a.sop_instance_uid)?;
+            arriving.note(
+                arrivals::Arrival {
+                    study_uid: a.study_uid,
+                    series_uid: a.series_uid,
+                    calling_ae: a.calling_ae,
+                    bytes: a.bytes,
+                    new: !filed.replaced,
+                },
+                Instant::now(),
+            );
+            filed
+        };
+        filed.sync()?;
+        Ok(filed.path)
     }
 
     /// Series arriving now: (series UID, instances so far).
