@@ -13,7 +13,7 @@ use crate::dicom::{SeriesMeta, header_of, read_header, write_ct_series};
 use crate::error_code::Problem;
 use crate::jobs::JobStatus;
 use crate::jobs::export::export_dir;
-use crate::jobs::repo::NewInstance;
+use crate::jobs::model::NewInstance;
 use crate::storage::npy::decode_f32;
 use crate::storage::{InstanceId, InstanceOwner, JobId, ResultName};
 use crate::volume::{Volume, mu_to_hu};
@@ -24,7 +24,7 @@ impl App {
     /// reference of its source series. A job without a source series (no patient) is marked indexed with
     /// no instance. A job indexed before is left as it is. Returns the instances indexed.
     pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
-        if self.db.node_tables()?.job_indexed(id).await? {
+        if self.db.job_indexed(id).await? {
             return Ok(0);
         }
         let Some(job) = self.db.get_job(id).await? else {
@@ -34,7 +34,7 @@ impl App {
             return Ok(0);
         }
         let Some(result) = job.result.filter(|r| r.source_series.is_some()) else {
-            self.db.node_tables()?.mark_job_indexed(id).await?;
+            self.db.mark_job_indexed(id).await?;
             return Ok(0);
         };
         let exported = self.exported_instances(id).await;
@@ -81,10 +81,17 @@ impl App {
         .await
         .map_err(|e| storage("indexing exported results failed", std::io::Error::other(e)))?
         .map_err(|e| storage("indexing exported results failed", e))?;
-        self.db
-            .node_tables()?
-            .insert_instances(owner, &rows)
-            .await?;
+        if !self.db.insert_instances(owner, &rows).await? {
+            // Indexed meanwhile by another process (or task): its rows name its own files, not these.
+            for r in &rows {
+                let path = self.store.instance_path(owner, r.id);
+                if let Err(e) = self.store.remove_blob_async(&path).await {
+                    tracing::warn!(error = %e, "removing a file indexed twice failed");
+                }
+            }
+            tracing::info!(job_id = %id, "job results were indexed elsewhere first");
+            return Ok(0);
+        }
         tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
         Ok(rows.len())
     }
@@ -212,7 +219,7 @@ impl App {
     /// Index the results of every succeeded volume job not indexed yet (after a restart).
     pub async fn index_pending_jobs(&self) -> AppResult<usize> {
         let mut n = 0;
-        for id in self.db.node_tables()?.jobs_to_index().await? {
+        for id in self.db.jobs_to_index().await? {
             n += self.index_job(id).await?;
         }
         Ok(n)
@@ -221,11 +228,6 @@ impl App {
     /// Index each volume job's results as it succeeds, and those missed while the service was down; runs
     /// as long as the runtime.
     pub fn spawn_result_indexer(&self) {
-        if let Err(e) = self.db.node_tables() {
-            // The index has no PostgreSQL twin yet: nothing to index into, and no export to make for it.
-            tracing::info!(reason = %e, "derived results are not indexed");
-            return;
-        }
         let app = self.clone();
         let mut events = self.engine.subscribe();
         tokio::spawn(async move {
