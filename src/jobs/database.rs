@@ -25,6 +25,7 @@ use super::store::{Expired, JobStore, Renewed, StoreResult};
 use crate::storage::sweep::BlobKind;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
 
+pub mod conformance;
 pub mod node;
 
 /// The job database: one adapter or the other.
