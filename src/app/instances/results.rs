@@ -13,10 +13,17 @@ use crate::dicom::{SeriesMeta, header_of, read_header, write_ct_series};
 use crate::error_code::Problem;
 use crate::jobs::JobStatus;
 use crate::jobs::export::export_dir;
-use crate::jobs::model::NewInstance;
+use crate::jobs::model::{NewInstance, now_us};
 use crate::storage::npy::decode_f32;
 use crate::storage::{InstanceId, InstanceOwner, JobId, ResultName};
 use crate::volume::{Volume, mu_to_hu};
+
+/// How often a process on a shared database indexes the results of jobs other processes finished.
+pub const SHARED_CATCH_UP: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// How long after a job finished a process on a shared database leaves its indexing to the process that
+/// ran it (a worker process indexes nothing; a job of a lost process is indexed by another after this).
+pub const SHARED_GRACE: std::time::Duration = std::time::Duration::from_secs(60);
 
 impl App {
     /// Index the DICOM results of job `id` once it succeeded: its products as exported for delivery, and
@@ -218,15 +225,25 @@ impl App {
 
     /// Index the results of every succeeded volume job not indexed yet (after a restart).
     pub async fn index_pending_jobs(&self) -> AppResult<usize> {
+        self.index_jobs_finished_before(i64::MAX).await
+    }
+
+    /// Index the results of the succeeded volume jobs not indexed yet that finished before `before_us`.
+    async fn index_jobs_finished_before(&self, before_us: i64) -> AppResult<usize> {
         let mut n = 0;
         for id in self.db.jobs_to_index().await? {
-            n += self.index_job(id).await?;
+            let finished = self.db.get_job(id).await?.and_then(|j| j.finished_us);
+            if finished.is_some_and(|t| t < before_us) {
+                n += self.index_job(id).await?;
+            }
         }
         Ok(n)
     }
 
     /// Index each volume job's results as it succeeds, and those missed while the service was down; runs
-    /// as long as the runtime.
+    /// as long as the runtime. On a shared database the jobs other processes ran (a `ctrecon worker` runs no
+    /// indexer) are caught up every [`SHARED_CATCH_UP`], [`SHARED_GRACE`] after they finished; a job is
+    /// indexed once whoever gets there first.
     pub fn spawn_result_indexer(&self) {
         let app = self.clone();
         let mut events = self.engine.subscribe();
@@ -234,8 +251,21 @@ impl App {
             if let Err(e) = app.index_pending_jobs().await {
                 tracing::error!(error = %e, "indexing job results at start failed");
             }
+            let mut catch_up = tokio::time::interval(SHARED_CATCH_UP);
+            catch_up.tick().await;
             loop {
-                match events.recv().await {
+                let event = tokio::select! {
+                    ev = events.recv() => ev,
+                    _ = catch_up.tick(), if app.db.is_shared() => {
+                        // Jobs that finished just now are being indexed by the process that ran them.
+                        let before = now_us().saturating_sub(SHARED_GRACE.as_micros() as i64);
+                        if let Err(e) = app.index_jobs_finished_before(before).await {
+                            tracing::error!(error = %e, "indexing job results failed");
+                        }
+                        continue;
+                    }
+                };
+                match event {
                     Ok(ev) if ev.status == JobStatus::Succeeded => {
                         let kind = match app.db.get_job(ev.id).await {
                             Ok(Some(j)) => j.kind,
