@@ -133,8 +133,6 @@ catalogue! {
     DeliveryNotRetryable = ("delivery_not_retryable", 409, "Only a failed delivery can be retried"),
     // DICOMweb.
     DicomwebNotFound = ("dicomweb_not_found", 404, "No such study, series or instance"),
-    DicomwebUnavailable = ("dicomweb_unavailable", 501, "DICOMweb needs the SQLite job database: the instance index is kept there only"),
-    NeedsSqlite = ("needs_sqlite", 501, "This feature keeps its tables in the SQLite job database only"),
     NotAcceptable = ("not_acceptable", 406, "None of the media types or transfer syntaxes asked for is offered"),
     // Protocol.
     IdempotencyKeyReused = ("idempotency_key_reused", 422, "The Idempotency-Key was used with another request"),

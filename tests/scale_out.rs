@@ -196,14 +196,37 @@ async fn postgres_runs_the_service_end_to_end_and_two_api_processes_share_idempo
     let centre = values[(32 * 64 + 32) * 64 + 32];
     assert!((0.0..=1.05).contains(&centre), "{centre}");
 
-    // The DICOM node's rules and deliveries keep their tables in SQLite: on PostgreSQL they say so (501).
-    for path in ["/v1/rules", "/v1/deliveries"] {
-        common::assert_problem(a.get(path).await, 501, "needs_sqlite").await;
-    }
+    // The DICOM node's tables are shared too: a rule created through one API process is listed by the
+    // other, and both answer deliveries and DICOMweb searches from the same (still empty) tables.
     let r = a
         .post_json("/v1/rules", &json!({"name": "spine", "protocol": "spine"}))
         .await;
-    common::assert_problem(r, 501, "needs_sqlite").await;
+    assert_eq!(r.status(), 201);
+    let listed: Value = b.get("/v1/rules").await.json().await.unwrap();
+    let rules = listed["rules"].as_array().expect("rules");
+    assert_eq!(rules.len(), 1, "{listed}");
+    assert_eq!(
+        (
+            rules[0]["name"].as_str(),
+            rules[0]["protocol"].as_str(),
+            rules[0]["source"].as_str()
+        ),
+        (Some("spine"), Some("spine"), Some("api"))
+    );
+    let again = b
+        .post_json("/v1/rules", &json!({"name": "spine", "protocol": "lung"}))
+        .await;
+    common::assert_problem(again, 409, "rule_exists").await;
+    for app in [&a, &b] {
+        let r = app.get("/v1/deliveries").await;
+        assert_eq!(r.status(), 200);
+        let d: Value = r.json().await.unwrap();
+        assert_eq!(d, json!({"deliveries": []}));
+        let r = app.get("/dicom-web/studies").await;
+        assert_eq!(r.status(), 200);
+        let found: Value = r.json().await.unwrap();
+        assert_eq!(found, json!([]));
+    }
 }
 
 /// `ctrecon serve` as a child process; killed when dropped.

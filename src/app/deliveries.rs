@@ -6,7 +6,8 @@
 //! application imports no front door. One worker task makes the deliveries of finished rule jobs and
 //! starts whatever is due, up to [`PARALLEL_DELIVERIES`] at once and one per destination at a time, so a
 //! slow or silent peer holds up only its own deliveries; deliveries left `sending` by a stop are queued
-//! again at start. A destination
+//! again at start (on a shared PostgreSQL database, only those whose claim ended: see
+//! [`crate::jobs::database::node`]). A destination
 //! that names a DICOMweb origin (`dicom.web_peers`) is sent to by STOW-RS instead
 //! ([`stow_client`](super::stow_client)), with the same states, per-instance outcomes and backoff.
 
@@ -21,14 +22,16 @@ use super::error::{AppError, AppResult, refused};
 use crate::config::dicom::Peer;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::deliveries::{
-    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun, RunState,
-    backoff_us,
+    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun, backoff_us,
 };
 use crate::jobs::export::{ExportOptions, ExportedFile, export_dir, export_job};
 use crate::jobs::model::{JobStatus, now_us, rfc3339};
 use crate::storage::JobId;
 
+mod claim;
+
 pub use super::dicom_caller::{CallError, CallFuture, DicomCaller, SentInstance};
+pub use claim::DELIVERY_CLAIM;
 
 /// Deliveries sent at once (each to a different destination).
 pub const PARALLEL_DELIVERIES: usize = 4;
@@ -180,10 +183,9 @@ impl App {
                 ),
             ));
         }
-        let run = self.db.node_tables()?.run_of_job(job).await?;
+        let run = self.db.run_of_job(job).await?;
         let id = self
             .db
-            .node_tables()?
             .insert_delivery(job, run.as_ref(), destination)
             .await?;
         self.outbound.wake.notify_one();
@@ -192,20 +194,19 @@ impl App {
 
     pub async fn get_delivery(&self, id: &str) -> AppResult<Delivery> {
         self.db
-            .node_tables()?
             .get_delivery(id)
             .await?
             .ok_or_else(|| delivery_not_found(id))
     }
 
     pub async fn list_deliveries(&self, f: &DeliveryFilter) -> AppResult<Vec<Delivery>> {
-        Ok(self.db.node_tables()?.list_deliveries(f).await?)
+        Ok(self.db.list_deliveries(f).await?)
     }
 
     /// Queue a failed delivery again: its failed instances are sent again, now.
     pub async fn retry_delivery(&self, id: &str) -> AppResult<Delivery> {
         let d = self.get_delivery(id).await?;
-        if !self.db.node_tables()?.retry_delivery(id).await? {
+        if !self.db.retry_delivery(id).await? {
             return Err(refused(
                 ErrorCode::DeliveryNotRetryable,
                 format!(
@@ -219,13 +220,7 @@ impl App {
     }
 
     async fn delivery_loop(self) {
-        let Ok(db) = self.db.node_tables() else {
-            tracing::warn!(
-                "deliveries are kept in the SQLite database only; none are sent with a PostgreSQL job database"
-            );
-            return;
-        };
-        match db.requeue_sending_deliveries().await {
+        match self.db.requeue_interrupted_deliveries().await {
             Ok(0) => {}
             Ok(n) => tracing::info!(
                 deliveries = n,
@@ -237,7 +232,7 @@ impl App {
             if let Err(e) = self.delivery_round().await {
                 tracing::error!(error = %e, "delivery round failed");
             }
-            let wait = match db.next_delivery_due().await {
+            let wait = match self.db.next_delivery_due().await {
                 Ok(Some(t)) => Duration::from_micros((t - now_us()).clamp(10_000, 500_000) as u64),
                 _ => Duration::from_millis(500),
             };
@@ -250,12 +245,24 @@ impl App {
 
     /// Make the deliveries of finished rule jobs, then send every due delivery.
     async fn delivery_round(&self) -> AppResult<()> {
-        for (run, status) in self.db.node_tables()?.runs_with_finished_jobs().await? {
+        // On a shared database another process may have been lost while sending: its claims end.
+        if self.db.is_shared() {
+            let n = self.db.requeue_expired_deliveries().await?;
+            if n > 0 {
+                tracing::warn!(
+                    deliveries = n,
+                    "deliveries whose sender was lost queued again"
+                );
+            }
+        }
+        for (run, status) in self.db.runs_with_finished_jobs().await? {
             self.settle_run(&run, status).await?;
         }
         // Each attempt runs on its own task holding a slot; the claim skips destinations with one in flight.
         while let Ok(slot) = self.outbound.slots.clone().try_acquire_owned() {
-            let Some(d) = self.db.node_tables()?.claim_due_delivery(now_us()).await? else {
+            let now = now_us();
+            let until = now.saturating_add(DELIVERY_CLAIM.as_micros() as i64);
+            let Some(d) = self.db.claim_due_delivery(now, until).await? else {
                 break;
             };
             let span = tracing::info_span!("delivery", delivery_id = %d.id, job_id = %d.job_id, destination = %d.destination);
@@ -274,39 +281,36 @@ impl App {
         Ok(())
     }
 
+    /// Close a run whose job finished: its deliveries queued (once, whichever worker closes it first), or
+    /// the job's error recorded.
     async fn settle_run(&self, run: &RuleRun, status: JobStatus) -> AppResult<()> {
         let Some(job) = run.job_id else {
             return Ok(());
         };
-        if status != JobStatus::Succeeded {
-            let error = self.db.get_job(job).await?.and_then(|j| j.error);
-            self.db
-                .node_tables()?
-                .set_run_state(&run.id, RunState::Done, error.as_ref())
-                .await?;
-            return Ok(());
-        }
-        let destinations = match self.db.node_tables()?.get_rule(&run.rule_name).await? {
-            Some(r) => r.spec.destinations,
-            None => Vec::new(),
+        let (destinations, error) = if status == JobStatus::Succeeded {
+            let destinations = match self.db.get_rule(&run.rule_name).await? {
+                Some(r) => r.spec.destinations,
+                None => Vec::new(),
+            };
+            (destinations, None)
+        } else {
+            (
+                Vec::new(),
+                self.db.get_job(job).await?.and_then(|j| j.error),
+            )
         };
-        for d in &destinations {
-            let id = self
-                .db
-                .node_tables()?
-                .insert_delivery(job, Some(run), d)
-                .await?;
+        let queued = self
+            .db
+            .complete_run(run, job, &destinations, error.as_ref())
+            .await?;
+        for (id, d) in queued.iter().flatten().zip(&destinations) {
             tracing::info!(delivery_id = %id, rule = %run.rule_name, %job, destination = %d, "delivery queued");
         }
-        self.db
-            .node_tables()?
-            .set_run_state(&run.id, RunState::Done, None)
-            .await
-            .map_err(AppError::from)
+        Ok(())
     }
 
     /// One attempt of a claimed (`sending`) delivery.
-    async fn attempt(&self, mut d: Delivery) -> AppResult<()> {
+    pub(super) async fn attempt_claimed(&self, mut d: Delivery) -> AppResult<()> {
         let fail = |d: &Delivery, why: String| (d.clone(), DeliveryState::Failed, None, Some(why));
         let (d, state, next, error) = match self.prepare(&mut d).await {
             Err(p) => fail(&d, p.detail),
@@ -317,10 +321,15 @@ impl App {
         } else {
             tracing::info!(instances = d.instances.len(), "delivery succeeded");
         }
-        self.db
-            .node_tables()?
+        if !self
+            .db
             .finish_delivery_attempt(&d, state, next, error.as_deref())
-            .await?;
+            .await?
+        {
+            tracing::warn!(
+                "the delivery was claimed again by another attempt; this attempt's end is not recorded"
+            );
+        }
         Ok(())
     }
 
@@ -343,12 +352,9 @@ impl App {
                 "the job has no results",
             ));
         };
-        let rule = match self.db.node_tables() {
-            Ok(db) => match db.run_of_job(job_id).await.ok().flatten() {
-                Some(run) => db.get_rule(&run.rule_name).await.ok().flatten(),
-                None => None,
-            },
-            Err(_) => None,
+        let rule = match self.db.run_of_job(job_id).await.ok().flatten() {
+            Some(run) => self.db.get_rule(&run.rule_name).await.ok().flatten(),
+            None => None,
         };
         let source = match result.source_series {
             Some(id) => self.db.get_series(id).await.ok().flatten(),
@@ -384,8 +390,6 @@ impl App {
             })
             .collect();
         self.db
-            .node_tables()
-            .map_err(|e| AppError::from(e).into_problem())?
             .set_delivery_instances(&d.id, &d.instances)
             .await
             .map_err(|e| AppError::from(e).into_problem())?;

@@ -14,10 +14,9 @@ use serde_json::{Map, Value, json};
 use super::error::refused;
 use super::matching::{ATTRS, Attr, Level};
 use super::query::{Found, Query};
-use super::{App, AppError, AppResult};
+use super::{App, AppResult};
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::DbError;
-use crate::jobs::repo::StoredInstance;
+use crate::jobs::model::StoredInstance;
 
 /// Where a QIDO-RS query was sent: its level and the UIDs its path fixes.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -278,21 +277,10 @@ pub fn found_json(q: &Qido, found: &Found, base: &str) -> Value {
     Value::Object(m)
 }
 
-/// Why DICOMweb cannot answer: the index lives in SQLite only.
-pub(super) fn index_problem(e: AppError) -> AppError {
-    match e {
-        AppError::Db(DbError::SqliteOnly { .. }) => refused(
-            ErrorCode::DicomwebUnavailable,
-            "the instance index is kept in the SQLite job database only",
-        ),
-        other => other,
-    }
-}
-
 impl App {
     /// Answer a QIDO-RS query: the matches after `offset`, at most `limit` of them.
     pub async fn qido(&self, q: &Qido) -> AppResult<Vec<Found>> {
-        let found = self.find_instances(&q.query).await.map_err(index_problem)?;
+        let found = self.find_instances(&q.query).await?;
         Ok(found
             .into_iter()
             .skip(q.offset)
@@ -321,7 +309,7 @@ impl App {
         }
         let query =
             Query::new(Level::Image, &keys).map_err(|e| refused(ErrorCode::InvalidQuery, e.0))?;
-        let found = self.find_instances(&query).await.map_err(index_problem)?;
+        let found = self.find_instances(&query).await?;
         let out: Vec<StoredInstance> = found
             .into_iter()
             .filter_map(|f| f.instances.into_iter().next())

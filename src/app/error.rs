@@ -38,12 +38,6 @@ impl AppError {
     pub fn into_problem(self) -> Problem {
         match self {
             AppError::Refused(p) => p,
-            AppError::Db(DbError::SqliteOnly { what }) => Problem::new(
-                ErrorCode::NeedsSqlite,
-                format!(
-                    "{what} are kept in the SQLite job database only; this process uses PostgreSQL"
-                ),
-            ),
             AppError::Db(e) => {
                 tracing::error!(error = %e, "database error");
                 Problem::internal()

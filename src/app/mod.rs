@@ -150,13 +150,10 @@ impl App {
             outbound: deliveries::Outbound::default(),
             stow_series: stow_series::StowSeries::new(stable_age),
         };
-        // The instance index lives in SQLite only (see `Database::node_tables`).
-        if app.db.sqlite().is_some() {
-            match app.sweep_instances().await {
-                Ok(n) => tracing::info!(removed = n, "instance folders paired with their rows"),
-                Err(e) => {
-                    tracing::warn!(error = %e, "pairing instance folders with their rows failed")
-                }
+        match app.sweep_instances().await {
+            Ok(n) => tracing::info!(removed = n, "instance folders paired with their rows"),
+            Err(e) => {
+                tracing::warn!(error = %e, "pairing instance folders with their rows failed")
             }
         }
         app.load_config_rules().await?;

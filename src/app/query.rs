@@ -6,7 +6,7 @@
 use std::collections::{BTreeSet, HashMap, HashSet};
 
 use super::matching::{Attr, BadKey, Key, Level, Matcher};
-use crate::jobs::repo::{IndexScope, IndexedInstance, StoredInstance};
+use crate::jobs::model::{IndexScope, IndexedInstance, StoredInstance};
 
 /// A query: its level and its matching keys (universal keys included: they are returned).
 #[derive(Debug, Clone, PartialEq)]

@@ -111,13 +111,11 @@ pub fn job_origin_json(run: Option<&RuleRun>, deliveries: &[Delivery]) -> Value 
 
 impl App {
     /// The rule run that made job `id` and the job's deliveries (none of either for a job no rule made and
-    /// that was never sent; nothing on a PostgreSQL job database, which keeps no rules).
+    /// that was never sent).
     pub async fn job_origin(&self, id: JobId) -> AppResult<(Option<RuleRun>, Vec<Delivery>)> {
-        let Ok(db) = self.db.node_tables() else {
-            return Ok((None, Vec::new()));
-        };
-        let run = db.run_of_job(id).await?;
-        let deliveries = db
+        let run = self.db.run_of_job(id).await?;
+        let deliveries = self
+            .db
             .list_deliveries(&DeliveryFilter {
                 job_id: Some(id),
                 limit: 200,
@@ -153,18 +151,7 @@ impl App {
             })?;
             specs.push(spec);
         }
-        let db = match self.db.node_tables() {
-            Ok(db) => db,
-            // No rule tables on PostgreSQL yet: nothing to load is fine, rules to load are refused at start.
-            Err(_) if specs.is_empty() => return Ok(()),
-            Err(e) => {
-                return Err(OpenError::Config(ConfigError::Invalid {
-                    name: "dicom.rules",
-                    reason: e.to_string(),
-                }));
-            }
-        };
-        db.sync_config_rules(&specs).await?;
+        self.db.sync_config_rules(&specs).await?;
         if !specs.is_empty() {
             tracing::info!(
                 rules = specs.len(),
@@ -177,12 +164,7 @@ impl App {
     /// Create a rule (`POST /v1/rules`).
     pub async fn create_rule(&self, body: Value) -> AppResult<StoredRule> {
         let spec = self.parse_rule(body)?;
-        if !self
-            .db
-            .node_tables()?
-            .insert_rule(&spec, RuleSource::Api)
-            .await?
-        {
+        if !self.db.insert_rule(&spec, RuleSource::Api).await? {
             return Err(refused(
                 ErrorCode::RuleExists,
                 format!("a rule named {:?} exists", spec.name),
@@ -202,7 +184,7 @@ impl App {
             ));
         }
         self.writable(name).await?;
-        if !self.db.node_tables()?.replace_rule(&spec).await? {
+        if !self.db.replace_rule(&spec).await? {
             return Err(not_found(name));
         }
         self.get_rule(name).await
@@ -211,7 +193,7 @@ impl App {
     /// Delete an API rule and its runs (its deliveries stay).
     pub async fn delete_rule(&self, name: &str) -> AppResult<()> {
         self.writable(name).await?;
-        if !self.db.node_tables()?.delete_rule(name).await? {
+        if !self.db.delete_rule(name).await? {
             return Err(not_found(name));
         }
         tracing::info!(rule = %name, "rule deleted");
@@ -219,7 +201,7 @@ impl App {
     }
 
     async fn writable(&self, name: &str) -> AppResult<()> {
-        match self.db.node_tables()?.get_rule(name).await? {
+        match self.db.get_rule(name).await? {
             None => Err(not_found(name)),
             Some(r) if r.source == RuleSource::Config => Err(refused(
                 ErrorCode::RuleReadOnly,
@@ -232,15 +214,11 @@ impl App {
     }
 
     pub async fn get_rule(&self, name: &str) -> AppResult<StoredRule> {
-        self.db
-            .node_tables()?
-            .get_rule(name)
-            .await?
-            .ok_or_else(|| not_found(name))
+        self.db.get_rule(name).await?.ok_or_else(|| not_found(name))
     }
 
     pub async fn list_rules(&self) -> AppResult<Vec<StoredRule>> {
-        Ok(self.db.node_tables()?.list_rules().await?)
+        Ok(self.db.list_rules().await?)
     }
 
     /// The newest runs of a rule, each with its delivery ids.
@@ -250,8 +228,8 @@ impl App {
         limit: u32,
     ) -> AppResult<Vec<(RuleRun, Vec<String>)>> {
         let mut out = Vec::new();
-        for run in self.db.node_tables()?.list_runs(Some(name), limit).await? {
-            let d = self.db.node_tables()?.delivery_ids_of_run(&run.id).await?;
+        for run in self.db.list_runs(Some(name), limit).await? {
+            let d = self.db.delivery_ids_of_run(&run.id).await?;
             out.push((run, d));
         }
         Ok(out)
@@ -273,7 +251,6 @@ impl App {
     ) -> AppResult<()> {
         let rules: Vec<RuleSpec> = self
             .db
-            .node_tables()?
             .list_rules()
             .await?
             .into_iter()
@@ -306,7 +283,7 @@ impl App {
                     series_uid: &series.series_uid,
                     facts: &facts,
                 };
-                let Some(run_id) = self.db.node_tables()?.insert_run(&run).await? else {
+                let Some(run_id) = self.db.insert_run(&run).await? else {
                     tracing::info!(rule = %rule.name, series_uid = %series.series_uid, "rule already ran on this series content");
                     continue;
                 };
@@ -315,22 +292,17 @@ impl App {
                                   "products": t.products});
                 match self.submit_job(body, None).await {
                     Ok(s) => {
-                        self.db
-                            .node_tables()?
-                            .set_run_job(&run_id, s.job.id)
-                            .await?;
+                        self.db.set_run_job(&run_id, s.job.id).await?;
                         tracing::info!(rule = %rule.name, series_uid = %series.series_uid, job_id = %s.job.id, "rule fired");
                     }
                     Err(AppError::Refused(p)) => {
                         tracing::warn!(rule = %rule.name, code = p.code.code(), detail = %p.detail, "rule's job refused");
                         self.db
-                            .node_tables()?
                             .set_run_state(&run_id, RunState::Refused, Some(&p))
                             .await?;
                     }
                     Err(e) => {
                         self.db
-                            .node_tables()?
                             .set_run_state(&run_id, RunState::Refused, Some(&Problem::internal()))
                             .await?;
                         return Err(e);

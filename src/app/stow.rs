@@ -14,7 +14,7 @@ use serde_json::json;
 use super::instances::indexed;
 use super::{App, AppError, AppResult};
 use crate::dicom::{STORABLE_SOP_CLASSES, read_header};
-use crate::jobs::repo::{IndexedInstance, NewInstance};
+use crate::jobs::model::{IndexedInstance, NewInstance};
 use crate::storage::{InstanceId, InstanceOwner, UploadId};
 
 /// PS3.18 / PS3.4 failure reasons (0008,1197) a STOW-RS answer gives.
@@ -75,9 +75,6 @@ impl App {
         parts: Vec<StowPart>,
         study: Option<&str>,
     ) -> AppResult<Vec<StowOutcome>> {
-        self.db
-            .node_tables()
-            .map_err(|e| super::dicomweb::index_problem(AppError::Db(e)))?;
         let max = self
             .settings
             .dicom
@@ -150,10 +147,7 @@ impl App {
             self.db
                 .insert_completed_upload(upload, n, bytes, &view, &[], None)
                 .await?;
-            self.db
-                .node_tables()?
-                .insert_pending_instances(owner, &rows)
-                .await
+            self.db.insert_pending_instances(owner, &rows).await
         }
         .await;
         if let Err(e) = recorded {

@@ -12,7 +12,7 @@ use crate::dicom::{
     transcodable_to_explicit_le,
 };
 use crate::error_code::{ErrorCode, Problem};
-use crate::jobs::repo::StoredInstance;
+use crate::jobs::model::StoredInstance;
 use crate::jobs::views::volume_problem;
 use crate::volume::{BitDepth, Window, encode_jpeg, encode_png, fit_viewport};
 

@@ -3,8 +3,10 @@
 //! engine hold a [`Database`]; each call goes to the adapter it was opened with, which implement the same
 //! operations with the same guards ([`super::repo::Db`], [`super::pg::PgDb`]).
 //!
-//! A table only the SQLite adapter has yet is reached through [`Database::sqlite`]; its PostgreSQL twin is
-//! a migration under `migrations/postgres/` and the same methods on `PgDb`, dispatched here.
+//! The DICOM node's tables (rules, runs, deliveries, the instance index) are dispatched in [`node`], with
+//! what they guarantee on a shared database. A table only the SQLite adapter has is reached through
+//! [`Database::sqlite`]; its PostgreSQL twin is a migration under `migrations/postgres/` and the same
+//! methods on `PgDb`, dispatched here.
 
 use std::collections::HashSet;
 use std::path::Path;
@@ -22,6 +24,9 @@ use super::repo::{Appended, Completed, Db, DbError, Deleted, UploadDeleted};
 use super::store::{Expired, JobStore, Renewed, StoreResult};
 use crate::storage::sweep::BlobKind;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
+
+pub mod conformance;
+pub mod node;
 
 /// The job database: one adapter or the other.
 #[derive(Clone, Debug)]
@@ -58,14 +63,6 @@ impl Database {
     /// assumes that a running job is its own, and lost workers are found by their leases only.
     pub fn is_shared(&self) -> bool {
         matches!(self, Database::Postgres(_))
-    }
-
-    /// The SQLite adapter holding the DICOM node's tables (rules, runs, deliveries, the instance index),
-    /// which have no PostgreSQL twin yet: on PostgreSQL these calls fail with [`DbError::SqliteOnly`].
-    pub fn node_tables(&self) -> Result<&Db, DbError> {
-        self.sqlite().ok_or(DbError::SqliteOnly {
-            what: "DICOM node rules, deliveries and instance index",
-        })
     }
 
     /// The SQLite adapter, for tables that have no PostgreSQL twin yet.

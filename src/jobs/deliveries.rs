@@ -2,7 +2,7 @@
 //! (`queued → sending → succeeded | failed`, and `sending → queued` while the peer is unreachable and
 //! attempts remain), attempts, the time of the next attempt, and what the peer answered for each
 //! instance. Also the rule runs (a rule that fired for a series and the job it started). Model types and
-//! the backoff; the rows live in `repo`.
+//! the backoff; the rows live in `repo` and `pg`.
 
 use serde::Serialize;
 

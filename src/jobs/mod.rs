@@ -8,7 +8,8 @@
 //!    `iso_range`, `ingest` (DICOM → series problems), `cache`.
 //! 2. `store`: the `JobStore` port, the outcomes both databases answer, and the conformance suite.
 //! 3. Adapters: `repo` (SQLite, with datasets, uploads, series and the DICOM node's tables), `pg` (its
-//!    PostgreSQL twin); `database` holds the one the service runs on; `sweep` and `retention` work on it.
+//!    PostgreSQL twin, the DICOM node's tables included); `database` holds the one the service runs on
+//!    (with the node tables' conformance suite); `sweep` and `retention` work on it.
 //! 4. What jobs make: `run` (reconstruction, simulation), `views` (a *view*: a 2D image, a mesh or a derived
 //!    series rendered from a result on request, and the renderings of stored products), `render_products`
 //!    (volume and surface renderings made by a job), `imaging` (volume jobs: planning, steps, products),

@@ -14,10 +14,13 @@ use sqlx::postgres::{PgConnection, PgPool, PgPoolOptions, PgRow};
 use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
+mod deliveries;
+mod instances;
 mod job_store;
 pub mod listen;
 mod retention;
 mod rows;
+mod rules;
 mod uploads;
 
 use rows::{

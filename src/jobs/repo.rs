@@ -13,6 +13,7 @@ use sqlx::sqlite::{
 use sqlx::{AssertSqlSafe, Row};
 
 mod blobs;
+mod deliveries;
 mod instances;
 mod job_store;
 mod retention;
@@ -20,9 +21,9 @@ mod rows;
 mod rules;
 mod uploads;
 
+pub use super::model::{IndexScope, IndexedInstance, NewInstance, StoredInstance};
 pub use super::store::{Appended, Completed, DbError, Deleted, UploadDeleted};
 pub(crate) use super::store::{corrupt, product_indexes, to_json};
-pub use instances::{IndexScope, IndexedInstance, NewInstance, StoredInstance};
 use rows::*;
 
 use super::cache::JobCache;

@@ -21,7 +21,7 @@ use super::query::{self, Found, Query};
 use super::{App, AppResult};
 use crate::dicom::InstanceHeader;
 use crate::error_code::Problem;
-use crate::jobs::repo::{IndexedInstance, StoredInstance};
+use crate::jobs::model::{IndexedInstance, StoredInstance};
 use crate::storage::{BlobStore, UploadId};
 
 pub use received::StagedInstances;
@@ -69,7 +69,7 @@ impl App {
 
     /// Answer a query over the index (grouped and matched off the async threads).
     pub async fn find_instances(&self, q: &Query) -> AppResult<Vec<Found>> {
-        let rows = self.db.node_tables()?.indexed_instances(&q.scope()).await?;
+        let rows = self.db.indexed_instances(&q.scope()).await?;
         let q = q.clone();
         tokio::task::spawn_blocking(move || query::run(rows, &q))
             .await
@@ -77,11 +77,13 @@ impl App {
     }
 
     /// Remove `instances/<upload>/` folders whose upload has no indexed instance any more (its series or
-    /// upload was deleted); returns how many were removed.
+    /// upload was deleted); returns how many were removed. On a shared database only folders untouched for
+    /// [`SHARED_IDLE`](crate::storage::SHARED_IDLE) go: another process may be storing instances whose rows
+    /// it has not written yet.
     pub async fn sweep_instances(&self) -> AppResult<usize> {
+        let idle = self.db.is_shared().then_some(crate::storage::SHARED_IDLE);
         let keep: HashSet<String> = self
             .db
-            .node_tables()?
             .uploads_with_instances()
             .await?
             .into_iter()
@@ -93,8 +95,15 @@ impl App {
             for entry in std::fs::read_dir(store.root().join("instances"))? {
                 let entry = entry?;
                 let name = entry.file_name().to_string_lossy().into_owned();
+                let quiet = idle.is_none_or(|idle| {
+                    entry
+                        .metadata()
+                        .and_then(|m| m.modified())
+                        .is_ok_and(|t| t.elapsed().is_ok_and(|age| age >= idle))
+                });
                 if let Ok(u) = UploadId::parse(&name)
                     && !keep.contains(&name)
+                    && quiet
                 {
                     store.remove_instances(u)?;
                     n += 1;

@@ -9,7 +9,7 @@ use super::{indexed, storage};
 use crate::app::{App, AppResult};
 use crate::dicom::{Unpacked, UploadFile, read_header, unpack_file};
 use crate::jobs::SeriesRecord;
-use crate::jobs::repo::NewInstance;
+use crate::jobs::model::NewInstance;
 use crate::storage::{InstanceId, InstanceOwner, ScratchDir, SeriesId, UploadId};
 
 /// Instances of an HTTP upload copied aside until the upload is recorded (the scratch folder goes with it).
@@ -75,10 +75,7 @@ impl App {
                 instance: i.clone(),
             })
             .collect();
-        self.db
-            .node_tables()?
-            .insert_instances(owner, &rows)
-            .await?;
+        self.db.insert_instances(owner, &rows).await?;
         let store = self.store.clone();
         let moves: Vec<(PathBuf, PathBuf)> = read
             .into_iter()

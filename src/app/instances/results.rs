@@ -13,10 +13,17 @@ use crate::dicom::{SeriesMeta, header_of, read_header, write_ct_series};
 use crate::error_code::Problem;
 use crate::jobs::JobStatus;
 use crate::jobs::export::export_dir;
-use crate::jobs::repo::NewInstance;
+use crate::jobs::model::{NewInstance, now_us};
 use crate::storage::npy::decode_f32;
 use crate::storage::{InstanceId, InstanceOwner, JobId, ResultName};
 use crate::volume::{Volume, mu_to_hu};
+
+/// How often a process on a shared database indexes the results of jobs other processes finished.
+pub const SHARED_CATCH_UP: std::time::Duration = std::time::Duration::from_secs(5);
+
+/// How long after a job finished a process on a shared database leaves its indexing to the process that
+/// ran it (a worker process indexes nothing; a job of a lost process is indexed by another after this).
+pub const SHARED_GRACE: std::time::Duration = std::time::Duration::from_secs(60);
 
 impl App {
     /// Index the DICOM results of job `id` once it succeeded: its products as exported for delivery, and
@@ -24,7 +31,7 @@ impl App {
     /// reference of its source series. A job without a source series (no patient) is marked indexed with
     /// no instance. A job indexed before is left as it is. Returns the instances indexed.
     pub async fn index_job(&self, id: JobId) -> AppResult<usize> {
-        if self.db.node_tables()?.job_indexed(id).await? {
+        if self.db.job_indexed(id).await? {
             return Ok(0);
         }
         let Some(job) = self.db.get_job(id).await? else {
@@ -34,7 +41,7 @@ impl App {
             return Ok(0);
         }
         let Some(result) = job.result.filter(|r| r.source_series.is_some()) else {
-            self.db.node_tables()?.mark_job_indexed(id).await?;
+            self.db.mark_job_indexed(id).await?;
             return Ok(0);
         };
         let exported = self.exported_instances(id).await;
@@ -81,10 +88,17 @@ impl App {
         .await
         .map_err(|e| storage("indexing exported results failed", std::io::Error::other(e)))?
         .map_err(|e| storage("indexing exported results failed", e))?;
-        self.db
-            .node_tables()?
-            .insert_instances(owner, &rows)
-            .await?;
+        if !self.db.insert_instances(owner, &rows).await? {
+            // Indexed meanwhile by another process (or task): its rows name its own files, not these.
+            for r in &rows {
+                let path = self.store.instance_path(owner, r.id);
+                if let Err(e) = self.store.remove_blob_async(&path).await {
+                    tracing::warn!(error = %e, "removing a file indexed twice failed");
+                }
+            }
+            tracing::info!(job_id = %id, "job results were indexed elsewhere first");
+            return Ok(0);
+        }
         tracing::info!(job_id = %id, instances = rows.len(), "job results indexed");
         Ok(rows.len())
     }
@@ -211,29 +225,47 @@ impl App {
 
     /// Index the results of every succeeded volume job not indexed yet (after a restart).
     pub async fn index_pending_jobs(&self) -> AppResult<usize> {
+        self.index_jobs_finished_before(i64::MAX).await
+    }
+
+    /// Index the results of the succeeded volume jobs not indexed yet that finished before `before_us`.
+    async fn index_jobs_finished_before(&self, before_us: i64) -> AppResult<usize> {
         let mut n = 0;
-        for id in self.db.node_tables()?.jobs_to_index().await? {
-            n += self.index_job(id).await?;
+        for id in self.db.jobs_to_index().await? {
+            let finished = self.db.get_job(id).await?.and_then(|j| j.finished_us);
+            if finished.is_some_and(|t| t < before_us) {
+                n += self.index_job(id).await?;
+            }
         }
         Ok(n)
     }
 
     /// Index each volume job's results as it succeeds, and those missed while the service was down; runs
-    /// as long as the runtime.
+    /// as long as the runtime. On a shared database the jobs other processes ran (a `ctrecon worker` runs no
+    /// indexer) are caught up every [`SHARED_CATCH_UP`], [`SHARED_GRACE`] after they finished; a job is
+    /// indexed once whoever gets there first.
     pub fn spawn_result_indexer(&self) {
-        if let Err(e) = self.db.node_tables() {
-            // The index has no PostgreSQL twin yet: nothing to index into, and no export to make for it.
-            tracing::info!(reason = %e, "derived results are not indexed");
-            return;
-        }
         let app = self.clone();
         let mut events = self.engine.subscribe();
         tokio::spawn(async move {
             if let Err(e) = app.index_pending_jobs().await {
                 tracing::error!(error = %e, "indexing job results at start failed");
             }
+            let mut catch_up = tokio::time::interval(SHARED_CATCH_UP);
+            catch_up.tick().await;
             loop {
-                match events.recv().await {
+                let event = tokio::select! {
+                    ev = events.recv() => ev,
+                    _ = catch_up.tick(), if app.db.is_shared() => {
+                        // Jobs that finished just now are being indexed by the process that ran them.
+                        let before = now_us().saturating_sub(SHARED_GRACE.as_micros() as i64);
+                        if let Err(e) = app.index_jobs_finished_before(before).await {
+                            tracing::error!(error = %e, "indexing job results failed");
+                        }
+                        continue;
+                    }
+                };
+                match event {
                     Ok(ev) if ev.status == JobStatus::Succeeded => {
                         let kind = match app.db.get_job(ev.id).await {
                             Ok(Some(j)) => j.kind,

@@ -226,8 +226,7 @@ impl App {
         }
     }
 
-    /// Index the instances of recorded upload `id` (the upload stands whether or not they could be indexed;
-    /// with a PostgreSQL job database there is no instance index).
+    /// Index the instances of recorded upload `id` (the upload stands whether or not they could be indexed).
     async fn index_upload(&self, id: UploadId, kept: StagedInstances, records: &[SeriesRecord]) {
         if let Err(e) = self.index_staged(id, kept, records).await {
             tracing::warn!(upload_id = %id, error = %e, "the upload's instances are not indexed");

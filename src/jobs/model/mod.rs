@@ -13,11 +13,13 @@ use crate::error_code::Problem;
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
 use crate::storage::{DatasetId, JobId};
 
+mod instances;
 mod records;
 mod render_request;
 mod result;
 mod volume_request;
 
+pub use instances::*;
 pub use records::*;
 pub use render_request::*;
 pub use result::*;

@@ -97,7 +97,8 @@ impl PgDb {
             .collect()
     }
 
-    /// Retention: delete the uploads completed before `before_us` that no series comes from any more.
+    /// Retention: delete the uploads completed before `before_us` that no series comes from any more and that
+    /// own no indexed instance (a STOW-RS request's instances belong to its upload, their series to another).
     pub async fn delete_uploads_without_series(
         &self,
         before_us: i64,
@@ -105,7 +106,8 @@ impl PgDb {
         let ids = self
             .delete_returning(
                 "DELETE FROM uploads WHERE status = 'completed' AND completed_us < $1
-                 AND id NOT IN (SELECT upload_id FROM series) RETURNING id",
+                 AND id NOT IN (SELECT upload_id FROM series)
+                 AND NOT EXISTS (SELECT 1 FROM instances i WHERE i.upload_id = uploads.id) RETURNING id",
                 before_us,
             )
             .await?;

@@ -6,47 +6,8 @@ use sqlx::Row;
 use sqlx::sqlite::SqliteRow;
 
 use super::{Db, DbError, corrupt};
-use crate::jobs::model::now_us;
+use crate::jobs::model::{IndexScope, IndexedInstance, NewInstance, StoredInstance, now_us};
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
-
-/// One indexed instance: its identity, the attributes of its patient, study, series and itself, and where
-/// its file is.
-#[derive(Debug, Clone, PartialEq, Default)]
-pub struct IndexedInstance {
-    pub sop_class_uid: String,
-    pub sop_instance_uid: String,
-    pub transfer_syntax: String,
-    pub study_uid: String,
-    pub series_uid: String,
-    pub patient_id: Option<String>,
-    pub patient_name: Option<String>,
-    pub patient_birth_date: Option<String>,
-    pub patient_sex: Option<String>,
-    pub study_date: Option<String>,
-    pub study_time: Option<String>,
-    pub accession_number: Option<String>,
-    pub study_description: Option<String>,
-    pub referring_physician: Option<String>,
-    pub study_id: Option<String>,
-    pub modality: Option<String>,
-    pub series_number: Option<i64>,
-    pub series_description: Option<String>,
-    pub body_part: Option<String>,
-    pub instance_number: Option<i64>,
-    /// Size of the file (bytes).
-    pub bytes: u64,
-}
-
-/// An instance as stored: its row id (which names its file), owner, series and time of indexing.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StoredInstance {
-    pub id: InstanceId,
-    pub owner: InstanceOwner,
-    /// The assembled series it belongs to, when it is a received instance of one.
-    pub series_id: Option<SeriesId>,
-    pub created_us: i64,
-    pub instance: IndexedInstance,
-}
 
 const COLUMNS: &str = "id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid, transfer_syntax, \
      study_uid, series_uid, patient_id, patient_name, patient_birth_date, patient_sex, study_date, \
@@ -100,28 +61,14 @@ fn parse_row(row: &SqliteRow) -> Result<StoredInstance, DbError> {
     })
 }
 
-/// A row to insert: the instance, its new id and its series.
-#[derive(Debug, Clone)]
-pub struct NewInstance {
-    pub id: InstanceId,
-    pub series_id: Option<SeriesId>,
-    pub instance: IndexedInstance,
-}
-
-/// Narrowing of an index read by exact UIDs (taken from single-valued unique keys of a query).
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct IndexScope {
-    pub study_uid: Option<String>,
-    pub series_uid: Option<String>,
-}
-
 impl Db {
-    /// Index `rows` as belonging to `owner`, in one transaction; for a job, also mark it indexed.
+    /// Index `rows` as belonging to `owner`, in one transaction; for a job, also mark it indexed, first:
+    /// false (and nothing written) when the job's results were indexed already, so they are indexed once.
     pub async fn insert_instances(
         &self,
         owner: InstanceOwner,
         rows: &[NewInstance],
-    ) -> Result<(), DbError> {
+    ) -> Result<bool, DbError> {
         self.insert_rows(owner, rows, false).await
     }
 
@@ -131,7 +78,7 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
     ) -> Result<(), DbError> {
-        self.insert_rows(owner, rows, true).await
+        self.insert_rows(owner, rows, true).await.map(|_| ())
     }
 
     async fn insert_rows(
@@ -139,13 +86,27 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
         pending: bool,
-    ) -> Result<(), DbError> {
+    ) -> Result<bool, DbError> {
         let mut tx = self.write_tx().await?;
         let (upload, job) = match owner {
             InstanceOwner::Upload(u) => (Some(u.to_string()), None),
             InstanceOwner::Job(j) => (None, Some(j.to_string())),
         };
         let now = now_us();
+        if let Some(job) = &job {
+            let r = sqlx::query(
+                "INSERT INTO indexed_jobs (job_id, instances, created_us) VALUES (?, ?, ?)
+                 ON CONFLICT (job_id) DO NOTHING",
+            )
+            .bind(job)
+            .bind(rows.len() as i64)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+            if r.rows_affected() != 1 {
+                return Ok(false);
+            }
+        }
         for r in rows {
             let i = &r.instance;
             sqlx::query(
@@ -186,19 +147,8 @@ impl Db {
             .execute(&mut *tx)
             .await?;
         }
-        if let Some(job) = &job {
-            sqlx::query(
-                "INSERT INTO indexed_jobs (job_id, instances, created_us) VALUES (?, ?, ?)
-                 ON CONFLICT (job_id) DO NOTHING",
-            )
-            .bind(job)
-            .bind(rows.len() as i64)
-            .bind(now)
-            .execute(&mut *tx)
-            .await?;
-        }
         tx.commit().await?;
-        Ok(())
+        Ok(true)
     }
 
     /// The indexed instances in `scope`, newest first.
@@ -244,8 +194,8 @@ impl Db {
         Ok(row.is_some())
     }
 
-    /// Mark a job as indexed without instances (its results carry no patient).
-    pub async fn mark_job_indexed(&self, id: JobId) -> Result<(), DbError> {
+    /// Mark a job as indexed without instances (its results carry no patient); false when it was already.
+    pub async fn mark_job_indexed(&self, id: JobId) -> Result<bool, DbError> {
         self.insert_instances(InstanceOwner::Job(id), &[]).await
     }
 
@@ -262,7 +212,48 @@ impl Db {
             .collect()
     }
 
-    /// Received instances `ids` were assembled: no longer pending, and members of `series` when one was made.
+    /// Claim the received instances of series `series_uid` pending assembly that nobody holds (no claim, or
+    /// one ended before `now`) for the caller until `claimed_until_us`; their ids. Empty when there are none
+    /// or another assembly holds them all: then this one has nothing to assemble.
+    pub async fn claim_pending_instances(
+        &self,
+        series_uid: &str,
+        now: i64,
+        claimed_until_us: i64,
+    ) -> Result<Vec<InstanceId>, DbError> {
+        let rows = sqlx::query(
+            "UPDATE instances SET claimed_until_us = ?
+             WHERE series_uid = ? AND pending = 1 AND (claimed_until_us IS NULL OR claimed_until_us < ?)
+             RETURNING id",
+        )
+        .bind(claimed_until_us)
+        .bind(series_uid)
+        .bind(now)
+        .fetch_all(&self.pool)
+        .await?;
+        let mut ids = rows
+            .iter()
+            .map(|r| {
+                let id: String = r.try_get("id")?;
+                InstanceId::parse(&id).map_err(|e| corrupt("instances", e))
+            })
+            .collect::<Result<Vec<_>, DbError>>()?;
+        ids.sort_by_key(|i| i.to_string());
+        Ok(ids)
+    }
+
+    /// Release every claim on pending instances (the owner of the database starts: the claims were its own).
+    pub async fn release_instance_claims(&self) -> Result<u64, DbError> {
+        let r = sqlx::query(
+            "UPDATE instances SET claimed_until_us = NULL WHERE pending = 1 AND claimed_until_us IS NOT NULL",
+        )
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected())
+    }
+
+    /// Received instances `ids` were assembled: no longer pending nor claimed, and members of `series` when
+    /// one was made. Setting the same values again changes nothing, so settling twice is harmless.
     pub async fn settle_instances(
         &self,
         ids: &[InstanceId],
@@ -271,7 +262,8 @@ impl Db {
         let mut tx = self.write_tx().await?;
         for id in ids {
             sqlx::query(
-                "UPDATE instances SET pending = 0, series_id = COALESCE(?, series_id) WHERE id = ?",
+                "UPDATE instances SET pending = 0, claimed_until_us = NULL,
+                     series_id = COALESCE(?, series_id) WHERE id = ?",
             )
             .bind(series.map(|s| s.to_string()))
             .bind(id.to_string())

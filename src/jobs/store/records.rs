@@ -13,11 +13,6 @@ pub enum DbError {
     /// The database server could not be reached at start (`target`: the URL without its password).
     #[error("cannot connect to {target}: {reason}")]
     Unreachable { target: String, reason: String },
-    /// Tables of the DICOM node (rules, deliveries, the instance index) have no PostgreSQL twin yet.
-    #[error(
-        "{what} are kept in the SQLite database only; with a PostgreSQL job database they are not available yet"
-    )]
-    SqliteOnly { what: &'static str },
 }
 
 /// Outcome of appending an instance to an open upload.

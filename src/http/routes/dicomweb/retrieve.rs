@@ -17,7 +17,7 @@ use crate::app::wado::RetrieveSyntax;
 use crate::dicom::EXPLICIT_LE;
 use crate::error_code::ErrorCode;
 use crate::http::files::{Chunks, send_file_range};
-use crate::jobs::repo::StoredInstance;
+use crate::jobs::model::StoredInstance;
 
 /// The syntax a retrieval's `Accept` asks for, or 406.
 fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {

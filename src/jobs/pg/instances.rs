@@ -1,0 +1,283 @@
+//! The instance index on PostgreSQL, the twin of the SQLite adapter's (every statement bound, never built
+//! from query strings). With several processes on one database:
+//! - a job's results are indexed once: the `indexed_jobs` row is inserted first, `ON CONFLICT DO NOTHING`,
+//!   in the transaction that inserts the instance rows, so of two processes indexing one job at once the
+//!   second waits for the first to commit, then writes nothing ([`PgDb::insert_instances`] answers false);
+//! - received instances pending assembly are claimed ([`PgDb::claim_pending_instances`]) by one process at a
+//!   time, until the claim ends; settling them ([`PgDb::settle_instances`]) sets the same values when
+//!   repeated, so it is idempotent.
+
+use sqlx::Row;
+use sqlx::postgres::PgRow;
+
+use super::{DbError, PgDb, corrupt};
+use crate::jobs::model::{IndexScope, IndexedInstance, NewInstance, StoredInstance, now_us};
+use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
+
+const COLUMNS: &str = "id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid, transfer_syntax, \
+     study_uid, series_uid, patient_id, patient_name, patient_birth_date, patient_sex, study_date, \
+     study_time, accession_number, study_description, referring_physician, study_id, modality, \
+     series_number, series_description, body_part, instance_number, bytes, created_us";
+
+fn parse_row(row: &PgRow) -> Result<StoredInstance, DbError> {
+    let bad = |e: crate::storage::BadId| corrupt("instances", e);
+    let id: String = row.try_get("id")?;
+    let upload: Option<String> = row.try_get("upload_id")?;
+    let job: Option<String> = row.try_get("job_id")?;
+    let series: Option<String> = row.try_get("series_id")?;
+    let owner = match (upload, job) {
+        (Some(u), None) => InstanceOwner::Upload(UploadId::parse(&u).map_err(bad)?),
+        (None, Some(j)) => InstanceOwner::Job(JobId::parse(&j).map_err(bad)?),
+        _ => return Err(corrupt("instances", "an instance needs one owner")),
+    };
+    let bytes: i64 = row.try_get("bytes")?;
+    Ok(StoredInstance {
+        id: InstanceId::parse(&id).map_err(bad)?,
+        owner,
+        series_id: series
+            .as_deref()
+            .map(SeriesId::parse)
+            .transpose()
+            .map_err(bad)?,
+        created_us: row.try_get("created_us")?,
+        instance: IndexedInstance {
+            sop_class_uid: row.try_get("sop_class_uid")?,
+            sop_instance_uid: row.try_get("sop_instance_uid")?,
+            transfer_syntax: row.try_get("transfer_syntax")?,
+            study_uid: row.try_get("study_uid")?,
+            series_uid: row.try_get("series_uid")?,
+            patient_id: row.try_get("patient_id")?,
+            patient_name: row.try_get("patient_name")?,
+            patient_birth_date: row.try_get("patient_birth_date")?,
+            patient_sex: row.try_get("patient_sex")?,
+            study_date: row.try_get("study_date")?,
+            study_time: row.try_get("study_time")?,
+            accession_number: row.try_get("accession_number")?,
+            study_description: row.try_get("study_description")?,
+            referring_physician: row.try_get("referring_physician")?,
+            study_id: row.try_get("study_id")?,
+            modality: row.try_get("modality")?,
+            series_number: row.try_get("series_number")?,
+            series_description: row.try_get("series_description")?,
+            body_part: row.try_get("body_part")?,
+            instance_number: row.try_get("instance_number")?,
+            bytes: bytes.max(0) as u64,
+        },
+    })
+}
+
+impl PgDb {
+    /// Index `rows` as belonging to `owner`, in one transaction; for a job, also mark it indexed, first:
+    /// false (and nothing written) when the job's results were indexed already, so they are indexed once.
+    pub async fn insert_instances(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+    ) -> Result<bool, DbError> {
+        self.insert_rows(owner, rows, false).await
+    }
+
+    /// Index received `rows` of upload `owner` whose series is still to be assembled (STOW-RS).
+    pub async fn insert_pending_instances(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+    ) -> Result<(), DbError> {
+        self.insert_rows(owner, rows, true).await.map(|_| ())
+    }
+
+    async fn insert_rows(
+        &self,
+        owner: InstanceOwner,
+        rows: &[NewInstance],
+        pending: bool,
+    ) -> Result<bool, DbError> {
+        let mut tx = self.pool.begin().await?;
+        let (upload, job) = match owner {
+            InstanceOwner::Upload(u) => (Some(u.to_string()), None),
+            InstanceOwner::Job(j) => (None, Some(j.to_string())),
+        };
+        let now = now_us();
+        if let Some(job) = &job {
+            let r = sqlx::query(
+                "INSERT INTO indexed_jobs (job_id, instances, created_us) VALUES ($1, $2, $3)
+                 ON CONFLICT (job_id) DO NOTHING",
+            )
+            .bind(job)
+            .bind(rows.len() as i64)
+            .bind(now)
+            .execute(&mut *tx)
+            .await?;
+            if r.rows_affected() != 1 {
+                tx.rollback().await?;
+                return Ok(false);
+            }
+        }
+        for r in rows {
+            let i = &r.instance;
+            sqlx::query(
+                "INSERT INTO instances (id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid,
+                 transfer_syntax, study_uid, series_uid, patient_id, patient_name, patient_birth_date,
+                 patient_sex, study_date, study_time, accession_number, study_description,
+                 referring_physician, study_id, modality, series_number, series_description, body_part,
+                 instance_number, bytes, created_us, pending)
+                 VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11, $12, $13, $14, $15, $16, $17, $18, $19, $20, $21, $22, $23, $24, $25, $26, $27)",
+            )
+            .bind(r.id.to_string())
+            .bind(&upload)
+            .bind(r.series_id.map(|s| s.to_string()))
+            .bind(&job)
+            .bind(&i.sop_class_uid)
+            .bind(&i.sop_instance_uid)
+            .bind(&i.transfer_syntax)
+            .bind(&i.study_uid)
+            .bind(&i.series_uid)
+            .bind(&i.patient_id)
+            .bind(&i.patient_name)
+            .bind(&i.patient_birth_date)
+            .bind(&i.patient_sex)
+            .bind(&i.study_date)
+            .bind(&i.study_time)
+            .bind(&i.accession_number)
+            .bind(&i.study_description)
+            .bind(&i.referring_physician)
+            .bind(&i.study_id)
+            .bind(&i.modality)
+            .bind(i.series_number)
+            .bind(&i.series_description)
+            .bind(&i.body_part)
+            .bind(i.instance_number)
+            .bind(i.bytes as i64)
+            .bind(now)
+            .bind(pending as i64)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// The indexed instances in `scope`, newest first.
+    pub async fn indexed_instances(
+        &self,
+        scope: &IndexScope,
+    ) -> Result<Vec<StoredInstance>, DbError> {
+        let sql = format!(
+            "SELECT {COLUMNS} FROM instances
+             WHERE ($1::TEXT IS NULL OR study_uid = $1) AND ($2::TEXT IS NULL OR series_uid = $2)
+             ORDER BY created_us DESC, id DESC"
+        );
+        let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+            .bind(&scope.study_uid)
+            .bind(&scope.series_uid)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter().map(parse_row).collect()
+    }
+
+    /// Succeeded volume jobs whose DICOM results are not indexed yet, oldest first.
+    pub async fn jobs_to_index(&self) -> Result<Vec<JobId>, DbError> {
+        let rows = sqlx::query(
+            "SELECT id FROM jobs WHERE status = 'succeeded' AND kind = 'volume'
+             AND NOT EXISTS (SELECT 1 FROM indexed_jobs x WHERE x.job_id = jobs.id) ORDER BY id",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| {
+                let id: String = r.try_get("id")?;
+                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
+            })
+            .collect()
+    }
+
+    /// Whether a job's results were indexed.
+    pub async fn job_indexed(&self, id: JobId) -> Result<bool, DbError> {
+        let row = sqlx::query("SELECT 1 FROM indexed_jobs WHERE job_id = $1")
+            .bind(id.to_string())
+            .fetch_optional(&self.pool)
+            .await?;
+        Ok(row.is_some())
+    }
+
+    /// Mark a job as indexed without instances (its results carry no patient); false when it was already.
+    pub async fn mark_job_indexed(&self, id: JobId) -> Result<bool, DbError> {
+        self.insert_instances(InstanceOwner::Job(id), &[]).await
+    }
+
+    /// Series (UID, study UID) with received instances not yet assembled, oldest first.
+    pub async fn pending_series(&self) -> Result<Vec<(String, String)>, DbError> {
+        let rows = sqlx::query(
+            "SELECT series_uid, MIN(study_uid) AS study_uid FROM instances WHERE pending = 1
+             GROUP BY series_uid ORDER BY MIN(created_us)",
+        )
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|r| Ok((r.try_get("series_uid")?, r.try_get("study_uid")?)))
+            .collect()
+    }
+
+    /// Claim the received instances of series `series_uid` pending assembly that nobody holds (no claim, or
+    /// one ended before `now`) for the caller until `claimed_until_us`; their ids. Empty when there are none
+    /// or another assembly holds them all: then this one has nothing to assemble.
+    pub async fn claim_pending_instances(
+        &self,
+        series_uid: &str,
+        now: i64,
+        claimed_until_us: i64,
+    ) -> Result<Vec<InstanceId>, DbError> {
+        let rows = sqlx::query(
+            "UPDATE instances SET claimed_until_us = $1
+             WHERE series_uid = $2 AND pending = 1 AND (claimed_until_us IS NULL OR claimed_until_us < $3)
+             RETURNING id",
+        )
+        .bind(claimed_until_us)
+        .bind(series_uid)
+        .bind(now)
+        .fetch_all(&self.pool)
+        .await?;
+        let mut ids = rows
+            .iter()
+            .map(|r| {
+                let id: String = r.try_get("id")?;
+                InstanceId::parse(&id).map_err(|e| corrupt("instances", e))
+            })
+            .collect::<Result<Vec<_>, DbError>>()?;
+        ids.sort_by_key(|i| i.to_string());
+        Ok(ids)
+    }
+
+    /// Received instances `ids` were assembled: no longer pending nor claimed, and members of `series` when
+    /// one was made. Setting the same values again changes nothing, so settling twice is harmless.
+    pub async fn settle_instances(
+        &self,
+        ids: &[InstanceId],
+        series: Option<SeriesId>,
+    ) -> Result<(), DbError> {
+        let ids: Vec<String> = ids.iter().map(|i| i.to_string()).collect();
+        sqlx::query(
+            "UPDATE instances SET pending = 0, claimed_until_us = NULL,
+                 series_id = COALESCE($1, series_id) WHERE id = ANY($2)",
+        )
+        .bind(series.map(|s| s.to_string()))
+        .bind(&ids)
+        .execute(&self.pool)
+        .await?;
+        Ok(())
+    }
+
+    /// Uploads that own indexed instances (for pairing `instances/<upload>/` folders with rows).
+    pub async fn uploads_with_instances(&self) -> Result<Vec<UploadId>, DbError> {
+        let rows =
+            sqlx::query("SELECT DISTINCT upload_id FROM instances WHERE upload_id IS NOT NULL")
+                .fetch_all(&self.pool)
+                .await?;
+        rows.iter()
+            .map(|r| {
+                let id: String = r.try_get("upload_id")?;
+                UploadId::parse(&id).map_err(|e| corrupt("instances", e))
+            })
+            .collect()
+    }
+}

@@ -1,0 +1,318 @@
+//! The rows of deliveries and their instances (SQLite). A delivery moves by guarded updates
+//! (`… WHERE state = ?`): a claim takes a due `queued` delivery to `sending` for one process until its
+//! `claimed_until_us` (renewed while it sends), and only the attempt that claimed it records its end.
+
+use sqlx::Row;
+use sqlx::sqlite::SqliteRow;
+
+use super::{Db, DbError, corrupt};
+use crate::jobs::deliveries::{
+    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun,
+};
+use crate::jobs::model::now_us;
+use crate::storage::JobId;
+
+fn delivery_from_row(row: &SqliteRow) -> Result<Delivery, DbError> {
+    let state: String = row.try_get("state")?;
+    let job: String = row.try_get("job_id")?;
+    let attempts: i64 = row.try_get("attempts")?;
+    Ok(Delivery {
+        id: row.try_get("id")?,
+        job_id: JobId::parse(&job).map_err(|e| corrupt("deliveries", e))?,
+        run_id: row.try_get("run_id")?,
+        rule_name: row.try_get("rule_name")?,
+        destination: row.try_get("destination")?,
+        state: DeliveryState::parse(&state).ok_or_else(|| corrupt("deliveries", state))?,
+        attempts: attempts.max(0) as u32,
+        next_attempt_us: row.try_get("next_attempt_us")?,
+        last_error: row.try_get("last_error")?,
+        created_us: row.try_get("created_us")?,
+        updated_us: row.try_get("updated_us")?,
+        finished_us: row.try_get("finished_us")?,
+        instances: Vec::new(),
+    })
+}
+
+fn instance_from_row(row: &SqliteRow) -> Result<DeliveryInstance, DbError> {
+    let state: String = row.try_get("state")?;
+    let status: Option<i64> = row.try_get("status")?;
+    Ok(DeliveryInstance {
+        file: row.try_get("file")?,
+        sop_class_uid: row.try_get("sop_class_uid")?,
+        sop_instance_uid: row.try_get("sop_instance_uid")?,
+        state: InstanceState::parse(&state).ok_or_else(|| corrupt("delivery_instances", state))?,
+        status: status.map(|s| s.clamp(0, 0xFFFF) as u16),
+        detail: row.try_get("detail")?,
+    })
+}
+
+impl Db {
+    /// Queue a delivery of `job` to `destination`, due now; returns its id.
+    pub async fn insert_delivery(
+        &self,
+        job: JobId,
+        run: Option<&RuleRun>,
+        destination: &str,
+    ) -> Result<String, DbError> {
+        let mut c = self.pool.acquire().await?;
+        insert_delivery(&mut c, job, run, destination).await
+    }
+
+    /// A delivery with its instances.
+    pub async fn get_delivery(&self, id: &str) -> Result<Option<Delivery>, DbError> {
+        let row = sqlx::query("SELECT * FROM deliveries WHERE id = ?")
+            .bind(id)
+            .fetch_optional(&self.pool)
+            .await?;
+        let Some(mut d) = row.as_ref().map(delivery_from_row).transpose()? else {
+            return Ok(None);
+        };
+        let rows =
+            sqlx::query("SELECT * FROM delivery_instances WHERE delivery_id = ? ORDER BY position")
+                .bind(id)
+                .fetch_all(&self.pool)
+                .await?;
+        d.instances = rows
+            .iter()
+            .map(instance_from_row)
+            .collect::<Result<_, _>>()?;
+        Ok(Some(d))
+    }
+
+    /// Deliveries matching `f` (without their instances), newest first.
+    pub async fn list_deliveries(&self, f: &DeliveryFilter) -> Result<Vec<Delivery>, DbError> {
+        let rows = sqlx::query(
+            "SELECT * FROM deliveries WHERE (? IS NULL OR state = ?) AND (? IS NULL OR job_id = ?)
+                 AND (? IS NULL OR rule_name = ?)
+             ORDER BY id DESC LIMIT ?",
+        )
+        .bind(f.state.map(|s| s.as_str()))
+        .bind(f.state.map(|s| s.as_str()))
+        .bind(f.job_id.map(|j| j.to_string()))
+        .bind(f.job_id.map(|j| j.to_string()))
+        .bind(f.rule_name.as_deref())
+        .bind(f.rule_name.as_deref())
+        .bind(f.limit as i64)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter().map(delivery_from_row).collect()
+    }
+
+    /// Ids of the deliveries of the runs `run_ids`.
+    pub async fn delivery_ids_of_run(&self, run_id: &str) -> Result<Vec<String>, DbError> {
+        let rows = sqlx::query("SELECT id FROM deliveries WHERE run_id = ? ORDER BY id")
+            .bind(run_id)
+            .fetch_all(&self.pool)
+            .await?;
+        rows.iter()
+            .map(|r| Ok(r.try_get::<String, _>("id")?))
+            .collect()
+    }
+
+    /// Claim the next due queued delivery (`queued → sending`, one more attempt) to a destination that has
+    /// none in flight, for the caller until `claimed_until_us`.
+    pub async fn claim_due_delivery(
+        &self,
+        now: i64,
+        claimed_until_us: i64,
+    ) -> Result<Option<Delivery>, DbError> {
+        let row = sqlx::query(
+            "UPDATE deliveries SET state = 'sending', attempts = attempts + 1, updated_us = ?,
+                 claimed_until_us = ?
+             WHERE id = (SELECT id FROM deliveries WHERE state = 'queued' AND next_attempt_us <= ?
+                           AND destination NOT IN (SELECT destination FROM deliveries WHERE state = 'sending')
+                         ORDER BY next_attempt_us, id LIMIT 1)
+               AND state = 'queued'
+             RETURNING id",
+        )
+        .bind(now)
+        .bind(claimed_until_us)
+        .bind(now)
+        .fetch_optional(&self.pool)
+        .await?;
+        match row {
+            Some(r) => {
+                let id: String = r.try_get("id")?;
+                self.get_delivery(&id).await
+            }
+            None => Ok(None),
+        }
+    }
+
+    /// Extend the claim of the attempt `attempts` of a sending delivery to `claimed_until_us`; false when
+    /// that attempt no longer holds it.
+    pub async fn renew_delivery_claim(
+        &self,
+        id: &str,
+        attempts: u32,
+        claimed_until_us: i64,
+    ) -> Result<bool, DbError> {
+        let r = sqlx::query(
+            "UPDATE deliveries SET claimed_until_us = ? WHERE id = ? AND state = 'sending' AND attempts = ?",
+        )
+        .bind(claimed_until_us)
+        .bind(id)
+        .bind(attempts as i64)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected() == 1)
+    }
+
+    /// The earliest time a queued delivery is due.
+    pub async fn next_delivery_due(&self) -> Result<Option<i64>, DbError> {
+        let row =
+            sqlx::query("SELECT MIN(next_attempt_us) AS t FROM deliveries WHERE state = 'queued'")
+                .fetch_one(&self.pool)
+                .await?;
+        Ok(row.try_get::<Option<i64>, _>("t")?)
+    }
+
+    /// Deliveries `sending` whose claim ended before `expired_before_us` go back to `queued`, due now (the
+    /// attempt stays counted).
+    pub async fn requeue_sending_deliveries(&self, expired_before_us: i64) -> Result<u64, DbError> {
+        let now = now_us();
+        let r = sqlx::query(
+            "UPDATE deliveries SET state = 'queued', next_attempt_us = ?, updated_us = ?, claimed_until_us = NULL
+             WHERE state = 'sending' AND (claimed_until_us IS NULL OR claimed_until_us < ?)",
+        )
+        .bind(now)
+        .bind(now)
+        .bind(expired_before_us)
+        .execute(&self.pool)
+        .await?;
+        Ok(r.rows_affected())
+    }
+
+    /// Give a delivery its instances (once, when its job's results were exported).
+    pub async fn set_delivery_instances(
+        &self,
+        id: &str,
+        instances: &[DeliveryInstance],
+    ) -> Result<(), DbError> {
+        let mut tx = self.write_tx().await?;
+        sqlx::query("DELETE FROM delivery_instances WHERE delivery_id = ?")
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        for (k, i) in instances.iter().enumerate() {
+            sqlx::query(
+                "INSERT INTO delivery_instances (delivery_id, position, file, sop_class_uid, sop_instance_uid,
+                                                 state, status, detail)
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            )
+            .bind(id)
+            .bind(k as i64)
+            .bind(&i.file)
+            .bind(&i.sop_class_uid)
+            .bind(&i.sop_instance_uid)
+            .bind(i.state.as_str())
+            .bind(i.status.map(i64::from))
+            .bind(i.detail.as_deref())
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(())
+    }
+
+    /// Record the end of an attempt of a `sending` delivery: each instance's state, status and detail (in
+    /// position order), the delivery's new state, when it is due again (queued) and the error of the
+    /// attempt. False (and nothing written) when the attempt `d.attempts` no longer holds the delivery.
+    pub async fn finish_delivery_attempt(
+        &self,
+        d: &Delivery,
+        state: DeliveryState,
+        next_attempt_us: Option<i64>,
+        error: Option<&str>,
+    ) -> Result<bool, DbError> {
+        let now = now_us();
+        let mut tx = self.write_tx().await?;
+        let finished = matches!(state, DeliveryState::Succeeded | DeliveryState::Failed);
+        let r = sqlx::query(
+            "UPDATE deliveries SET state = ?, next_attempt_us = ?, last_error = ?, updated_us = ?,
+                 finished_us = ?, claimed_until_us = NULL
+             WHERE id = ? AND state = 'sending' AND attempts = ?",
+        )
+        .bind(state.as_str())
+        .bind(next_attempt_us)
+        .bind(error)
+        .bind(now)
+        .bind(finished.then_some(now))
+        .bind(&d.id)
+        .bind(d.attempts as i64)
+        .execute(&mut *tx)
+        .await?;
+        if r.rows_affected() != 1 {
+            return Ok(false);
+        }
+        for (k, i) in d.instances.iter().enumerate() {
+            sqlx::query(
+                "UPDATE delivery_instances SET state = ?, status = ?, detail = ?
+                 WHERE delivery_id = ? AND position = ?",
+            )
+            .bind(i.state.as_str())
+            .bind(i.status.map(i64::from))
+            .bind(i.detail.as_deref())
+            .bind(&d.id)
+            .bind(k as i64)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(true)
+    }
+
+    /// Queue a failed delivery again, due now, with its failed instances pending; false unless it was
+    /// `failed`.
+    pub async fn retry_delivery(&self, id: &str) -> Result<bool, DbError> {
+        let now = now_us();
+        let mut tx = self.write_tx().await?;
+        let r = sqlx::query(
+            "UPDATE deliveries SET state = 'queued', attempts = 0, next_attempt_us = ?, updated_us = ?,
+                 finished_us = NULL WHERE id = ? AND state = 'failed'",
+        )
+        .bind(now)
+        .bind(now)
+        .bind(id)
+        .execute(&mut *tx)
+        .await?;
+        if r.rows_affected() == 1 {
+            sqlx::query(
+                "UPDATE delivery_instances SET state = 'pending', status = NULL, detail = NULL
+                 WHERE delivery_id = ? AND state = 'failed'",
+            )
+            .bind(id)
+            .execute(&mut *tx)
+            .await?;
+        }
+        tx.commit().await?;
+        Ok(r.rows_affected() == 1)
+    }
+}
+
+/// Queue a delivery of `job` to `destination`, due now, on `c`; returns its id.
+pub(super) async fn insert_delivery(
+    c: &mut sqlx::SqliteConnection,
+    job: JobId,
+    run: Option<&RuleRun>,
+    destination: &str,
+) -> Result<String, DbError> {
+    let id = JobId::generate().to_string();
+    let now = now_us();
+    sqlx::query(
+        "INSERT INTO deliveries (id, job_id, run_id, rule_name, destination, state, attempts,
+                                 next_attempt_us, created_us, updated_us)
+         VALUES (?, ?, ?, ?, ?, 'queued', 0, ?, ?, ?)",
+    )
+    .bind(&id)
+    .bind(job.to_string())
+    .bind(run.map(|r| r.id.clone()))
+    .bind(run.map(|r| r.rule_name.clone()))
+    .bind(destination)
+    .bind(now)
+    .bind(now)
+    .bind(now)
+    .execute(&mut *c)
+    .await?;
+    Ok(id)
+}
