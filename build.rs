@@ -37,6 +37,8 @@ fn main() {
     println!("cargo:rerun-if-changed=migrations");
     println!("cargo:rerun-if-changed=web");
     let out = std::env::var_os("OUT_DIR").expect("OUT_DIR is set by cargo");
-    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("web");
+    let manifest =
+        std::env::var_os("CARGO_MANIFEST_DIR").expect("CARGO_MANIFEST_DIR is set by cargo");
+    let root = Path::new(&manifest).join("web");
     gzip_tree(&root, &root, &Path::new(&out).join("web-gz"));
 }
