@@ -188,7 +188,9 @@ def main():
                        "job": {"products": [{"type": "projection"}]}}]}}
         with open(os.path.join(tmp, "ctrecon.json"), "w") as f:
             json.dump(config, f)
-        env = dict(os.environ, CTRECON_LOG_FORMAT="json", RUST_LOG="warn")
+        # As a service runs: no RUST_BACKTRACE (with it, every error a library makes walks the stack).
+        env = {k: v for k, v in os.environ.items() if k not in ("RUST_BACKTRACE", "RUST_LIB_BACKTRACE")}
+        env.update(CTRECON_LOG_FORMAT="json", RUST_LOG="warn")
         ctrecon = subprocess.Popen([binary, "serve", "--bind", f"127.0.0.1:{c_http}", "--config",
                                     os.path.join(tmp, "ctrecon.json")], env=env,
                                    stdout=subprocess.DEVNULL, stderr=open(os.path.join(tmp, "ctrecon.log"), "w"))
