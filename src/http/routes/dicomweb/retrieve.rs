@@ -16,7 +16,7 @@ use crate::app::dicomweb::resource_path;
 use crate::app::wado::RetrieveSyntax;
 use crate::dicom::EXPLICIT_LE;
 use crate::error_code::ErrorCode;
-use crate::http::files::{Chunks, send_file_range};
+use crate::http::files::{CHUNK, Chunks};
 use crate::jobs::model::StoredInstance;
 
 /// The syntax a retrieval's `Accept` asks for, or 406.
@@ -47,15 +47,47 @@ fn retrieve_syntax(headers: &HeaderMap) -> ApiResult<RetrieveSyntax> {
     ))
 }
 
-/// Hand the whole file at `path` to `tx` in chunks (see [`send_file_range`]; read to its end, no stat).
-fn send_file(path: &std::path::Path, tx: &Chunks) -> bool {
-    match std::fs::File::open(path) {
-        Ok(f) => send_file_range(f, 0, u64::MAX, tx),
-        Err(e) => {
-            let _ = tx.blocking_send(Err(e));
-            false
+/// Send one part of a body whose instance is the file at `path`: its header (made by `head` from the
+/// file's length), the file in pieces of up to [`CHUNK`] bytes, and the line break that ends the part. The
+/// header rides with the first piece and the line break with the last, so a part is one piece up to a
+/// MiB, all read on the calling (blocking) thread. False when the response is gone or the file cannot be
+/// read whole (the error is sent, which cuts the body off).
+fn send_part(path: &std::path::Path, head: impl FnOnce(u64) -> String, tx: &Chunks) -> bool {
+    use std::io::Read;
+    let sent = (|| -> std::io::Result<bool> {
+        let file = std::fs::File::open(path)?;
+        let len = file.metadata()?.len();
+        let mut buf = head(len).into_bytes();
+        buf.reserve(len.min(CHUNK as u64) as usize + 2);
+        let mut rest = file.take(len);
+        let mut left = len;
+        loop {
+            let piece = left.min(CHUNK as u64);
+            let before = buf.len();
+            (&mut rest).take(piece).read_to_end(&mut buf)?;
+            if ((buf.len() - before) as u64) < piece {
+                return Err(std::io::Error::new(
+                    std::io::ErrorKind::UnexpectedEof,
+                    "an instance file ended before its length",
+                ));
+            }
+            left -= piece;
+            if left == 0 {
+                buf.extend_from_slice(b"\r\n");
+            }
+            if tx.blocking_send(Ok(Bytes::from(buf))).is_err() {
+                return Ok(false);
+            }
+            if left == 0 {
+                return Ok(true);
+            }
+            buf = Vec::with_capacity(left.min(CHUNK as u64) as usize + 2);
         }
-    }
+    })();
+    sent.unwrap_or_else(|e| {
+        let _ = tx.blocking_send(Err(e));
+        false
+    })
 }
 
 /// Stream `instances` as one `multipart/related` body: the parts are produced one at a time by a task,
@@ -95,41 +127,34 @@ async fn retrieve(
                     return;
                 }
             };
-            let path = app.instance_file(&i);
-            let len = match &bytes {
-                Some(v) => v.len() as u64,
-                None => match tokio::fs::metadata(&path).await {
-                    Ok(m) => m.len(),
-                    Err(e) => {
-                        let _ = tx.send(Err(e)).await;
-                        return;
-                    }
-                },
-            };
             let h = &i.instance;
-            let head = format!(
-                "--{b}\r\nContent-Type: application/dicom; transfer-syntax={ts}\r\nContent-Length: {len}\r\nContent-Location: {base}{}\r\n\r\n",
+            let location = format!(
+                "{base}{}",
                 resource_path(&h.study_uid, Some(&h.series_uid), Some(&h.sop_instance_uid))
             );
-            if tx.send(Ok(Bytes::from(head))).await.is_err() {
-                return;
-            }
+            let b2 = b.clone();
+            let head = move |len: u64| {
+                format!(
+                    "--{b2}\r\nContent-Type: application/dicom; transfer-syntax={ts}\r\nContent-Length: {len}\r\nContent-Location: {location}\r\n\r\n"
+                )
+            };
             match bytes {
                 Some(v) => {
-                    if tx.send(Ok(Bytes::from(v))).await.is_err() {
+                    let mut part = head(v.len() as u64).into_bytes();
+                    part.extend_from_slice(&v);
+                    part.extend_from_slice(b"\r\n");
+                    if tx.send(Ok(Bytes::from(part))).await.is_err() {
                         return;
                     }
                 }
                 None => {
-                    let tx = tx.clone();
-                    let sent = tokio::task::spawn_blocking(move || send_file(&path, &tx)).await;
+                    let (path, tx) = (app.instance_file(&i), tx.clone());
+                    let sent =
+                        tokio::task::spawn_blocking(move || send_part(&path, head, &tx)).await;
                     if !matches!(sent, Ok(true)) {
                         return;
                     }
                 }
-            }
-            if tx.send(Ok(Bytes::from_static(b"\r\n"))).await.is_err() {
-                return;
             }
         }
         let _ = tx.send(Ok(Bytes::from(format!("--{b}--\r\n")))).await;
@@ -177,4 +202,70 @@ pub async fn retrieve_instance(
         .wado_instances(&study, Some(&series), Some(&instance))
         .await?;
     retrieve(state, headers, found).await
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The pieces `send_part` sends for a file of `len` bytes, or the error that cut them off.
+    fn pieces(len: usize) -> (Vec<u8>, Vec<Result<Vec<u8>, std::io::ErrorKind>>) {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("i.dcm");
+        let bytes: Vec<u8> = (0..len).map(|k| (k % 251) as u8).collect();
+        std::fs::write(&path, &bytes).unwrap();
+        let (tx, mut rx) = tokio::sync::mpsc::channel(64);
+        let ok = std::thread::spawn(move || send_part(&path, |n| format!("H{n}|"), &tx))
+            .join()
+            .unwrap();
+        assert!(ok);
+        let mut out = Vec::new();
+        while let Ok(p) = rx.try_recv() {
+            out.push(p.map(|b| b.to_vec()).map_err(|e| e.kind()));
+        }
+        (bytes, out)
+    }
+
+    #[test]
+    fn a_part_carries_its_header_with_the_first_piece_and_its_line_break_with_the_last() {
+        // Smaller than a piece: one piece, header + file + CRLF.
+        let (bytes, out) = pieces(1000);
+        let mut want = b"H1000|".to_vec();
+        want.extend_from_slice(&bytes);
+        want.extend_from_slice(b"\r\n");
+        assert_eq!(out, vec![Ok(want)]);
+
+        // An empty file: the header and the line break.
+        let (_, out) = pieces(0);
+        assert_eq!(out, vec![Ok(b"H0|\r\n".to_vec())]);
+
+        // Two pieces and a bit: every byte once, in order, the header first and the CRLF last.
+        let len = 2 * CHUNK + 7;
+        let (bytes, out) = pieces(len);
+        let sizes: Vec<usize> = out.iter().map(|p| p.as_ref().unwrap().len()).collect();
+        let head = format!("H{len}|");
+        assert_eq!(sizes, vec![head.len() + CHUNK, CHUNK, 7 + 2]);
+        let joined: Vec<u8> = out.into_iter().flat_map(|p| p.unwrap()).collect();
+        assert_eq!(&joined[..head.len()], head.as_bytes());
+        assert!(joined[head.len()..head.len() + len] == bytes[..]);
+        assert_eq!(&joined[head.len() + len..], b"\r\n");
+    }
+
+    #[test]
+    fn a_missing_file_cuts_the_body_off_with_its_error() {
+        let (tx, mut rx) = tokio::sync::mpsc::channel(4);
+        let sent = std::thread::spawn(move || {
+            send_part(
+                std::path::Path::new("/nonexistent/i.dcm"),
+                |_| String::new(),
+                &tx,
+            )
+        })
+        .join()
+        .unwrap();
+        assert!(!sent);
+        let e = rx.try_recv().unwrap().unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::NotFound);
+        assert!(rx.try_recv().is_err());
+    }
 }
