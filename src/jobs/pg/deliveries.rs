@@ -11,51 +11,15 @@
 //!   process whose claim expired and was taken over cannot overwrite the newer attempt.
 
 use sqlx::Row;
-use sqlx::postgres::PgRow;
 
-use super::{DbError, PgDb, corrupt};
-use crate::jobs::deliveries::{
-    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun,
-};
+use super::{DbError, PgDb};
+use crate::jobs::deliveries::{Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, RuleRun};
 use crate::jobs::model::now_us;
+use crate::jobs::store::rows::{delivery, delivery_instance};
 use crate::storage::JobId;
 
 /// The advisory lock that serialises delivery claims across processes.
 const CLAIM_LOCK: i64 = 0x6374_7265_636f_6e02;
-
-fn delivery_from_row(row: &PgRow) -> Result<Delivery, DbError> {
-    let state: String = row.try_get("state")?;
-    let job: String = row.try_get("job_id")?;
-    let attempts: i64 = row.try_get("attempts")?;
-    Ok(Delivery {
-        id: row.try_get("id")?,
-        job_id: JobId::parse(&job).map_err(|e| corrupt("deliveries", e))?,
-        run_id: row.try_get("run_id")?,
-        rule_name: row.try_get("rule_name")?,
-        destination: row.try_get("destination")?,
-        state: DeliveryState::parse(&state).ok_or_else(|| corrupt("deliveries", state))?,
-        attempts: attempts.max(0) as u32,
-        next_attempt_us: row.try_get("next_attempt_us")?,
-        last_error: row.try_get("last_error")?,
-        created_us: row.try_get("created_us")?,
-        updated_us: row.try_get("updated_us")?,
-        finished_us: row.try_get("finished_us")?,
-        instances: Vec::new(),
-    })
-}
-
-fn instance_from_row(row: &PgRow) -> Result<DeliveryInstance, DbError> {
-    let state: String = row.try_get("state")?;
-    let status: Option<i64> = row.try_get("status")?;
-    Ok(DeliveryInstance {
-        file: row.try_get("file")?,
-        sop_class_uid: row.try_get("sop_class_uid")?,
-        sop_instance_uid: row.try_get("sop_instance_uid")?,
-        state: InstanceState::parse(&state).ok_or_else(|| corrupt("delivery_instances", state))?,
-        status: status.map(|s| s.clamp(0, 0xFFFF) as u16),
-        detail: row.try_get("detail")?,
-    })
-}
 
 impl PgDb {
     /// Queue a delivery of `job` to `destination`, due now; returns its id.
@@ -75,7 +39,7 @@ impl PgDb {
             .bind(id)
             .fetch_optional(&self.pool)
             .await?;
-        let Some(mut d) = row.as_ref().map(delivery_from_row).transpose()? else {
+        let Some(mut d) = row.as_ref().map(delivery).transpose()? else {
             return Ok(None);
         };
         let rows = sqlx::query(
@@ -86,7 +50,7 @@ impl PgDb {
         .await?;
         d.instances = rows
             .iter()
-            .map(instance_from_row)
+            .map(delivery_instance)
             .collect::<Result<_, _>>()?;
         Ok(Some(d))
     }
@@ -107,7 +71,7 @@ impl PgDb {
         .bind(f.limit as i64)
         .fetch_all(&self.pool)
         .await?;
-        rows.iter().map(delivery_from_row).collect()
+        rows.iter().map(delivery).collect()
     }
 
     /// Ids of the deliveries of the runs `run_ids`.

@@ -8,63 +8,11 @@
 //!   repeated, so it is idempotent.
 
 use sqlx::Row;
-use sqlx::postgres::PgRow;
 
 use super::{DbError, PgDb, corrupt};
-use crate::jobs::model::{IndexScope, IndexedInstance, NewInstance, StoredInstance, now_us};
+use crate::jobs::model::{IndexScope, NewInstance, StoredInstance, now_us};
+use crate::jobs::store::rows::{INSTANCE_COLUMNS, stored_instance};
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
-
-const COLUMNS: &str = "id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid, transfer_syntax, \
-     study_uid, series_uid, patient_id, patient_name, patient_birth_date, patient_sex, study_date, \
-     study_time, accession_number, study_description, referring_physician, study_id, modality, \
-     series_number, series_description, body_part, instance_number, bytes, created_us";
-
-fn parse_row(row: &PgRow) -> Result<StoredInstance, DbError> {
-    let bad = |e: crate::storage::BadId| corrupt("instances", e);
-    let id: String = row.try_get("id")?;
-    let upload: Option<String> = row.try_get("upload_id")?;
-    let job: Option<String> = row.try_get("job_id")?;
-    let series: Option<String> = row.try_get("series_id")?;
-    let owner = match (upload, job) {
-        (Some(u), None) => InstanceOwner::Upload(UploadId::parse(&u).map_err(bad)?),
-        (None, Some(j)) => InstanceOwner::Job(JobId::parse(&j).map_err(bad)?),
-        _ => return Err(corrupt("instances", "an instance needs one owner")),
-    };
-    let bytes: i64 = row.try_get("bytes")?;
-    Ok(StoredInstance {
-        id: InstanceId::parse(&id).map_err(bad)?,
-        owner,
-        series_id: series
-            .as_deref()
-            .map(SeriesId::parse)
-            .transpose()
-            .map_err(bad)?,
-        created_us: row.try_get("created_us")?,
-        instance: IndexedInstance {
-            sop_class_uid: row.try_get("sop_class_uid")?,
-            sop_instance_uid: row.try_get("sop_instance_uid")?,
-            transfer_syntax: row.try_get("transfer_syntax")?,
-            study_uid: row.try_get("study_uid")?,
-            series_uid: row.try_get("series_uid")?,
-            patient_id: row.try_get("patient_id")?,
-            patient_name: row.try_get("patient_name")?,
-            patient_birth_date: row.try_get("patient_birth_date")?,
-            patient_sex: row.try_get("patient_sex")?,
-            study_date: row.try_get("study_date")?,
-            study_time: row.try_get("study_time")?,
-            accession_number: row.try_get("accession_number")?,
-            study_description: row.try_get("study_description")?,
-            referring_physician: row.try_get("referring_physician")?,
-            study_id: row.try_get("study_id")?,
-            modality: row.try_get("modality")?,
-            series_number: row.try_get("series_number")?,
-            series_description: row.try_get("series_description")?,
-            body_part: row.try_get("body_part")?,
-            instance_number: row.try_get("instance_number")?,
-            bytes: bytes.max(0) as u64,
-        },
-    })
-}
 
 impl PgDb {
     /// Index `rows` as belonging to `owner`, in one transaction; for a job, also mark it indexed, first:
@@ -163,7 +111,7 @@ impl PgDb {
         scope: &IndexScope,
     ) -> Result<Vec<StoredInstance>, DbError> {
         let sql = format!(
-            "SELECT {COLUMNS} FROM instances
+            "SELECT {INSTANCE_COLUMNS} FROM instances
              WHERE ($1::TEXT IS NULL OR study_uid = $1) AND ($2::TEXT IS NULL OR series_uid = $2)
              ORDER BY created_us DESC, id DESC"
         );
@@ -172,7 +120,7 @@ impl PgDb {
             .bind(&scope.series_uid)
             .fetch_all(&self.pool)
             .await?;
-        rows.iter().map(parse_row).collect()
+        rows.iter().map(stored_instance).collect()
     }
 
     /// Succeeded volume jobs whose DICOM results are not indexed yet, oldest first.

@@ -3,48 +3,12 @@
 //! `claimed_until_us` (renewed while it sends), and only the attempt that claimed it records its end.
 
 use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
 
-use super::{Db, DbError, corrupt};
-use crate::jobs::deliveries::{
-    Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, InstanceState, RuleRun,
-};
+use super::{Db, DbError};
+use crate::jobs::deliveries::{Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, RuleRun};
 use crate::jobs::model::now_us;
+use crate::jobs::store::rows::{delivery, delivery_instance};
 use crate::storage::JobId;
-
-fn delivery_from_row(row: &SqliteRow) -> Result<Delivery, DbError> {
-    let state: String = row.try_get("state")?;
-    let job: String = row.try_get("job_id")?;
-    let attempts: i64 = row.try_get("attempts")?;
-    Ok(Delivery {
-        id: row.try_get("id")?,
-        job_id: JobId::parse(&job).map_err(|e| corrupt("deliveries", e))?,
-        run_id: row.try_get("run_id")?,
-        rule_name: row.try_get("rule_name")?,
-        destination: row.try_get("destination")?,
-        state: DeliveryState::parse(&state).ok_or_else(|| corrupt("deliveries", state))?,
-        attempts: attempts.max(0) as u32,
-        next_attempt_us: row.try_get("next_attempt_us")?,
-        last_error: row.try_get("last_error")?,
-        created_us: row.try_get("created_us")?,
-        updated_us: row.try_get("updated_us")?,
-        finished_us: row.try_get("finished_us")?,
-        instances: Vec::new(),
-    })
-}
-
-fn instance_from_row(row: &SqliteRow) -> Result<DeliveryInstance, DbError> {
-    let state: String = row.try_get("state")?;
-    let status: Option<i64> = row.try_get("status")?;
-    Ok(DeliveryInstance {
-        file: row.try_get("file")?,
-        sop_class_uid: row.try_get("sop_class_uid")?,
-        sop_instance_uid: row.try_get("sop_instance_uid")?,
-        state: InstanceState::parse(&state).ok_or_else(|| corrupt("delivery_instances", state))?,
-        status: status.map(|s| s.clamp(0, 0xFFFF) as u16),
-        detail: row.try_get("detail")?,
-    })
-}
 
 impl Db {
     /// Queue a delivery of `job` to `destination`, due now; returns its id.
@@ -64,7 +28,7 @@ impl Db {
             .bind(id)
             .fetch_optional(&self.pool)
             .await?;
-        let Some(mut d) = row.as_ref().map(delivery_from_row).transpose()? else {
+        let Some(mut d) = row.as_ref().map(delivery).transpose()? else {
             return Ok(None);
         };
         let rows =
@@ -74,7 +38,7 @@ impl Db {
                 .await?;
         d.instances = rows
             .iter()
-            .map(instance_from_row)
+            .map(delivery_instance)
             .collect::<Result<_, _>>()?;
         Ok(Some(d))
     }
@@ -95,7 +59,7 @@ impl Db {
         .bind(f.limit as i64)
         .fetch_all(&self.pool)
         .await?;
-        rows.iter().map(delivery_from_row).collect()
+        rows.iter().map(delivery).collect()
     }
 
     /// Ids of the deliveries of the runs `run_ids`.

@@ -10,6 +10,7 @@
 
 pub mod conformance;
 mod records;
+pub(crate) mod rows;
 
 pub use records::*;
 
