@@ -2,13 +2,14 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::bricks::{RayDir, Samples};
+use super::bricks::{BrickMask, RayDir, Samples};
 use super::clip::Span;
-use super::image::render_tiles;
+use super::image::{Shade, render_tiles};
+use super::occupancy::Occupancy;
 use super::scene::Scene;
 use super::shading::Lighting;
 use super::transfer::Lut;
-use super::{Clip, RenderError, RgbImage, Shading, TransferFunction, ViewRays};
+use super::{Clip, RenderError, RgbImage, Sampler, Shading, TransferFunction, ViewRays};
 
 /// Accumulated opacity at which a ray stops.
 pub const EARLY_TERMINATION: f32 = 0.99;
@@ -82,85 +83,111 @@ pub fn volume_render(
         },
         window,
     );
-    let (mask, cells) = (&prepared.mask, prepared.cells.as_ref());
-    let s = &scene.sampler;
-    let bg = opts.background.map(|c| c as f32);
-    let lighting = Lighting::new(&opts.shading);
-    Ok(render_tiles(
-        rays.width,
-        rays.height,
-        Vec::new,
-        |spans: &mut Vec<Span>, r, c| {
-            let (o, d) = rays.ray(r as f64, c as f64);
-            let Some((b0, b1)) = s.box_interval(o, d) else {
-                return (bg, f32::NAN);
-            };
-            opts.clip.spans(o, d, b0.max(0.0), b1, spans);
-            let io = s.index(o);
-            let id = s.index_direction(d);
-            let ray_dir = RayDir::new(id);
-            let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
-            let view = d.map(|x| -x as f32);
-            let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
-            'spans: for sp in spans.iter() {
-                let mut k = 0u64;
-                // Samples up to this `t` lie in a busy brick already checked.
-                let mut busy_until = f64::NEG_INFINITY;
-                loop {
-                    let t = sp.t0 + samples.offset(k);
-                    if t > sp.t1 {
-                        break;
-                    }
-                    let idx = at(t);
-                    if t > busy_until {
-                        let (busy, exit) = mask.step(idx, &ray_dir);
-                        if !busy {
-                            k = (k + 1).max(samples.first_beyond(t + exit, sp.t0));
-                            continue;
-                        }
-                        busy_until = t + exit;
-                    }
-                    k += 1;
-                    let (cell, f) = s.cell(idx);
-                    // A sample in a cell outside the visible window is transparent: not read; nor are the
-                    // next samples in a block of such cells.
-                    if let Some(o) = cells {
-                        if !o.block_busy(cell) {
-                            let exit = t + o.block_exit(idx, cell, &ray_dir);
-                            k = k.max(samples.first_beyond(exit, sp.t0));
-                            continue;
-                        }
-                        if !o.busy(cell) {
-                            continue;
-                        }
-                    }
-                    let v = s.at_cell(cell, f);
-                    if !lut.visible(v) {
+    let shader = VrShader {
+        rays,
+        s: &scene.sampler,
+        clip: &opts.clip,
+        mask: &prepared.mask,
+        cells: prepared.cells.as_ref(),
+        lut,
+        samples,
+        lighting: Lighting::new(&opts.shading),
+        bg: opts.background.map(|c| c as f32),
+    };
+    Ok(render_tiles(rays.width, rays.height, &shader))
+}
+
+/// What [`volume_render`] needs for each pixel.
+struct VrShader<'a> {
+    rays: &'a ViewRays,
+    s: &'a Sampler<'a>,
+    clip: &'a Clip,
+    mask: &'a BrickMask,
+    cells: Option<&'a Occupancy>,
+    lut: Lut,
+    samples: Samples,
+    lighting: Lighting,
+    bg: [f32; 3],
+}
+
+impl Shade for VrShader<'_> {
+    type Scratch = Vec<Span>;
+
+    fn scratch(&self) -> Vec<Span> {
+        Vec::new()
+    }
+
+    #[inline(always)]
+    fn shade(&self, spans: &mut Vec<Span>, r: usize, c: usize) -> ([f32; 3], f32) {
+        let (o, d) = self.rays.ray(r as f64, c as f64);
+        let Some((b0, b1)) = self.s.box_interval(o, d) else {
+            return (self.bg, f32::NAN);
+        };
+        self.clip.spans(o, d, b0.max(0.0), b1, spans);
+        let io = self.s.index(o);
+        let id = self.s.index_direction(d);
+        let ray_dir = RayDir::new(id);
+        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
+        let view = d.map(|x| -x as f32);
+        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
+        'spans: for sp in spans.iter() {
+            let mut k = 0u64;
+            // Samples up to this `t` lie in a busy brick already checked.
+            let mut busy_until = f64::NEG_INFINITY;
+            loop {
+                let t = sp.t0 + self.samples.offset(k);
+                if t > sp.t1 {
+                    break;
+                }
+                let idx = at(t);
+                if t > busy_until {
+                    let (busy, exit) = self.mask.step(idx, &ray_dir);
+                    if !busy {
+                        k = (k + 1).max(self.samples.first_beyond(t + exit, sp.t0));
                         continue;
                     }
-                    let [cr, cg, cb, a] = lut.get(v);
-                    if a <= 0.0 {
+                    busy_until = t + exit;
+                }
+                k += 1;
+                let (cell, f) = self.s.cell(idx);
+                // A sample in a cell outside the visible window is transparent: not read; nor are the
+                // next samples in a block of such cells.
+                if let Some(o) = self.cells {
+                    if !o.block_busy(cell) {
+                        let exit = t + o.block_exit(idx, cell, &ray_dir);
+                        k = k.max(self.samples.first_beyond(exit, sp.t0));
                         continue;
                     }
-                    let g = s.gradient(idx);
-                    let (lit, spec) = lighting.light(g.map(|x| x as f32), view);
-                    let w = (1.0 - alpha) * a;
-                    acc[0] += w * (cr * lit + spec);
-                    acc[1] += w * (cg * lit + spec);
-                    acc[2] += w * (cb * lit + spec);
-                    if depth.is_nan() {
-                        depth = t as f32;
-                    }
-                    alpha += w;
-                    if alpha >= EARLY_TERMINATION {
-                        break 'spans;
+                    if !o.busy(cell) {
+                        continue;
                     }
                 }
+                let v = self.s.at_cell(cell, f);
+                if !self.lut.visible(v) {
+                    continue;
+                }
+                let [cr, cg, cb, a] = self.lut.get(v);
+                if a <= 0.0 {
+                    continue;
+                }
+                let g = self.s.gradient(idx);
+                let (lit, spec) = self.lighting.light(g.map(|x| x as f32), view);
+                let w = (1.0 - alpha) * a;
+                acc[0] += w * (cr * lit + spec);
+                acc[1] += w * (cg * lit + spec);
+                acc[2] += w * (cb * lit + spec);
+                if depth.is_nan() {
+                    depth = t as f32;
+                }
+                alpha += w;
+                if alpha >= EARLY_TERMINATION {
+                    break 'spans;
+                }
             }
-            (
-                std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
-                depth,
-            )
-        },
-    ))
+        }
+        (
+            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * self.bg[ch]),
+            depth,
+        )
+    }
 }

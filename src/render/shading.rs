@@ -102,7 +102,7 @@ impl Lighting {
 
     /// `(factor on the colour, white specular term)` as [`Shading::light`] gives them for the (unnormalised)
     /// normal `n` and unit direction `view`.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn light(&self, n: [f32; 3], view: [f32; 3]) -> (f32, f32) {
         let len2 = n[0] * n[0] + n[1] * n[1] + n[2] * n[2];
         let cos = if len2 > 1e-24 {

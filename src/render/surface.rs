@@ -8,11 +8,12 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::bricks::{RayDir, Samples};
+use super::bricks::{BrickMask, RayDir, Samples};
 use super::clip::Span;
-use super::image::render_tiles;
+use super::image::{Shade, render_tiles};
+use super::occupancy::Occupancy;
 use super::scene::Scene;
-use super::{Clip, RenderError, RgbImage, Shading, V3, ViewRays, dot};
+use super::{Clip, RenderError, RgbImage, Sampler, Shading, V3, ViewRays, dot};
 
 /// One iso-surface: `iso` in the volume's units (inside is at or above; a finite 32-bit float), its RGB colour
 /// (0–1) and opacity (0–1).
@@ -109,131 +110,169 @@ pub fn surface_render(
         },
         isos.iter().map(|&iso| (iso, iso)).collect(),
     );
-    let (mask, cells) = (&prepared.mask, prepared.cells.as_ref());
-    let s = &scene.sampler;
-    let bg = opts.background.map(|c| c as f32);
-    let (centre, radius) = (scene.centre, scene.radius);
-    let scratch = || (Vec::<Span>::new(), Vec::<Hit>::new());
-    Ok(render_tiles(
-        rays.width,
-        rays.height,
-        scratch,
-        |(spans, hits), r, c| {
-            let (o, d) = rays.ray(r as f64, c as f64);
-            let Some((b0, b1)) = s.box_interval(o, d) else {
-                return (bg, f32::NAN);
-            };
-            opts.clip.spans(o, d, b0.max(0.0), b1, spans);
-            let io = s.index(o);
-            let id = s.index_direction(d);
-            let ray_dir = RayDir::new(id);
-            let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
-            let value = |t: f64| s.at_index(at(t));
-            // Depth cue over the bounding sphere as seen along this ray.
-            let mid = dot([centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]], d);
-            let (near, far) = (mid - radius, mid + radius);
-            let view = d.map(|x| -x);
-            let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
-            let add = |h: &Hit, acc: &mut [f32; 3], alpha: &mut f32, depth: &mut f32| {
-                let sf = &opts.surfaces[h.surface];
-                let (lit, spec) = opts.shading.light(h.normal, view);
-                let cue = 1.0 - opts.depth_cue * ((h.t - near) / (far - near)).clamp(0.0, 1.0);
-                let w = (1.0 - *alpha) * sf.opacity as f32;
-                for (a, c) in acc.iter_mut().zip(sf.color) {
-                    *a += w * ((c as f32 * lit + spec) * cue as f32);
+    let shader = SsdShader {
+        rays,
+        s: &scene.sampler,
+        opts,
+        mask: &prepared.mask,
+        cells: prepared.cells.as_ref(),
+        samples,
+        isos,
+        bg: opts.background.map(|c| c as f32),
+        centre: scene.centre,
+        radius: scene.radius,
+    };
+    Ok(render_tiles(rays.width, rays.height, &shader))
+}
+
+/// What [`surface_render`] needs for each pixel.
+struct SsdShader<'a> {
+    rays: &'a ViewRays,
+    s: &'a Sampler<'a>,
+    opts: &'a SsdOptions,
+    mask: &'a BrickMask,
+    cells: Option<&'a Occupancy>,
+    samples: Samples,
+    isos: Vec<f32>,
+    bg: [f32; 3],
+    centre: V3,
+    radius: f64,
+}
+
+impl Shade for SsdShader<'_> {
+    /// The spans of a ray and the hits of one step.
+    type Scratch = (Vec<Span>, Vec<Hit>);
+
+    fn scratch(&self) -> Self::Scratch {
+        (Vec::new(), Vec::new())
+    }
+
+    #[inline(always)]
+    fn shade(&self, scratch: &mut Self::Scratch, r: usize, c: usize) -> ([f32; 3], f32) {
+        let (spans, hits) = scratch;
+        let (s, opts, samples, mask, cells, isos) = (
+            self.s,
+            self.opts,
+            &self.samples,
+            self.mask,
+            self.cells,
+            &self.isos,
+        );
+        let (bg, centre, radius) = (self.bg, self.centre, self.radius);
+        let (o, d) = self.rays.ray(r as f64, c as f64);
+        let Some((b0, b1)) = s.box_interval(o, d) else {
+            return (bg, f32::NAN);
+        };
+        opts.clip.spans(o, d, b0.max(0.0), b1, spans);
+        let io = s.index(o);
+        let id = s.index_direction(d);
+        let ray_dir = RayDir::new(id);
+        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
+        let value = |t: f64| s.at_index(at(t));
+        // Depth cue over the bounding sphere as seen along this ray.
+        let mid = dot([centre[0] - o[0], centre[1] - o[1], centre[2] - o[2]], d);
+        let (near, far) = (mid - radius, mid + radius);
+        let view = d.map(|x| -x);
+        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
+        let add = |h: &Hit, acc: &mut [f32; 3], alpha: &mut f32, depth: &mut f32| {
+            let sf = &opts.surfaces[h.surface];
+            let (lit, spec) = opts.shading.light(h.normal, view);
+            let cue = 1.0 - opts.depth_cue * ((h.t - near) / (far - near)).clamp(0.0, 1.0);
+            let w = (1.0 - *alpha) * sf.opacity as f32;
+            for (a, c) in acc.iter_mut().zip(sf.color) {
+                *a += w * ((c as f32 * lit + spec) * cue as f32);
+            }
+            *alpha += w;
+            if depth.is_nan() {
+                *depth = h.t as f32;
+            }
+        };
+        'spans: for sp in spans.iter() {
+            // A span that starts inside a solid shows the cut face.
+            let (mut t_prev, mut v_prev) = (sp.t0, value(sp.t0));
+            // Whether `v_prev` is the sample's value; else a corner of a cell that no iso-value crosses, on
+            // the same side of every iso-value as the sample.
+            let mut prev_exact = true;
+            hits.clear();
+            for (i, &iso) in isos.iter().enumerate() {
+                if v_prev >= iso {
+                    hits.push(Hit {
+                        t: sp.t0,
+                        surface: i,
+                        normal: sp.face.unwrap_or(d),
+                    });
                 }
-                *alpha += w;
-                if depth.is_nan() {
-                    *depth = h.t as f32;
+            }
+            hits.sort_by(|a, b| {
+                opts.surfaces[a.surface]
+                    .iso
+                    .total_cmp(&opts.surfaces[b.surface].iso)
+            });
+            for h in hits.iter() {
+                add(h, &mut acc, &mut alpha, &mut depth);
+                if alpha >= super::composite::EARLY_TERMINATION {
+                    break 'spans;
                 }
-            };
-            'spans: for sp in spans.iter() {
-                // A span that starts inside a solid shows the cut face.
-                let (mut t_prev, mut v_prev) = (sp.t0, value(sp.t0));
-                // Whether `v_prev` is the sample's value; else a corner of a cell that no iso-value crosses, on
-                // the same side of every iso-value as the sample.
-                let mut prev_exact = true;
+            }
+            let mut k = 1u64;
+            // Samples up to this `t` lie in a busy brick already checked.
+            let mut busy_until = f64::NEG_INFINITY;
+            loop {
+                let t = (sp.t0 + samples.offset(k)).min(sp.t1);
+                let idx = at(t);
+                if t > busy_until && t < sp.t1 {
+                    let (busy, exit) = mask.step(idx, &ray_dir);
+                    if !busy {
+                        let exit = (t + exit).min(sp.t1);
+                        // The field keeps its side of every iso-value through quiet bricks.
+                        t_prev = exit;
+                        v_prev = value(exit);
+                        prev_exact = true;
+                        k = (k + 1).max(samples.first_beyond(exit, sp.t0));
+                        continue;
+                    }
+                    busy_until = t + exit;
+                }
+                let (cell, f) = s.cell(idx);
+                let (v, exact) = match cells {
+                    Some(o) if !o.busy(cell) => (s.corner(cell), false),
+                    _ => (s.at_cell(cell, f), true),
+                };
                 hits.clear();
                 for (i, &iso) in isos.iter().enumerate() {
-                    if v_prev >= iso {
+                    if (v_prev < iso) != (v < iso) {
+                        if !prev_exact {
+                            v_prev = value(t_prev);
+                            prev_exact = true;
+                        }
+                        let vt = if exact { v } else { value(t) };
+                        let th = refine(&value, iso, (t_prev, v_prev), (t, vt));
                         hits.push(Hit {
-                            t: sp.t0,
+                            t: th,
                             surface: i,
-                            normal: sp.face.unwrap_or(d),
+                            normal: s.gradient(at(th)),
                         });
                     }
                 }
-                hits.sort_by(|a, b| {
-                    opts.surfaces[a.surface]
-                        .iso
-                        .total_cmp(&opts.surfaces[b.surface].iso)
-                });
+                hits.sort_by(|a, b| a.t.total_cmp(&b.t));
                 for h in hits.iter() {
                     add(h, &mut acc, &mut alpha, &mut depth);
                     if alpha >= super::composite::EARLY_TERMINATION {
                         break 'spans;
                     }
                 }
-                let mut k = 1u64;
-                // Samples up to this `t` lie in a busy brick already checked.
-                let mut busy_until = f64::NEG_INFINITY;
-                loop {
-                    let t = (sp.t0 + samples.offset(k)).min(sp.t1);
-                    let idx = at(t);
-                    if t > busy_until && t < sp.t1 {
-                        let (busy, exit) = mask.step(idx, &ray_dir);
-                        if !busy {
-                            let exit = (t + exit).min(sp.t1);
-                            // The field keeps its side of every iso-value through quiet bricks.
-                            t_prev = exit;
-                            v_prev = value(exit);
-                            prev_exact = true;
-                            k = (k + 1).max(samples.first_beyond(exit, sp.t0));
-                            continue;
-                        }
-                        busy_until = t + exit;
-                    }
-                    let (cell, f) = s.cell(idx);
-                    let (v, exact) = match cells {
-                        Some(o) if !o.busy(cell) => (s.corner(cell), false),
-                        _ => (s.at_cell(cell, f), true),
-                    };
-                    hits.clear();
-                    for (i, &iso) in isos.iter().enumerate() {
-                        if (v_prev < iso) != (v < iso) {
-                            if !prev_exact {
-                                v_prev = value(t_prev);
-                                prev_exact = true;
-                            }
-                            let vt = if exact { v } else { value(t) };
-                            let th = refine(&value, iso, (t_prev, v_prev), (t, vt));
-                            hits.push(Hit {
-                                t: th,
-                                surface: i,
-                                normal: s.gradient(at(th)),
-                            });
-                        }
-                    }
-                    hits.sort_by(|a, b| a.t.total_cmp(&b.t));
-                    for h in hits.iter() {
-                        add(h, &mut acc, &mut alpha, &mut depth);
-                        if alpha >= super::composite::EARLY_TERMINATION {
-                            break 'spans;
-                        }
-                    }
-                    if t >= sp.t1 {
-                        break;
-                    }
-                    (t_prev, v_prev, prev_exact) = (t, v, exact);
-                    k += 1;
+                if t >= sp.t1 {
+                    break;
                 }
+                (t_prev, v_prev, prev_exact) = (t, v, exact);
+                k += 1;
             }
-            (
-                std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
-                depth,
-            )
-        },
-    ))
+        }
+        (
+            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * bg[ch]),
+            depth,
+        )
+    }
 }
 
 /// The crossing of `iso` between `(ta, va)` and `(tb, vb)` (values on opposite sides), by four secant steps

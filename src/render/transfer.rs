@@ -236,7 +236,7 @@ impl Lut {
     }
 
     /// Whether `v` may have opacity: outside this window [`Lut::get`] gives α = 0.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn visible(&self, v: f32) -> bool {
         v >= self.visible.0 && v <= self.visible.1
     }
@@ -251,7 +251,7 @@ impl Lut {
     }
 
     /// `[r, g, b, α_step]` at `v`, linear between table entries.
-    #[inline]
+    #[inline(always)]
     pub(crate) fn get(&self, v: f32) -> [f32; 4] {
         let x = ((v - self.lo) * self.scale).clamp(0.0, (self.table.len() - 1) as f32);
         let i = (x as usize).min(self.table.len() - 2);
