@@ -24,8 +24,9 @@
 //!
 //! The lattice is the volume padded by one sample on every side. Each lattice plane owns the vertices on its x
 //! and y edges and on the z edges to the next plane. Vertices are numbered plane by plane, direction by
-//! direction, in scan order, and found again through per-row bitsets and prefix counts (a rank query), so the
-//! index needs a few bits per lattice point instead of a full integer per edge.
+//! direction, in scan order, and found again through the bitsets of crossed edges and a count per 64-bit word
+//! (a rank query: one population count), so the index needs a bit and a half per lattice edge instead of a full
+//! integer.
 
 use ndarray::ArrayView3;
 use rayon::prelude::*;
@@ -36,10 +37,11 @@ use crate::volume::Frame;
 
 /// Crossed edges of one direction in one lattice plane.
 struct EdgeBits {
-    /// `words_per_row` u64 words per row.
+    /// `words` u64 words per row: bit `i % 64` of word `j·words + i / 64` is the edge from lattice point
+    /// `(j, i)` of the plane.
     bits: Vec<u64>,
-    /// Number of crossed edges before each row.
-    row_start: Vec<u32>,
+    /// Number of crossed edges before each word (in the rows before it and the words before it in its row).
+    word_start: Vec<u32>,
 }
 
 /// Vertices owned by one lattice plane.
@@ -55,7 +57,19 @@ struct PlaneVerts {
 /// Least distance, as a fraction of a cell edge, between a vertex and the samples at the ends of its edge.
 pub const SNAP: f32 = 1.0 / 1024.0;
 
+/// The bits of row word `w` shifted down by one lattice point: bit `b` is point `64·w + b + 1`.
+#[inline(always)]
+fn next_point(row: &[u64], w: usize) -> u64 {
+    (row[w] >> 1) | row.get(w + 1).map_or(0, |x| x << 63)
+}
+
 /// Extract the iso-surface `value = iso` of `vol` (inside where value ≥ iso), in patient mm.
+///
+/// Three passes over the padded lattice, each parallel over planes, on one bit per lattice point: the inside
+/// flags; the crossed edges of each direction (an exclusive or of neighbouring rows, 64 points at a time),
+/// whose vertices are placed in scan order; the cells with corners on both sides (64 cells at a time), whose
+/// triangles find their vertices by a rank query on the crossed-edge bits. Work outside the surface's cells
+/// is a few word operations per 64 lattice points.
 pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh {
     let (nz, ny, nx) = vol.dim();
     if nz == 0 || ny == 0 || nx == 0 || !iso.is_finite() {
@@ -79,11 +93,13 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
         let v = src[((k - 1) * ny + (j - 1)) * nx + (i - 1)];
         if v.is_nan() { outside } else { v }
     };
-    // Inside flags of the padded lattice, one byte per point.
-    let plane_len = px * py;
-    let mut inside = vec![0u8; pz * plane_len];
+    // Inside flags of the padded lattice, one bit per point, `words` words per row; the padding (and every bit
+    // beyond the row's end) is clear.
+    let words = px.div_ceil(64);
+    let row_words = |k: usize, j: usize| (k * py + j) * words;
+    let mut inside = vec![0u64; pz * py * words];
     inside
-        .par_chunks_mut(plane_len)
+        .par_chunks_mut(py * words)
         .enumerate()
         .for_each(|(k, plane)| {
             if k == 0 || k > nz {
@@ -91,12 +107,21 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
             }
             for j in 1..=ny {
                 let row = &src[((k - 1) * ny + (j - 1)) * nx..][..nx];
-                for (d, &v) in plane[j * px + 1..][..nx].iter_mut().zip(row) {
-                    *d = (v >= iso) as u8;
+                let out = &mut plane[j * words..][..words];
+                // Lattice point i + 1 holds sample i.
+                for (w, word) in out.iter_mut().enumerate() {
+                    let first = (64 * w).max(1);
+                    let end = (64 * w + 64).min(nx + 1);
+                    let mut acc = 0u64;
+                    for p in first..end {
+                        acc |= u64::from(row[p - 1] >= iso) << (p - 64 * w);
+                    }
+                    *word = acc;
                 }
             }
         });
     let inside = &inside[..];
+    let row = |k: usize, j: usize| &inside[row_words(k, j)..][..words];
     // Border edges (one end in the padding) sit half-way, i.e. half a voxel outside the volume; so does an
     // edge from an infinite sample. Every other vertex keeps SNAP of its edge from both samples.
     let edge_point = |a: f32, b: f32| -> f32 {
@@ -107,40 +132,46 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
             t.clamp(SNAP, 1.0 - SNAP)
         }
     };
-    let words = px.div_ceil(64);
-    let strides = [1, px, plane_len];
 
     let mut planes: Vec<PlaneVerts> = (0..pz)
         .into_par_iter()
         .map(|k| {
             let mut dirs: [EdgeBits; 3] = std::array::from_fn(|_| EdgeBits {
                 bits: vec![0; words * py],
-                row_start: vec![0; py + 1],
+                word_start: vec![0; words * py],
             });
             let mut points: [Vec<[f32; 3]>; 3] = Default::default();
             for j in 0..py {
-                for (d, dir) in dirs.iter_mut().enumerate() {
-                    dir.row_start[j] = points[d].len() as u32;
-                }
-                let base = k * plane_len + j * px;
-                for i in 0..px {
-                    let here = base + i;
-                    let a_in = inside[here];
-                    let limits = [i + 1 < px, j + 1 < py, k + 1 < pz];
-                    for d in 0..3 {
-                        if limits[d] && inside[here + strides[d]] != a_in {
-                            dirs[d].bits[j * words + i / 64] |= 1 << (i % 64);
+                let here = row(k, j);
+                // Rows beyond the lattice have no edges to them: compare with the row itself.
+                let up = if j + 1 < py { row(k, j + 1) } else { here };
+                let next = if k + 1 < pz { row(k + 1, j) } else { here };
+                for w in 0..words {
+                    // The edges from each point of the word to its neighbour along x, y and z; the last point
+                    // of a row is padding, as is the bit after it, so no x edge leaves the row.
+                    let crossed = [
+                        here[w] ^ next_point(here, w),
+                        here[w] ^ up[w],
+                        here[w] ^ next[w],
+                    ];
+                    for (d, mut bits) in crossed.into_iter().enumerate() {
+                        dirs[d].word_start[j * words + w] = points[d].len() as u32;
+                        dirs[d].bits[j * words + w] = bits;
+                        while bits != 0 {
+                            let i = 64 * w + bits.trailing_zeros() as usize;
+                            bits &= bits - 1;
                             let a = value(k, j, i);
+                            let b = match d {
+                                0 => value(k, j, i + 1),
+                                1 => value(k, j + 1, i),
+                                _ => value(k + 1, j, i),
+                            };
                             let mut p = [i as f32, j as f32, k as f32];
-                            let b = [value(k, j, i + 1), value(k, j + 1, i), value(k + 1, j, i)];
-                            p[d] += edge_point(a, b[d]);
+                            p[d] += edge_point(a, b);
                             points[d].push(p);
                         }
                     }
                 }
-            }
-            for (d, dir) in dirs.iter_mut().enumerate() {
-                dir.row_start[py] = points[d].len() as u32;
             }
             let dir_start = [
                 0,
@@ -173,11 +204,9 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
         let (ii, jj, kk) = (i + (ca & 1), j + (ca >> 1 & 1), k + (ca >> 2 & 1));
         let plane = &planes[kk];
         let dir = &plane.dirs[d];
-        let row = &dir.bits[jj * words..][..words];
-        let w = ii / 64;
-        let before: u32 = row[..w].iter().map(|x| x.count_ones()).sum::<u32>()
-            + (row[w] & ((1u64 << (ii % 64)) - 1)).count_ones();
-        plane.offset + plane.dir_start[d] + dir.row_start[jj] + before
+        let at = jj * words + ii / 64;
+        let before = (dir.bits[at] & ((1u64 << (ii % 64)) - 1)).count_ones();
+        plane.offset + plane.dir_start[d] + dir.word_start[at] + before
     };
 
     let triangles: Vec<[u32; 3]> = (0..pz - 1)
@@ -185,29 +214,30 @@ pub fn marching_cubes(vol: ArrayView3<'_, f32>, frame: &Frame, iso: f32) -> Mesh
         .flat_map_iter(|k| {
             let mut out = Vec::new();
             for j in 0..py - 1 {
-                let rows = [
-                    &inside[k * plane_len + j * px..][..px],
-                    &inside[k * plane_len + (j + 1) * px..][..px],
-                    &inside[(k + 1) * plane_len + j * px..][..px],
-                    &inside[(k + 1) * plane_len + (j + 1) * px..][..px],
-                ];
-                // Corner bits of the x = 0 face of cell i are the x = 1 face of cell i − 1.
-                let face = |i: usize| -> usize {
-                    (rows[0][i] as usize)
-                        | (rows[1][i] as usize) << 2
-                        | (rows[2][i] as usize) << 4
-                        | (rows[3][i] as usize) << 6
-                };
-                let mut low = face(0);
-                for i in 0..px - 1 {
-                    let high = face(i + 1);
-                    let mask = low | high << 1;
-                    low = high;
-                    if mask == 0 || mask == 255 {
-                        continue;
+                let rows = [row(k, j), row(k, j + 1), row(k + 1, j), row(k + 1, j + 1)];
+                for w in 0..words {
+                    // Corner x = i (`low`) and x = i + 1 (`high`) of the cells i of this word, per row.
+                    let low = rows.map(|r| r[w]);
+                    let high = rows.map(|r| next_point(r, w));
+                    let (mut all_in, mut any_in) = (!0u64, 0u64);
+                    for m in 0..4 {
+                        all_in &= low[m] & high[m];
+                        any_in |= low[m] | high[m];
                     }
-                    for t in &CASES[mask] {
-                        out.push(t.map(|e| vertex(k, j, i, e as usize)));
+                    let mut cells = any_in & !all_in;
+                    while cells != 0 {
+                        let b = cells.trailing_zeros();
+                        cells &= cells - 1;
+                        let i = 64 * w + b as usize;
+                        // Corner bits: x + 2y + 4z, with the four rows at y, z = (0, 0), (1, 0), (0, 1), (1, 1).
+                        let mut mask = 0usize;
+                        for m in 0..4 {
+                            mask |= ((low[m] >> b & 1) as usize) << (2 * m);
+                            mask |= ((high[m] >> b & 1) as usize) << (2 * m + 1);
+                        }
+                        for t in &CASES[mask] {
+                            out.push(t.map(|e| vertex(k, j, i, e as usize)));
+                        }
                     }
                 }
             }

@@ -5,6 +5,8 @@ mod cases;
 mod clip;
 mod decimate;
 mod marching;
+#[cfg(test)]
+mod marching_reference;
 mod pipeline;
 mod smooth;
 mod stl;

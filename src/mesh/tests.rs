@@ -226,3 +226,73 @@ fn decimation_to_a_quarter_keeps_a_sphere_closed_and_its_measures_within_3_perce
     );
     assert_eq!(decimate(&mesh, usize::MAX), mesh);
 }
+
+#[test]
+fn the_bitset_passes_give_the_mesh_of_the_byte_per_point_reference_exactly() {
+    let mut state = 99u64;
+    let mut next = move || {
+        state = state
+            .wrapping_mul(6364136223846793005)
+            .wrapping_add(1442695040888963407);
+        (state >> 40) as f32 / (1u64 << 24) as f32
+    };
+    // Row lengths around the 64-bit word (padded rows of 63, 64, 65 and 130 points), thin volumes, ties,
+    // NaN and infinite samples, a strided view.
+    for (nz, ny, nx) in [
+        (1, 1, 1),
+        (3, 4, 61),
+        (2, 5, 62),
+        (4, 3, 63),
+        (3, 3, 128),
+        (5, 6, 70),
+        (7, 2, 1),
+    ] {
+        let noise = Array3::from_shape_fn((nz, ny, nx), |_| next());
+        let ties = noise.mapv(|v| (v * 2.0).round() / 2.0);
+        let mut odd = noise.clone();
+        for (n, v) in odd.iter_mut().enumerate() {
+            match n % 13 {
+                3 => *v = f32::NAN,
+                7 => *v = f32::INFINITY,
+                11 => *v = f32::NEG_INFINITY,
+                _ => {}
+            }
+        }
+        let frame = Frame::from_grid(&VolumeGrid::cube(1, 0.7));
+        for (name, vol) in [("noise", &noise), ("ties", &ties), ("odd", &odd)] {
+            for iso in [0.5f32, 0.0, 1.0, 0.25] {
+                let got = marching_cubes(vol.view(), &frame, iso);
+                let want = super::marching_reference::marching_cubes(vol.view(), &frame, iso);
+                assert_eq!(
+                    got.triangles, want.triangles,
+                    "{name} {nz}×{ny}×{nx} at {iso}"
+                );
+                let bits = |m: &Mesh| {
+                    m.vertices
+                        .iter()
+                        .map(|p| p.map(f32::to_bits))
+                        .collect::<Vec<_>>()
+                };
+                assert_eq!(bits(&got), bits(&want), "{name} {nz}×{ny}×{nx} at {iso}");
+            }
+        }
+        let strided = noise.slice(ndarray::s![.., .., ..;2]);
+        let got = marching_cubes(strided, &frame, 0.5);
+        let want = super::marching_reference::marching_cubes(strided, &frame, 0.5);
+        assert_eq!(
+            (got.triangles, got.vertices),
+            (want.triangles, want.vertices)
+        );
+    }
+    // A smooth closed surface in a volume whose rows span several words.
+    let (vol, frame) = field(140, [0.5, 0.6, 0.7], |x, y, z| {
+        30.0 - (x * x + 1.5 * y * y + 0.7 * z * z).sqrt() + 3.0 * (x / 4.0).sin()
+    });
+    let got = marching_cubes(vol.view(), &frame, 0.0);
+    let want = super::marching_reference::marching_cubes(vol.view(), &frame, 0.0);
+    assert!(got.triangle_count() > 20_000, "{}", got.triangle_count());
+    assert_eq!(
+        (got.triangles, got.vertices),
+        (want.triangles, want.vertices)
+    );
+}
