@@ -11,6 +11,7 @@ fn main() -> std::process::ExitCode {
         Command::Worker(args) => ctrecon::cli::serve::run_worker(args),
         Command::Phantom(args) => ctrecon::cli::phantom::run(args),
         Command::Recon(args) => ctrecon::cli::recon::run(args),
+        Command::Mesh(args) => ctrecon::cli::mesh::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -9,6 +9,8 @@ use ctrecon::recon::phantom::{Phantom2, Table2};
 use ndarray::{Array2, ArrayD};
 use ndarray_npy::ReadNpyExt;
 
+mod common;
+
 fn ctrecon(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_ctrecon"))
         .args(args)
@@ -102,6 +104,146 @@ fn phantom_refuses_bad_options_with_a_message_and_writes_nothing() {
         vec!["phantom", "--fov-mm", "-3"],
         vec!["phantom", "--dims", "4"],
         vec!["phantom", "--geometry", "/nonexistent/geometry.json"],
+    ] {
+        let mut args = args;
+        args.extend(["--out", out.to_str().unwrap()]);
+        let run = ctrecon(&args);
+        assert!(!run.status.success(), "{args:?} succeeded");
+        let stderr = String::from_utf8_lossy(&run.stderr);
+        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+        assert!(!stderr.trim().is_empty(), "{args:?}: no message");
+        assert!(!out.exists(), "{args:?} wrote a file");
+    }
+}
+
+/// A `[z][y][x]` volume of `n³` voxels of `voxel` mm (x, y, z) holding, at voxel centres, the distance inside
+/// the nearest of the balls `(centre mm, radius mm)` (negative outside all).
+fn balls(n: usize, voxel: [f64; 3], balls: &[([f64; 3], f64)]) -> ndarray::Array3<f32> {
+    ndarray::Array3::from_shape_fn((n, n, n), |(k, j, i)| {
+        let p = [
+            i as f64 * voxel[0],
+            j as f64 * voxel[1],
+            k as f64 * voxel[2],
+        ];
+        balls
+            .iter()
+            .map(|(c, r)| {
+                r - ((p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2) + (p[2] - c[2]).powi(2)).sqrt()
+            })
+            .fold(f64::NEG_INFINITY, f64::max) as f32
+    })
+}
+
+#[test]
+fn mesh_writes_the_stl_of_the_iso_surface_in_millimetres() {
+    use ndarray_npy::WriteNpyExt;
+    let dir = tempfile::tempdir().unwrap();
+    let input = dir.path().join("balls.npy");
+    let voxel = [0.5, 0.6, 0.8];
+    // A big ball (radius 9 mm) and a small one (4 mm) apart.
+    let (big, small) = (([12.0, 12.0, 14.0], 9.0), ([22.0, 26.0, 34.0], 4.0));
+    balls(56, voxel, &[big, small])
+        .write_npy(std::fs::File::create(&input).unwrap())
+        .unwrap();
+    let ball = |r: f64| 4.0 / 3.0 * std::f64::consts::PI * r * r * r;
+    for (extra, want) in [
+        (vec![], ball(9.0)),
+        (vec!["--all-components"], ball(9.0) + ball(4.0)),
+    ] {
+        let out = dir.path().join("surface.stl");
+        let mut args = vec![
+            "mesh",
+            "--input",
+            input.to_str().unwrap(),
+            "--iso",
+            "0",
+            "--voxel-mm",
+            "0.5",
+            "0.6",
+            "0.8",
+            "--out",
+            out.to_str().unwrap(),
+        ];
+        args.extend(extra.iter().copied());
+        let run = ctrecon(&args);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let mesh = common::weld_stl(&std::fs::read(&out).unwrap());
+        let got = mesh.volume_mm3();
+        assert!(
+            (got - want).abs() / want < 0.02,
+            "{extra:?}: {got} mm³, want {want}"
+        );
+        // The big ball sits where it was put, in millimetres from voxel [0][0][0].
+        let xs = mesh.vertices.iter().map(|p| p[0] as f64);
+        let min_x = xs.clone().fold(f64::INFINITY, f64::min);
+        assert!(
+            (min_x - (12.0 - 9.0)).abs() < 0.3,
+            "{extra:?}: min x {min_x}"
+        );
+        let t = mesh.topology();
+        assert!(t.closed && t.manifold, "{extra:?}: {t:?}");
+    }
+    // A negative iso-value is a value, not an option.
+    let out = dir.path().join("shell.stl");
+    let run = ctrecon(&[
+        "mesh",
+        "--input",
+        input.to_str().unwrap(),
+        "--iso",
+        "-2",
+        "--out",
+        out.to_str().unwrap(),
+    ]);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+}
+
+#[test]
+fn mesh_refuses_bad_input_with_a_message_and_writes_nothing() {
+    use ndarray_npy::WriteNpyExt;
+    let dir = tempfile::tempdir().unwrap();
+    let image = dir.path().join("image.npy");
+    ndarray::Array2::<f32>::zeros((8, 8))
+        .write_npy(std::fs::File::create(&image).unwrap())
+        .unwrap();
+    let volume = dir.path().join("volume.npy");
+    balls(8, [1.0; 3], &[([4.0; 3], 2.0)])
+        .write_npy(std::fs::File::create(&volume).unwrap())
+        .unwrap();
+    let out = dir.path().join("out.stl");
+    let (image, volume) = (image.to_str().unwrap(), volume.to_str().unwrap());
+    for args in [
+        vec!["mesh", "--input", image, "--iso", "0"],
+        vec!["mesh", "--input", "/nonexistent/v.npy", "--iso", "0"],
+        vec![
+            "mesh",
+            "--input",
+            volume,
+            "--iso",
+            "0",
+            "--voxel-mm",
+            "0",
+            "1",
+            "1",
+        ],
+        vec![
+            "mesh",
+            "--input",
+            volume,
+            "--iso",
+            "0",
+            "--voxel-mm",
+            "1",
+            "1",
+        ],
+        vec!["mesh", "--input", volume, "--iso", "nan"],
     ] {
         let mut args = args;
         args.extend(["--out", out.to_str().unwrap()]);

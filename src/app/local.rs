@@ -1,5 +1,5 @@
-//! Commands on local arrays, without a database, a data directory or an engine: what `ctrecon recon` and
-//! `ctrecon phantom` run. Admission is the HTTP submit's (`jobs::plan`): for a reconstruction the geometry,
+//! Commands on local arrays, without a database, a data directory or an engine: what `ctrecon recon`,
+//! `ctrecon phantom` and `ctrecon mesh` run. Admission is the HTTP submit's (`jobs::plan`): for a reconstruction the geometry,
 //! the grid and its field of view, the algorithm's parameters against the views and the memory estimate
 //! against the budget; for a simulation the phantom, its field of view, the noise and the size of the
 //! projections. So what the command line accepts, the API accepts, and a refusal carries the same catalogue
@@ -12,11 +12,13 @@ use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::{NoiseSpec, SimulationRequest};
 use crate::jobs::plan::{check_reconstruction, recon_problem, reconstruction_bytes};
 use crate::jobs::run::simulate;
+use crate::mesh::{Mesh, MeshOptions, MeshStats};
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, reconstruct};
 use crate::recon::control::{Cancel, Control, Progress};
 use crate::recon::geometry::{Geometry, Views};
 use crate::recon::grid::{ImageGrid, Limits, VolumeGrid};
 use crate::recon::phantom::{MAX_BODIES, PhantomSpec};
+use crate::volume::{Frame, Volume};
 
 /// The memory budget of local work unless the caller sets one (bytes).
 pub const DEFAULT_BUDGET_BYTES: u64 = 8 << 30;
@@ -205,5 +207,39 @@ impl Local {
             }
             Ok(p.rasterize(&grid, supersample).into_dyn())
         }
+    }
+
+    /// The surface of a `[z][y][x]` volume of `voxel_mm` (x, y, z) voxels, voxel `[0][0][0]` at the origin,
+    /// axes along x, y and z, through the surface pipeline of a volume job's mesh product (same options, same
+    /// refusals).
+    pub fn mesh(
+        &self,
+        volume: ArrayD<f32>,
+        voxel_mm: [f64; 3],
+        options: &MeshOptions,
+    ) -> Result<(Mesh, MeshStats), Problem> {
+        let invalid = |m: String| Problem::new(ErrorCode::InvalidParameter, m);
+        if !voxel_mm.iter().all(|v| v.is_finite() && *v > 0.0) {
+            return Err(invalid(format!(
+                "voxel sizes must be positive and finite, got {voxel_mm:?}"
+            )));
+        }
+        let data = volume
+            .into_dimensionality::<ndarray::Ix3>()
+            .map_err(|_| invalid("a volume is three-dimensional: [z][y][x]".into()))?;
+        let values = data.len() as u64;
+        if values > self.max_array_values() {
+            return Err(too_many_values("volume", values, self.max_array_values()));
+        }
+        let vol = Volume {
+            data,
+            frame: Frame {
+                spacing_mm: voxel_mm,
+                origin_mm: [0.0; 3],
+                direction: Frame::AXIS_ALIGNED,
+            },
+        };
+        crate::mesh::extract(&vol, options)
+            .map_err(|e| Problem::new(ErrorCode::InvalidMeshOptions, e.to_string()))
     }
 }

@@ -1,4 +1,4 @@
-//! The `ctrecon` command line: `serve` runs the HTTP service, `worker` runs jobs beside it, `phantom` and `recon` work on local files.
+//! The `ctrecon` command line: `serve` runs the HTTP service, `worker` runs jobs beside it, `phantom`, `recon` and `mesh` work on local files.
 
 use clap::{Parser, Subcommand};
 
@@ -20,9 +20,12 @@ pub enum Command {
     Phantom(phantom::PhantomArgs),
     /// Reconstruct a `.npy` sinogram or projection stack (FBP, FDK or an iterative method).
     Recon(recon::ReconArgs),
+    /// Write the iso-surface of a `.npy` volume as a binary STL.
+    Mesh(mesh::MeshArgs),
 }
 
 pub mod files;
+pub mod mesh;
 pub mod phantom;
 pub mod progress;
 pub mod recon;
