@@ -1,0 +1,99 @@
+#!/usr/bin/env python3
+"""How ctrecon's FBP and FDK grow with size and threads: the `ctrecon recon` CLI (whole process: read the
+`.npy`, reconstruct, write the `.npy`) on the exact projections of the modified Shepp-Logan phantom, for a
+sweep of sizes, on 1 and on 2 threads (`RAYON_NUM_THREADS`), under `/usr/bin/time` for the wall time and
+the peak resident memory.
+
+Sizes: parallel FBP on n² pixels from 1.5625·n views of ceil(1.42·n) detectors (views grow with n, so the
+work grows as n³); FDK on n³ voxels from 360 views of (2n)² detector pixels (work n³·360, input 360·4n²).
+Printed: a Markdown table with seconds, the speed-up of 2 threads over 1, the growth exponent of the time
+against the previous size (log t₂/t₁ ÷ log n₂/n₁), voxel updates per second per thread, and the peak memory
+against the input plus the output. `--quick` stops at FBP 1024² and FDK 256³. Not run by CI.
+
+Usage: benches/peers/scaling.py [--quick] [--bin target/release/ctrecon] [--work DIR]
+"""
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import tempfile
+import time
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def timed(cmd, threads):
+    """(seconds, peak RSS bytes) of `cmd` on `threads` rayon threads."""
+    env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
+    env.pop("RUST_BACKTRACE", None)
+    with tempfile.NamedTemporaryFile("r") as f:
+        t = time.perf_counter()
+        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", f.name, *cmd], check=True, env=env,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        secs = time.perf_counter() - t
+        kb = f.read().split()[-1]
+    return secs, int(kb) * 1024
+
+
+def loadavg():
+    with open("/proc/loadavg") as f:
+        return f.read().split()[0]
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--bin", default=os.path.join(HERE, "..", "..", "target", "release", "ctrecon"))
+    ap.add_argument("--work", default=os.path.join(HERE, "work"))
+    args = ap.parse_args()
+    os.makedirs(args.work, exist_ok=True)
+    fbp = [256, 512, 1024] + ([] if args.quick else [2048])
+    fdk = [64, 128, 256] + ([] if args.quick else [512])
+    cases = []
+    for n in fbp:
+        views, det = round(1.5625 * n), math.ceil(1.42 * n) | 1
+        geo = {"type": "parallel", "angles": {"count": views}, "det_count": det, "det_spacing_mm": 1.0}
+        cases.append(("FBP", n, geo, "fbp", views * n * n, 4 * views * det, 4 * n * n))
+    for n in fdk:
+        det, pitch = 2 * n, 1.5 / 2
+        geo = {"type": "cone", "angles": {"count": 360}, "dso_mm": 4.0 * n, "dsd_mm": 6.0 * n,
+               "detector": {"nu": det, "nv": det, "du_mm": pitch, "dv_mm": pitch, "offset_u_mm": 0,
+                            "offset_v_mm": 0}}
+        cases.append(("FDK", n, geo, "fdk", 360 * n ** 3, 4 * 360 * det * det, 4 * n ** 3))
+    print("# %s, %d CPUs, load average %s at start, %s" % (
+        time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()), os.cpu_count(), loadavg(), args.bin))
+    print("| kernel | size | 1 thread s | 2 threads s | speed-up | growth exponent (2 threads) "
+          "| updates/s per thread (1 / 2 threads) | peak RSS MB (2 threads) | input + output MB | load |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    prev = {}
+    for kind, n, geo, algorithm, updates, in_bytes, out_bytes in cases:
+        tag = "%s_%d" % (kind.lower(), n)
+        gpath, data = os.path.join(args.work, tag + ".json"), os.path.join(args.work, tag + ".npy")
+        out = os.path.join(args.work, tag + "_out.npy")
+        with open(gpath, "w") as f:
+            json.dump(geo, f)
+        if not os.path.exists(data):
+            subprocess.run([args.bin, "phantom", "--geometry", gpath, "--fov-mm", str(n), "--out", data],
+                           check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        cmd = [args.bin, "recon", "--input", data, "--geometry", gpath, "--algorithm", algorithm,
+               "--size", str(n), "--pixel-mm", "1", "--max-bytes", str(16 << 30), "--output", out]
+        load = loadavg()
+        t1, _ = timed(cmd, 1)
+        t2, rss = timed(cmd, 2)
+        growth = ""
+        if kind in prev:
+            n0, t0 = prev[kind]
+            growth = "%.2f" % (math.log(t2 / t0) / math.log(n / n0))
+        prev[kind] = (n, t2)
+        print("| %s | %d%s | %.3f | %.3f | %.2f× | %s | %.2g / %.2g | %.0f | %.1f | %s |" % (
+            kind, n, "²" if kind == "FBP" else "³", t1, t2, t1 / t2, growth, updates / t1,
+            updates / t2 / 2, rss / 1e6, (in_bytes + out_bytes) / 1e6, load), flush=True)
+        os.remove(out)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
