@@ -3,6 +3,8 @@
 //! Python with VTK is present (`scripts/install-peers.sh`), VTK's `vtkFlyingEdges3D` meshes the same volume at
 //! the same iso-value (`benches/mesh_vtk.py`) and its best time is printed beside criterion's.
 
+mod common;
+
 use std::path::Path;
 
 use criterion::{Criterion, criterion_group, criterion_main};
@@ -60,14 +62,7 @@ fn bench(c: &mut Criterion) {
 /// present.
 fn vtk_peer(vol: &Array3<f32>, frame: &Frame) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let venv = root.join(".venv-peers/bin/python");
-    let Some(python) = [venv, "python3".into()].into_iter().find(|py| {
-        std::process::Command::new(py)
-            .args(["-c", "import vtk, numpy"])
-            .output()
-            .is_ok_and(|o| o.status.success())
-    }) else {
-        eprintln!("NOTE: no Python with VTK: vtkFlyingEdges3D not timed");
+    let Some(python) = common::vtk_python("vtkFlyingEdges3D") else {
         return;
     };
     let Ok(dir) = tempfile::tempdir() else { return };

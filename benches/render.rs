@@ -3,6 +3,8 @@
 //! 36-frame VR rotation, on a 2-thread pool (the target machine has 2 cores). Throughput is in rays (pixels)
 //! per second. Goals: one VR frame under 0.3 s, the 36-frame rotation under 6 s.
 
+mod common;
+
 use std::path::Path;
 
 use criterion::{Criterion, Throughput, criterion_group, criterion_main};
@@ -150,14 +152,7 @@ fn bench(c: &mut Criterion) {
 /// step, when a Python with VTK is present (`scripts/install-peers.sh`); printed beside criterion's figures.
 fn vtk_peer(vol: &Volume, scene: &Scene<'_>, rays: &ctrecon::render::ViewRays) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR"));
-    let venv = root.join(".venv-peers/bin/python");
-    let Some(python) = [venv, "python3".into()].into_iter().find(|py| {
-        std::process::Command::new(py)
-            .args(["-c", "import vtk, numpy"])
-            .output()
-            .is_ok_and(|o| o.status.success())
-    }) else {
-        eprintln!("NOTE: no Python with VTK: VTK's CPU ray caster not timed");
+    let Some(python) = common::vtk_python("VTK's CPU ray caster") else {
         return;
     };
     let Ok(dir) = tempfile::tempdir() else { return };

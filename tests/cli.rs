@@ -94,6 +94,17 @@ fn phantom_writes_a_supersampled_image_on_the_requested_grid() {
     assert_eq!(img, want);
 }
 
+/// `args` with `--out out` fail with a message, without a panic, and write nothing.
+fn refused<'a>(mut args: Vec<&'a str>, out: &'a Path) {
+    args.extend(["--out", out.to_str().unwrap()]);
+    let run = ctrecon(&args);
+    assert!(!run.status.success(), "{args:?} succeeded");
+    let stderr = String::from_utf8_lossy(&run.stderr);
+    assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
+    assert!(!stderr.trim().is_empty(), "{args:?}: no message");
+    assert!(!out.exists(), "{args:?} wrote a file");
+}
+
 #[test]
 fn phantom_refuses_bad_options_with_a_message_and_writes_nothing() {
     let dir = tempfile::tempdir().unwrap();
@@ -105,14 +116,7 @@ fn phantom_refuses_bad_options_with_a_message_and_writes_nothing() {
         vec!["phantom", "--dims", "4"],
         vec!["phantom", "--geometry", "/nonexistent/geometry.json"],
     ] {
-        let mut args = args;
-        args.extend(["--out", out.to_str().unwrap()]);
-        let run = ctrecon(&args);
-        assert!(!run.status.success(), "{args:?} succeeded");
-        let stderr = String::from_utf8_lossy(&run.stderr);
-        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
-        assert!(!stderr.trim().is_empty(), "{args:?}: no message");
-        assert!(!out.exists(), "{args:?} wrote a file");
+        refused(args, &out);
     }
 }
 
@@ -245,13 +249,6 @@ fn mesh_refuses_bad_input_with_a_message_and_writes_nothing() {
         ],
         vec!["mesh", "--input", volume, "--iso", "nan"],
     ] {
-        let mut args = args;
-        args.extend(["--out", out.to_str().unwrap()]);
-        let run = ctrecon(&args);
-        assert!(!run.status.success(), "{args:?} succeeded");
-        let stderr = String::from_utf8_lossy(&run.stderr);
-        assert!(!stderr.contains("panicked"), "{args:?}: {stderr}");
-        assert!(!stderr.trim().is_empty(), "{args:?}: no message");
-        assert!(!out.exists(), "{args:?} wrote a file");
+        refused(args, &out);
     }
 }
