@@ -73,7 +73,7 @@ fn vtk_peer(vol: &Array3<f32>, frame: &Frame) {
     let (nz, ny, nx) = vol.dim();
     let spec = serde_json::json!({
         "volume": dir.path().join("volume.f32"), "dims": [nx, ny, nz],
-        "spacing": frame.spacing_mm, "iso": 0.0, "threads": [1, 2], "rounds": 10,
+        "spacing": frame.spacing_mm, "origin": frame.origin_mm, "iso": 0.0, "threads": [1, 2], "rounds": 10,
     });
     if std::fs::write(dir.path().join("spec.json"), spec.to_string()).is_err() {
         return;

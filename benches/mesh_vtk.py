@@ -5,7 +5,7 @@ Usage: mesh_vtk.py SPEC.json
 
 SPEC.json (written by benches/mesh.rs):
   volume: path of raw little-endian float32 samples, [z][y][x] order (x fastest)
-  dims: [nx, ny, nz]; spacing: [dx, dy, dz] mm; iso: the iso-value
+  dims: [nx, ny, nz]; spacing: [dx, dy, dz] mm; origin: [x, y, z] mm; iso: the iso-value
   threads: thread counts to ask vtkSMPTools for; rounds: runs per count (the best is printed)
 Prints one JSON line per thread count: VTK's version, its SMP backend (a "Sequential" build runs on one
 thread whatever is asked), the best time in ms and the number of triangles. Normals, gradients and
@@ -15,21 +15,14 @@ import json
 import sys
 import time
 
-import numpy as np
 import vtk
-from vtk.util import numpy_support
+
+from render_vtk import image_data
 
 
 def main():
     spec = json.load(open(sys.argv[1]))
-    nx, ny, nz = spec["dims"]
-    raw = np.fromfile(spec["volume"], dtype="<f4")
-    if raw.size != nx * ny * nz:
-        raise SystemExit(f"{spec['volume']}: {raw.size} samples, want {nx * ny * nz}")
-    img = vtk.vtkImageData()
-    img.SetDimensions(nx, ny, nz)
-    img.SetSpacing(*spec["spacing"])
-    img.GetPointData().SetScalars(numpy_support.numpy_to_vtk(raw, deep=True, array_type=vtk.VTK_FLOAT))
+    img = image_data(spec)
     for threads in spec["threads"]:
         vtk.vtkSMPTools.Initialize(threads)
         best, tris = float("inf"), 0

@@ -18,6 +18,16 @@ fn ctrecon(args: &[&str]) -> std::process::Output {
         .expect("run the ctrecon binary")
 }
 
+/// `ctrecon args`, which must succeed.
+fn ctrecon_ok(args: &[&str]) {
+    let run = ctrecon(args);
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+}
+
 fn read(path: &Path) -> ArrayD<f32> {
     ArrayD::<f32>::read_npy(std::fs::File::open(path).expect("open npy")).expect("read npy")
 }
@@ -27,7 +37,7 @@ fn phantom_writes_the_exact_sinogram_and_its_geometry_sidecar() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("sino.npy");
     let geometry = concat!(env!("CARGO_MANIFEST_DIR"), "/docs/geometries/parallel.json");
-    let run = ctrecon(&[
+    ctrecon_ok(&[
         "phantom",
         "--geometry",
         geometry,
@@ -36,11 +46,6 @@ fn phantom_writes_the_exact_sinogram_and_its_geometry_sidecar() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let sino = read(&out);
     assert_eq!(sino.shape(), &[360, 363]);
 
@@ -72,7 +77,7 @@ fn phantom_writes_the_exact_sinogram_and_its_geometry_sidecar() {
 fn phantom_writes_a_supersampled_image_on_the_requested_grid() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("img.npy");
-    let run = ctrecon(&[
+    ctrecon_ok(&[
         "phantom",
         "--size",
         "64",
@@ -83,11 +88,6 @@ fn phantom_writes_a_supersampled_image_on_the_requested_grid() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
     let img = read(&out).into_dimensionality::<ndarray::Ix2>().unwrap();
     let want: Array2<f32> = Phantom2::from_table(Table2::ModifiedSheppLogan, 64.0)
         .rasterize(&ImageGrid::square(64, 2.0), 3);
@@ -169,12 +169,7 @@ fn mesh_writes_the_stl_of_the_iso_surface_in_millimetres() {
             out.to_str().unwrap(),
         ];
         args.extend(extra.iter().copied());
-        let run = ctrecon(&args);
-        assert!(
-            run.status.success(),
-            "{}",
-            String::from_utf8_lossy(&run.stderr)
-        );
+        ctrecon_ok(&args);
         let mesh = common::weld_stl(&std::fs::read(&out).unwrap());
         let got = mesh.volume_mm3();
         assert!(
@@ -193,7 +188,7 @@ fn mesh_writes_the_stl_of_the_iso_surface_in_millimetres() {
     }
     // A negative iso-value is a value, not an option.
     let out = dir.path().join("shell.stl");
-    let run = ctrecon(&[
+    ctrecon_ok(&[
         "mesh",
         "--input",
         input.to_str().unwrap(),
@@ -202,11 +197,6 @@ fn mesh_writes_the_stl_of_the_iso_surface_in_millimetres() {
         "--out",
         out.to_str().unwrap(),
     ]);
-    assert!(
-        run.status.success(),
-        "{}",
-        String::from_utf8_lossy(&run.stderr)
-    );
 }
 
 #[test]
