@@ -369,10 +369,14 @@ async fn an_association_aborted_mid_instance_leaves_nothing_behind() {
     let rq = command::store_request(1, CT, &meta.sop_instance_uid, None);
     let bytes = std::fs::read(&files[0]).unwrap();
     let first_half = bytes[meta.dataset_offset as usize..][..400].to_vec();
-    for (value_type, data) in [
+    // The start of a large instance: more than the node holds in memory before it writes to its file
+    // (1 MiB), in fragments of 16 KiB.
+    let mut fragments = vec![
         (PDataValueType::Command, rq),
         (PDataValueType::Data, first_half),
-    ] {
+    ];
+    fragments.extend((0..72).map(|_| (PDataValueType::Data, vec![0u8; 16 << 10])));
+    for (value_type, data) in fragments {
         let is_last = value_type == PDataValueType::Command;
         assoc
             .send(&Pdu::PData {

@@ -12,7 +12,7 @@ use super::command::{self, Command, status};
 use super::inbox::{InstanceSink, SinkError};
 use super::query::{self, Retrieval};
 use super::tracker::{Arrival, Tracker};
-use crate::dicom::{part10_prefix, read_header};
+use crate::dicom::{header_of, part10_prefix, read_header};
 
 /// What this association may do, and the limits it runs under.
 #[derive(Debug, Clone)]
@@ -215,19 +215,13 @@ async fn on_command(
                         &context.transfer_syntax,
                     )
                     .map_err(|e| AssociationEnd::Protocol(e.to_string()))?;
-                    match tracker
-                        .inbox()
-                        .begin(
-                            &prefix,
-                            grant.max_instance_bytes.saturating_add(prefix.len() as u64),
-                        )
-                        .await
-                    {
+                    match tracker.inbox().begin(
+                        &prefix,
+                        grant.max_instance_bytes.saturating_add(prefix.len() as u64),
+                    ) {
                         Ok(sink) => Some(sink),
                         Err(e) => {
-                            tracing::error!(error = %e, "cannot open a file for an instance");
-                            refusal =
-                                Some((status::OUT_OF_RESOURCES, "storage unavailable".into()));
+                            refusal = Some((status::OUT_OF_RESOURCES, e.to_string()));
                             None
                         }
                     }
@@ -386,7 +380,8 @@ async fn on_query(
     }
 }
 
-/// Check a received instance and file it in its series: (status, reason).
+/// Write out, sync and check a received instance and file it in its series, all in one blocking task:
+/// (status, reason). The header is read from memory when the instance was held whole.
 async fn file(
     sink: InstanceSink,
     cmd: &Command,
@@ -394,17 +389,21 @@ async fn file(
     tracker: &Arc<Tracker>,
 ) -> (u16, String) {
     let bytes = sink.written();
-    let received = match sink.finish().await {
-        Ok(r) => r,
-        Err(e) => {
-            tracing::error!(error = %e, "cannot sync an instance");
-            return (status::OUT_OF_RESOURCES, "storage unavailable".into());
-        }
-    };
     let (cmd, tracker, calling_ae) = (cmd.clone(), tracker.clone(), grant.calling_ae.clone());
     let max = grant.max_instance_bytes.saturating_add(64 << 10);
     let checked = tokio::task::spawn_blocking(move || {
-        let header = match read_header(received.path(), max) {
+        let received = match sink.finish() {
+            Ok(r) => r,
+            Err(e) => {
+                tracing::error!(error = %e, "cannot sync an instance");
+                return (status::OUT_OF_RESOURCES, "storage unavailable".into());
+            }
+        };
+        let header = match received.bytes() {
+            Some(b) => header_of(&cmd.sop_instance_uid, b),
+            None => read_header(received.path(), max),
+        };
+        let header = match header {
             Ok(h) => h,
             Err(e) => return (status::CANNOT_UNDERSTAND, e.to_string()),
         };

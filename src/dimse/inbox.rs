@@ -1,7 +1,8 @@
 //! Where the node keeps what it receives, under `<data_dir>/dimse/`:
 //!
-//! - `tmp/<uuid>.part`: an instance being received, written as it arrives (Part 10 prefix, then the data
-//!   set fragments); removed when the association aborts or the instance is refused;
+//! - `tmp/<uuid>.part`: an instance being received (Part 10 prefix, then the data set fragments), written
+//!   when it is whole or in pieces of [`SPILL`] bytes as it arrives; removed when the association aborts or
+//!   the instance is refused;
 //! - `incoming/<series uid>/<sop instance uid>.dcm`: complete, checked instances of a series that is still
 //!   arriving (a rename from `tmp/`, so a file here is always whole);
 //! - `complete/<uuid>/`: a series whose stable age passed, handed over for assembly (a rename of its
@@ -9,10 +10,13 @@
 //!
 //! After a crash, `tmp/` is emptied and every `incoming/` and `complete/` folder is picked up again.
 
-use std::io;
+use std::io::{self, Write as _};
 use std::path::{Path, PathBuf};
 
-use tokio::io::AsyncWriteExt;
+/// Bytes of an instance held in memory before they are written: an instance up to this size is written,
+/// synced and checked in one go, and its header is read from memory; a larger one is written in pieces
+/// of this size as it arrives.
+pub const SPILL: usize = 1 << 20;
 
 /// The node's folders.
 #[derive(Debug, Clone)]
@@ -69,23 +73,22 @@ impl Inbox {
         Ok(out)
     }
 
-    /// Start receiving one instance: a new temporary file holding `prefix`.
-    pub async fn begin(&self, prefix: &[u8], max_bytes: u64) -> io::Result<InstanceSink> {
+    /// Start receiving one instance, beginning with `prefix`; its temporary file is made when the first
+    /// bytes are written.
+    pub fn begin(&self, prefix: &[u8], max_bytes: u64) -> Result<InstanceSink, SinkError> {
         let path = self
             .root
             .join("tmp")
             .join(format!("{}.part", uuid::Uuid::new_v4()));
-        let file = tokio::fs::File::create(&path).await?;
         let mut sink = InstanceSink {
             path: Some(path),
-            file: Some(tokio::io::BufWriter::with_capacity(256 << 10, file)),
+            file: None,
+            buf: Vec::new(),
+            spilled: false,
             written: 0,
             max_bytes,
         };
-        sink.write(prefix).await.map_err(|e| match e {
-            SinkError::Io(e) => e,
-            other => io::Error::other(other.to_string()),
-        })?;
+        sink.take(prefix)?;
         Ok(sink)
     }
 
@@ -166,40 +169,84 @@ pub enum SinkError {
 #[derive(Debug)]
 pub struct InstanceSink {
     path: Option<PathBuf>,
-    file: Option<tokio::io::BufWriter<tokio::fs::File>>,
+    /// Made by the first write.
+    file: Option<std::fs::File>,
+    /// Bytes not written yet; fewer than [`SPILL`] between calls.
+    buf: Vec<u8>,
+    /// Some bytes were written to the file.
+    spilled: bool,
     written: u64,
     max_bytes: u64,
 }
 
 impl InstanceSink {
-    /// Append bytes; refuses to grow past the limit.
+    /// Append bytes, writing them out (off the async threads) once [`SPILL`] are held; refuses to grow past
+    /// the limit.
     pub async fn write(&mut self, bytes: &[u8]) -> Result<(), SinkError> {
+        self.take(bytes)?;
+        if self.buf.len() < SPILL {
+            return Ok(());
+        }
+        let (path, file, buf) = (
+            self.path.clone(),
+            self.file.take(),
+            std::mem::take(&mut self.buf),
+        );
+        let (file, buf) = tokio::task::spawn_blocking(move || {
+            let mut file = open(path.as_deref(), file)?;
+            file.write_all(&buf)?;
+            Ok::<_, io::Error>((file, buf))
+        })
+        .await
+        .map_err(io::Error::other)??;
+        self.file = Some(file);
+        self.buf = buf;
+        self.buf.clear();
+        self.spilled = true;
+        Ok(())
+    }
+
+    /// Hold `bytes`, within the limit.
+    fn take(&mut self, bytes: &[u8]) -> Result<(), SinkError> {
         self.written = self.written.saturating_add(bytes.len() as u64);
         if self.written > self.max_bytes {
             return Err(SinkError::TooLarge(self.max_bytes));
         }
-        match self.file.as_mut() {
-            Some(f) => Ok(f.write_all(bytes).await?),
-            None => Err(SinkError::Io(io::Error::other("instance already finished"))),
-        }
+        self.buf.extend_from_slice(bytes);
+        Ok(())
     }
 
-    /// Bytes written so far (prefix included).
+    /// Bytes taken so far (prefix included).
     pub fn written(&self) -> u64 {
         self.written
     }
 
-    /// Flush and sync; the file is the caller's from now on (see [`Received`]).
-    pub async fn finish(mut self) -> io::Result<Received> {
-        if let Some(mut f) = self.file.take() {
-            f.flush().await?;
-            f.get_mut().sync_all().await?;
-        }
+    /// Write what is left and sync (blocking: call off the async threads); the file is the caller's from now
+    /// on (see [`Received`]).
+    pub fn finish(mut self) -> io::Result<Received> {
         let path = self
             .path
             .take()
             .ok_or_else(|| io::Error::other("instance already finished"))?;
-        Ok(Received { path: Some(path) })
+        // From here on a failure removes the file through `received`.
+        let mut received = Received {
+            path: Some(path),
+            bytes: None,
+        };
+        let mut file = open(received.path.as_deref(), self.file.take())?;
+        file.write_all(&self.buf)?;
+        file.sync_all()?;
+        received.bytes = (!self.spilled).then(|| std::mem::take(&mut self.buf));
+        Ok(received)
+    }
+}
+
+/// `file`, or a new file at `path`.
+fn open(path: Option<&Path>, file: Option<std::fs::File>) -> io::Result<std::fs::File> {
+    match (file, path) {
+        (Some(f), _) => Ok(f),
+        (None, Some(p)) => std::fs::File::create(p),
+        (None, None) => Err(io::Error::other("instance already finished")),
     }
 }
 
@@ -216,11 +263,18 @@ impl Drop for InstanceSink {
 #[derive(Debug)]
 pub struct Received {
     path: Option<PathBuf>,
+    /// The instance's bytes, when it was held whole in memory (no larger than [`SPILL`]).
+    bytes: Option<Vec<u8>>,
 }
 
 impl Received {
     pub fn path(&self) -> &Path {
         self.path.as_deref().unwrap_or(Path::new(""))
+    }
+
+    /// The instance's bytes as written, when they were held in memory.
+    pub fn bytes(&self) -> Option<&[u8]> {
+        self.bytes.as_deref()
     }
 
     /// The file was moved elsewhere: do not remove it.
@@ -247,15 +301,22 @@ mod tests {
         let inbox = Inbox::open(dir.path()).unwrap();
         let count = |sub: &str| std::fs::read_dir(inbox.root().join(sub)).unwrap().count();
 
-        let mut cut = inbox.begin(b"prefix", 1 << 20).await.unwrap();
+        // Cut off before anything was written, and after a piece was.
+        let mut cut = inbox.begin(b"prefix", 4 << 20).unwrap();
         cut.write(b"half of it").await.unwrap();
+        assert_eq!(count("tmp"), 0);
+        drop(cut);
+        let mut cut = inbox.begin(b"prefix", 4 << 20).unwrap();
+        cut.write(&vec![7u8; SPILL + 10]).await.unwrap();
         assert_eq!(count("tmp"), 1);
         drop(cut);
         assert_eq!(count("tmp"), 0);
 
-        let mut whole = inbox.begin(b"AB", 1 << 20).await.unwrap();
+        let mut whole = inbox.begin(b"AB", 1 << 20).unwrap();
         whole.write(b"CD").await.unwrap();
-        let received = whole.finish().await.unwrap();
+        let received = whole.finish().unwrap();
+        assert_eq!(received.bytes(), Some(&b"ABCD"[..]));
+        assert_eq!(std::fs::read(received.path()).unwrap(), b"ABCD");
         let filed = inbox.file(received.path(), "1.2.3", "1.2.3.4").unwrap();
         assert!(!filed.replaced);
         filed.sync().unwrap();
@@ -270,12 +331,35 @@ mod tests {
     }
 
     #[tokio::test]
+    async fn a_large_instance_is_written_in_pieces_in_order() {
+        let dir = tempfile::tempdir().unwrap();
+        let inbox = Inbox::open(dir.path()).unwrap();
+        let want: Vec<u8> = (0..3 * SPILL + 12_345).map(|i| (i % 251) as u8).collect();
+        let mut sink = inbox.begin(&want[..100], 4 << 20).unwrap();
+        // Fragments of a size that does not divide the piece.
+        for part in want[100..].chunks(16_372) {
+            sink.write(part).await.unwrap();
+        }
+        assert_eq!(sink.written(), want.len() as u64);
+        let received = sink.finish().unwrap();
+        assert_eq!(received.bytes(), None, "too large to be held");
+        assert_eq!(std::fs::read(received.path()).unwrap(), want);
+        let path = received.path().to_path_buf();
+        drop(received);
+        assert!(!path.exists(), "an instance not kept is removed");
+    }
+
+    #[tokio::test]
     async fn an_instance_over_the_limit_is_refused() {
         let dir = tempfile::tempdir().unwrap();
         let inbox = Inbox::open(dir.path()).unwrap();
-        let mut sink = inbox.begin(b"0123", 8).await.unwrap();
+        let mut sink = inbox.begin(b"0123", 8).unwrap();
         assert!(matches!(
             sink.write(b"45678").await,
+            Err(SinkError::TooLarge(8))
+        ));
+        assert!(matches!(
+            inbox.begin(b"012345678", 8),
             Err(SinkError::TooLarge(8))
         ));
     }
