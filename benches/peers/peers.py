@@ -9,9 +9,14 @@ then reconstruct the same `.npy` file. Printed per run: seconds and RMSE over th
 ctrecon's. Last, `ctrecon mesh` and VTK's flying edges mesh the rasterised 3D phantom at 0.5; the RMSE
 column then holds the number of triangles.
 
+The cone-beam iterative cases run twice: on the exact projections and on the same projections with
+Gaussian noise of 1 % of their largest value added (fixed seed, one `.npy` both programs read).
+
 Timing: ctrecon is timed as a whole process (read the `.npy`, reconstruct, write the `.npy`); the
 peers only around their reconstruction call (data already in memory, imports done), which favours
-the peers. Threads: ctrecon uses every core (rayon), RTK is given as many (`--threads`), ASTRA's CPU
+the peers. Memory (column *peak MB*): ctrecon's peak resident memory as a process (`/usr/bin/time`);
+each peer runs in a forked child, and its figure is that child's peak resident memory above what it
+held when it started (the data already loaded), which again favours the peers. Threads: ctrecon uses every core (rayon), RTK is given as many (`--threads`), ASTRA's CPU
 algorithms and scikit-image run on one.
 
 Conventions, checked once against ctrecon's FBP/FDK of the same data: ASTRA and scikit-image take
@@ -24,8 +29,10 @@ Run through `run.sh`, which installs the pinned peers in `benches/peers/.venv` a
 import argparse
 import json
 import os
+import pickle
 import subprocess
 import sys
+import tempfile
 import time
 
 import numpy as np
@@ -39,9 +46,53 @@ def ctrecon_bin():
 
 
 def run_ctrecon(args):
-    t = time.perf_counter()
-    subprocess.run([ctrecon_bin(), *args], check=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    return time.perf_counter() - t
+    return run_ctrecon_rss(args)[0]
+
+
+def run_ctrecon_rss(args):
+    """(seconds, peak resident bytes) of one `ctrecon` process."""
+    with tempfile.NamedTemporaryFile("r") as f:
+        t = time.perf_counter()
+        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", f.name, ctrecon_bin(), *args], check=True,
+                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        secs = time.perf_counter() - t
+        kb = f.read().split()[-1]
+    return secs, int(kb) * 1024
+
+
+def status_kb(key):
+    with open("/proc/self/status") as f:
+        for line in f:
+            if line.startswith(key + ":"):
+                return int(line.split()[1])
+    return 0
+
+
+def in_child(fn, *args):
+    """`fn(*args)` in a forked child: (its result, the child's peak resident bytes above its start).
+    Raises what the child raised, as a RuntimeError with its message."""
+    r, w = os.pipe()
+    pid = os.fork()
+    if pid == 0:
+        os.close(r)
+        try:
+            with open("/proc/self/clear_refs", "w") as f:
+                f.write("5")  # reset the peak (VmHWM) to the current resident size
+            start = status_kb("VmRSS")
+            res = fn(*args)
+            out = (res, (status_kb("VmHWM") - start) * 1024, None)
+        except Exception as e:  # handed to the parent
+            out = (None, 0, "%s: %s" % (type(e).__name__, e))
+        with os.fdopen(w, "wb") as f:
+            pickle.dump(out, f)
+        os._exit(0)
+    os.close(w)
+    with os.fdopen(r, "rb") as f:
+        res, peak, err = pickle.load(f)
+    os.waitpid(pid, 0)
+    if err:
+        raise RuntimeError(err)
+    return res, peak
 
 
 def loadavg():
@@ -80,8 +131,12 @@ def cases(quick):
     ]
     for c in fdk:
         out.append(("FDK %d³ from %d x %d²" % c, cone_case(*c), "fdk", {}, ["rtk"]))
-    out.append(("cone SIRT x10, %d³ from %d x %d²" % cone, cone_case(*cone), "sirt", {"iterations": 10}, ["rtk"]))
-    out.append(("cone CGLS x10, %d³ from %d x %d²" % cone, cone_case(*cone), "cgls", {"iterations": 10}, ["rtk"]))
+    for noise in (0.0, 0.01):
+        tail = ", noise 1 %" if noise else ""
+        for name, algorithm in (("SIRT", "sirt"), ("CGLS", "cgls")):
+            case = dict(cone_case(*cone), noise=noise)
+            out.append(("cone %s x10, %d³ from %d x %d²%s" % ((name,) + cone + (tail,)), case, algorithm,
+                        {"iterations": 10}, ["rtk"]))
     return out
 
 
@@ -130,6 +185,25 @@ def astra_2d(case, data, algorithm, params):
                  (astra.projector.delete, pid)):
         f(i)
     return secs, img
+
+
+def load_peer_libraries(names):
+    """Import the peers' libraries and resolve the classes they use (ITK loads its modules lazily), before
+    any child is forked: a peer's memory then counts its work, not its libraries."""
+    if "skimage" in names:
+        import skimage.transform  # noqa: F401
+    if "astra" in names:
+        import astra  # noqa: F401
+    if "rtk" in names:
+        import itk
+        from itk import RTK as rtk
+
+        image = itk.Image[itk.F, 3]
+        for cls in (rtk.ThreeDCircularProjectionGeometry, rtk.ConstantImageSource[image],
+                    rtk.FDKConeBeamReconstructionFilter[image], rtk.SARTConeBeamReconstructionFilter[image, image],
+                    rtk.ConjugateGradientConeBeamReconstructionFilter[image]):
+            cls.New()
+        itk.image_from_array(np.zeros((2, 2, 2), dtype=np.float32))
 
 
 def rtk_3d(case, data, algorithm, params, threads):
@@ -209,17 +283,17 @@ def mesh_case(n, work):
                      "--out", ref_path])
     out = os.path.join(work, "mesh_%d.stl" % n)
     load = loadavg()
-    secs = run_ctrecon(["mesh", "--input", ref_path, "--iso", "0.5", "--all-components", "--out", out])
+    secs, rss = run_ctrecon_rss(["mesh", "--input", ref_path, "--iso", "0.5", "--all-components", "--out", out])
     tris = (os.path.getsize(out) - 84) // 50
-    print("| %s | ctrecon | %.3f | %d triangles | | %s |" % (name, secs, tris, load), flush=True)
+    print("| %s | ctrecon | %.3f | %d triangles | %.0f | | %s |" % (name, secs, tris, rss / 1e6, load), flush=True)
     load = loadavg()
     try:
-        s, peer_tris, backend = vtk_flying_edges(np.load(ref_path), 0.5)
+        (s, peer_tris, backend), peak = in_child(vtk_flying_edges, np.load(ref_path), 0.5)
     except Exception as e:
-        print("| %s | VTK flying edges | failed: %s | | | %s |" % (name, str(e).splitlines()[0], load))
+        print("| %s | VTK flying edges | failed: %s | | | | %s |" % (name, str(e).splitlines()[0], load))
         return
-    print("| %s | VTK flying edges (%s) | %.3f | %d triangles | %.1fx | %s |"
-          % (name, backend, s, peer_tris, s / secs, load), flush=True)
+    print("| %s | VTK flying edges (%s) | %.3f | %d triangles | %.0f | %.1fx | %s |"
+          % (name, backend, s, peer_tris, peak / 1e6, s / secs, load), flush=True)
 
 
 def rmse(img, ref):
@@ -243,19 +317,29 @@ def main():
              "rtk": lambda *a: rtk_3d(*a, threads=args.threads)}
     print("# %s, %d CPUs, load average %s at start" % (time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
                                                       os.cpu_count(), loadavg()))
-    print("| case | program | seconds | RMSE | peer s / ctrecon s | load |")
-    print("|---|---|---|---|---|---|")
-    for name, case, algorithm, params, names in cases(args.quick):
-        if args.only and args.only not in name:
-            continue
+    print("| case | program | seconds | RMSE | peak MB | peer s / ctrecon s | load |")
+    print("|---|---|---|---|---|---|---|")
+    chosen = [c for c in cases(args.quick) if not args.only or args.only in c[0]]
+    load_peer_libraries({p for c in chosen for p in c[4]})
+    for name, case, algorithm, params, names in chosen:
         tag = "%s_%s_%d" % (algorithm, case["geometry"]["type"], case["n"])
-        geo, data_path = os.path.join(args.work, tag + ".json"), os.path.join(args.work, tag + ".npy")
+        geo, clean_path = os.path.join(args.work, tag + ".json"), os.path.join(args.work, tag + ".npy")
+        noise = case.get("noise", 0.0)
+        data_path = clean_path
+        if noise:
+            tag += "_noise%g" % noise
+            data_path = os.path.join(args.work, tag + ".npy")
         ref_path = os.path.join(args.work, "phantom%d_%d.npy" % (case["dims"], case["n"]))
         with open(geo, "w") as f:
             json.dump(case["geometry"], f)
         n = case["n"]
+        if not os.path.exists(clean_path):
+            run_ctrecon(["phantom", "--geometry", geo, "--fov-mm", str(n), "--out", clean_path])
         if not os.path.exists(data_path):
-            run_ctrecon(["phantom", "--geometry", geo, "--fov-mm", str(n), "--out", data_path])
+            clean = np.load(clean_path)
+            rng = np.random.default_rng(1)
+            noisy = clean + rng.normal(0.0, noise * float(clean.max()), clean.shape)
+            np.save(data_path, noisy.astype(np.float32))
         if not os.path.exists(ref_path):
             run_ctrecon(["phantom", "--dims", str(case["dims"]), "--size", str(n), "--fov-mm", str(n),
                          "--supersample", "4" if case["dims"] == 2 else "2", "--out", ref_path])
@@ -268,19 +352,19 @@ def main():
             else:
                 json.dump({"nx": n, "ny": n, "nz": n, "spacing_mm": [1.0, 1.0, 1.0]}, f)
         load = loadavg()
-        secs = run_ctrecon(["recon", "--input", data_path, "--geometry", geo, "--algorithm", algorithm,
-                            "--params", json.dumps(params), "--grid", grid, "--output", out])
+        secs, rss = run_ctrecon_rss(["recon", "--input", data_path, "--geometry", geo, "--algorithm", algorithm,
+                                     "--params", json.dumps(params), "--grid", grid, "--output", out])
         ours = rmse(np.load(out), ref)
-        print("| %s | ctrecon | %.3f | %.4f | | %s |" % (name, secs, ours, load), flush=True)
+        print("| %s | ctrecon | %.3f | %.4f | %.0f | | %s |" % (name, secs, ours, rss / 1e6, load), flush=True)
         for peer in names:
             load = loadavg()
             try:
-                s, img = peers[peer](case, data, algorithm, params)
+                (s, img), peak = in_child(peers[peer], case, data, algorithm, params)
             except Exception as e:  # a peer that cannot run this case says so and the rest go on
-                print("| %s | %s | failed: %s | | | %s |" % (name, peer, str(e).splitlines()[0], load))
+                print("| %s | %s | failed: %s | | | | %s |" % (name, peer, str(e).splitlines()[0], load))
                 continue
-            print("| %s | %s | %.3f | %.4f | %.1fx | %s |" % (name, peer, s, rmse(img, ref), s / secs, load),
-                  flush=True)
+            print("| %s | %s | %.3f | %.4f | %.0f | %.1fx | %s |"
+                  % (name, peer, s, rmse(img, ref), peak / 1e6, s / secs, load), flush=True)
     n = 128 if args.quick else 256
     if not args.only or args.only in "marching cubes %d³, iso 0.5" % n:
         mesh_case(n, args.work)
