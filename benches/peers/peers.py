@@ -16,8 +16,8 @@ Timing: ctrecon is timed as a whole process (read the `.npy`, reconstruct, write
 peers only around their reconstruction call (data already in memory, imports done), which favours
 the peers. Memory (column *peak MB*): ctrecon's peak resident memory as a process (`/usr/bin/time`);
 each peer runs in a forked child, and its figure is that child's peak resident memory above what it
-held when it started (the data already loaded), which again favours the peers. Threads: ctrecon uses every core (rayon), RTK is given as many (`--threads`), ASTRA's CPU
-algorithms and scikit-image run on one.
+held when it started (the data already loaded), which again favours the peers. Threads: ctrecon uses
+every core (rayon), RTK is given as many (`--threads`), ASTRA's CPU algorithms and scikit-image run on one.
 
 Conventions, checked once against ctrecon's FBP/FDK of the same data: ASTRA and scikit-image take
 ctrecon's parallel angles negated; RTK takes the cone angles as they are, and its volume maps to
@@ -30,12 +30,12 @@ import argparse
 import json
 import os
 import pickle
-import subprocess
 import sys
-import tempfile
 import time
 
 import numpy as np
+
+from common import cone_case, loadavg, parallel_case, timed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
@@ -51,13 +51,7 @@ def run_ctrecon(args):
 
 def run_ctrecon_rss(args):
     """(seconds, peak resident bytes) of one `ctrecon` process."""
-    with tempfile.NamedTemporaryFile("r") as f:
-        t = time.perf_counter()
-        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", f.name, ctrecon_bin(), *args], check=True,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        secs = time.perf_counter() - t
-        kb = f.read().split()[-1]
-    return secs, int(kb) * 1024
+    return timed([ctrecon_bin(), *args])
 
 
 def status_kb(key):
@@ -95,28 +89,8 @@ def in_child(fn, *args):
     return res, peak
 
 
-def loadavg():
-    with open("/proc/loadavg") as f:
-        return f.read().split()[0]
-
-
 # ----------------------------------------------------------------------------------------------
 # Cases: sizes per mode.
-
-
-def parallel_case(n, views, det):
-    return {"dims": 2, "n": n, "geometry": {"type": "parallel", "angles": {"count": views},
-                                            "det_count": det, "det_spacing_mm": 1.0}}
-
-
-def cone_case(n, views, det):
-    """The scaled cone beam of the iterative examples: 1 mm voxels, n mm field of view, detector
-    pitch 1.5*128/n mm at DSD 750*n/128 (magnification 1.5)."""
-    pitch = 1.5 * 128.0 / n
-    return {"dims": 3, "n": n, "geometry": {
-        "type": "cone", "angles": {"count": views}, "dso_mm": 500.0 * n / 128, "dsd_mm": 750.0 * n / 128,
-        "detector": {"nu": det, "nv": det, "du_mm": pitch, "dv_mm": pitch, "offset_u_mm": 0,
-                     "offset_v_mm": 0}}}
 
 
 def cases(quick):
@@ -204,6 +178,11 @@ def load_peer_libraries(names):
                     rtk.ConjugateGradientConeBeamReconstructionFilter[image]):
             cls.New()
         itk.image_from_array(np.zeros((2, 2, 2), dtype=np.float32))
+    if "vtk" in names:
+        import vtk  # noqa: F401
+        from vtk.util import numpy_support  # noqa: F401
+
+        vtk.vtkFlyingEdges3D()
 
 
 def rtk_3d(case, data, algorithm, params, threads):
@@ -367,6 +346,7 @@ def main():
                   % (name, peer, s, rmse(img, ref), peak / 1e6, s / secs, load), flush=True)
     n = 128 if args.quick else 256
     if not args.only or args.only in "marching cubes %d³, iso 0.5" % n:
+        load_peer_libraries({"vtk"})
         mesh_case(n, args.work)
     return 0
 

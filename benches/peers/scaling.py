@@ -21,28 +21,18 @@ import math
 import os
 import subprocess
 import sys
-import tempfile
 import time
+
+from common import cone_case, loadavg, parallel_case, timed
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 
-def timed(cmd, threads):
+def timed_on(cmd, threads):
     """(seconds, peak RSS bytes) of `cmd` on `threads` rayon threads."""
     env = dict(os.environ, RAYON_NUM_THREADS=str(threads))
     env.pop("RUST_BACKTRACE", None)
-    with tempfile.NamedTemporaryFile("r") as f:
-        t = time.perf_counter()
-        subprocess.run(["/usr/bin/time", "-f", "%M", "-o", f.name, *cmd], check=True, env=env,
-                       stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        secs = time.perf_counter() - t
-        kb = f.read().split()[-1]
-    return secs, int(kb) * 1024
-
-
-def loadavg():
-    with open("/proc/loadavg") as f:
-        return f.read().split()[0]
+    return timed(cmd, env)
 
 
 def main():
@@ -57,7 +47,7 @@ def main():
     cases = []
     for n in fbp:
         views, det = round(1.5625 * n), math.ceil(1.42 * n) | 1
-        geo = {"type": "parallel", "angles": {"count": views}, "det_count": det, "det_spacing_mm": 1.0}
+        geo = parallel_case(n, views, det)["geometry"]
         cases.append(("FBP", n, geo, "fbp", views * n * n, 4 * views * det, 4 * n * n))
     for n in fdk:
         det, pitch = 2 * n, 1.5 / 2
@@ -74,8 +64,8 @@ def main():
     for kind, n, geo, algorithm, updates, in_bytes, out_bytes in cases:
         cmd, out = recon_command(args, "%s_%d" % (kind.lower(), n), n, geo, algorithm, {})
         load = loadavg()
-        t1, _ = timed(cmd, 1)
-        t2, rss = timed(cmd, 2)
+        t1, _ = timed_on(cmd, 1)
+        t2, rss = timed_on(cmd, 2)
         growth = ""
         if kind in prev:
             n0, t0 = prev[kind]
@@ -96,12 +86,9 @@ def per_kernel(args):
     if not args.quick:
         par, cone, mesh_n = (256, 360, 363), (128, 360, 256), 256
     n, views, det = par
-    pgeo = {"type": "parallel", "angles": {"count": views}, "det_count": det, "det_spacing_mm": 1.0}
-    n3, views3, det3 = cone
-    pitch = 1.5 * 128.0 / n3
-    cgeo = {"type": "cone", "angles": {"count": views3}, "dso_mm": 500.0 * n3 / 128, "dsd_mm": 750.0 * n3 / 128,
-            "detector": {"nu": det3, "nv": det3, "du_mm": pitch, "dv_mm": pitch, "offset_u_mm": 0,
-                         "offset_v_mm": 0}}
+    pgeo = parallel_case(*par)["geometry"]
+    n3 = cone[0]
+    cgeo = cone_case(*cone)["geometry"]
     runs = [("SIRT x10", "%d² / %d" % (n, views), n, pgeo, "sirt", 10),
             ("SART x10", "%d² / %d" % (n, views), n, pgeo, "sart", 10),
             ("CGLS x50", "%d² / %d" % (n, views), n, pgeo, "cgls", 50),
@@ -144,8 +131,8 @@ def recon_command(args, tag, n, geo, algorithm, params):
 
 def row(kind, size, cmd):
     load = loadavg()
-    t1, _ = timed(cmd, 1)
-    t2, rss = timed(cmd, 2)
+    t1, _ = timed_on(cmd, 1)
+    t2, rss = timed_on(cmd, 2)
     print("| %s | %s | %.3f | %.3f | %.2f× | %.0f | %s |" % (kind, size, t1, t2, t1 / t2, rss / 1e6, load),
           flush=True)
 
