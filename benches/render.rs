@@ -12,7 +12,7 @@ use ctrecon::dicom::{ReadLimits, read_upload};
 use ctrecon::recon::control::unattended;
 use ctrecon::render::{
     Camera, Clip, Preset, Scene, Shading, SsdOptions, Surface, VrOptions, surface_render,
-    volume_render,
+    volume_render, volume_render_frames,
 };
 use ctrecon::series::AssemblyOptions;
 use ctrecon::volume::{Frame, Volume};
@@ -129,18 +129,19 @@ fn bench(c: &mut Criterion) {
     g.bench_function("vr_bone_rotation_36x512x512", |b| {
         b.iter(|| {
             pool.install(|| {
-                (0..36)
+                let rays: Vec<_> = (0..36)
                     .map(|k| {
                         let cam = Camera {
                             azimuth_deg: 10.0 * k as f64,
                             ..Camera::default()
                         };
-                        let r = cam
-                            .rays(&vol.frame, vol.data.dim(), 512, 512, 4096)
-                            .expect("camera");
-                        volume_render(&scene, &r, &vr).expect("renders").rgb.len()
+                        cam.rays(&vol.frame, vol.data.dim(), 512, 512, 4096)
+                            .expect("camera")
                     })
-                    .sum::<usize>()
+                    .collect();
+                volume_render_frames(&scene, &rays, &vr)
+                    .expect("renders")
+                    .len()
             })
         })
     });

@@ -11,7 +11,7 @@ use super::run::RunError;
 use super::views::rgb::{encode_rgb_npy, file_info};
 use crate::error_code::{ErrorCode, Problem};
 use crate::render::{
-    DEFAULT_MAX_SIDE, RenderError, RgbImage, Scene, surface_render, volume_render,
+    DEFAULT_MAX_SIDE, RenderError, RgbImage, Scene, surface_render_frames, volume_render_frames,
 };
 use crate::storage::{BlobStore, JobId, ResultName};
 use crate::volume::Volume;
@@ -111,31 +111,32 @@ pub fn make_render_product(
     let fail = |e: RenderError| RunError::Failed(problem(index, &e));
     let scene = Scene::new(vol).map_err(fail)?;
     let [w, h] = spec.size();
-    let mut frames: Vec<RgbImage> = Vec::with_capacity(spec.frames());
-    let mut sides = Vec::with_capacity(spec.frames());
-    let mut first = None;
-    for k in 0..spec.frames() {
-        let rays = spec
-            .camera_of(k)
-            .rays(&vol.frame, vol.data.dim(), w, h, DEFAULT_MAX_SIDE)
-            .map_err(fail)?;
-        first.get_or_insert(rays);
-        sides.push(rays.screen_plane().sides_for(patient));
-        frames.push(
-            match spec {
-                RenderSpec::Volume(s) => volume_render(
-                    &scene,
-                    &rays,
-                    &RenderSpec::vr(s, units, mu_water).map_err(fail)?,
-                ),
-                RenderSpec::Surface(s) => {
-                    surface_render(&scene, &rays, &RenderSpec::ssd(s, units, mu_water))
-                }
-            }
-            .map_err(fail)?,
-        );
+    let rays = (0..spec.frames())
+        .map(|k| {
+            spec.camera_of(k)
+                .rays(&vol.frame, vol.data.dim(), w, h, DEFAULT_MAX_SIDE)
+        })
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(fail)?;
+    let sides: Vec<_> = rays
+        .iter()
+        .map(|r| r.screen_plane().sides_for(patient))
+        .collect();
+    // All frames at once: the threads go on to the next frame without waiting for the last rows of one.
+    let frames: Vec<RgbImage> = match spec {
+        RenderSpec::Volume(s) => volume_render_frames(
+            &scene,
+            &rays,
+            &RenderSpec::vr(s, units, mu_water).map_err(fail)?,
+        ),
+        RenderSpec::Surface(s) => {
+            surface_render_frames(&scene, &rays, &RenderSpec::ssd(s, units, mu_water))
+        }
     }
-    let rays = first.ok_or_else(|| RunError::Failed(Problem::internal()))?;
+    .map_err(fail)?;
+    let rays = rays
+        .first()
+        .ok_or_else(|| RunError::Failed(Problem::internal()))?;
     let encoded = encode_rgb_npy(&frames);
     let file = file_info(&encoded);
     store

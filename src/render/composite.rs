@@ -4,7 +4,7 @@ use serde::{Deserialize, Serialize};
 
 use super::bricks::{BrickMask, RayDir, Samples};
 use super::clip::Span;
-use super::image::{Shade, render_tiles};
+use super::image::{Shade, render_frames};
 use super::occupancy::Occupancy;
 use super::scene::Scene;
 use super::shading::Lighting;
@@ -57,7 +57,20 @@ pub fn volume_render(
     rays: &ViewRays,
     opts: &VrOptions,
 ) -> Result<RgbImage, RenderError> {
+    let mut frames = volume_render_frames(scene, std::slice::from_ref(rays), opts)?;
+    frames.pop().ok_or(RenderError::BadVolume)
+}
+
+/// [`volume_render`] for each of `rays` (pictures of one size, a turning sequence), rendered together: the
+/// volume's tables are prepared once, and the threads go on to the next picture without waiting for the last
+/// rows of the one before.
+pub fn volume_render_frames(
+    scene: &Scene<'_>,
+    rays: &[ViewRays],
+    opts: &VrOptions,
+) -> Result<Vec<RgbImage>, RenderError> {
     opts.validate()?;
+    let (width, height) = same_size(rays)?;
     let step = scene.step(opts.step_mm)?;
     let samples = Samples::new(step);
     let tf = &opts.transfer_function;
@@ -83,18 +96,33 @@ pub fn volume_render(
         },
         window,
     );
-    let shader = VrShader {
-        rays,
-        s: &scene.sampler,
-        clip: &opts.clip,
-        mask: &prepared.mask,
-        cells: prepared.cells.as_ref(),
-        lut,
-        samples,
-        lighting: Lighting::new(&opts.shading),
-        bg: opts.background.map(|c| c as f32),
-    };
-    Ok(render_tiles(rays.width, rays.height, &shader))
+    let shaders: Vec<VrShader<'_>> = rays
+        .iter()
+        .map(|rays| VrShader {
+            rays,
+            s: &scene.sampler,
+            clip: &opts.clip,
+            mask: &prepared.mask,
+            cells: prepared.cells.as_ref(),
+            lut: lut.clone(),
+            samples,
+            lighting: Lighting::new(&opts.shading),
+            bg: opts.background.map(|c| c as f32),
+        })
+        .collect();
+    Ok(render_frames(width, height, &shaders))
+}
+
+/// The common size of the pictures of `rays`.
+pub(crate) fn same_size(rays: &[ViewRays]) -> Result<(usize, usize), RenderError> {
+    let size = rays.first().map_or((0, 0), |r| (r.width, r.height));
+    if rays.iter().any(|r| (r.width, r.height) != size) {
+        return Err(RenderError::InvalidParameter {
+            name: "size",
+            reason: "the pictures of a sequence have one size".into(),
+        });
+    }
+    Ok(size)
 }
 
 /// What [`volume_render`] needs for each pixel.

@@ -39,94 +39,92 @@ pub(crate) trait Shade: Sync {
     fn shade(&self, scratch: &mut Self::Scratch, row: usize, col: usize) -> ([f32; 3], f32);
 }
 
-/// Render `width × height` pixels of `shader` in parallel over tiles; each tile gets one scratch for its pixels
-/// to reuse, and turns its own pixels into bytes, so what is left in one thread at the end is copying rows.
+/// Render one `width × height` picture for each of `shaders`, in parallel over the bands of rows of all the
+/// pictures at once, so that no picture of a sequence waits for the last band of the one before. Each band is
+/// rendered tile by tile ([`TILE`] columns wide, for rays that stay close together) with one scratch for its
+/// pixels to reuse, straight into the picture's bytes and depths.
 ///
-/// On x86-64 CPUs with AVX2, FMA and BMI2 the tile loop, with [`Shade::shade`] inlined into it, is compiled for
+/// On x86-64 CPUs with AVX2, FMA and BMI2 the band loop, with [`Shade::shade`] inlined into it, is compiled for
 /// them: the same operations in the same order (Rust never fuses a multiply and an add by itself), so the
 /// pictures are equal bit for bit, in fewer instructions (three-operand forms, shifts by a register without
 /// flags).
-pub(crate) fn render_tiles(width: usize, height: usize, shader: &impl Shade) -> RgbImage {
-    let (tw, th) = (width.div_ceil(TILE), height.div_ceil(TILE));
+pub(crate) fn render_frames<S: Shade>(width: usize, height: usize, shaders: &[S]) -> Vec<RgbImage> {
     let wide = wide_tiles();
-    let tiles: Vec<Tile> = (0..tw * th)
-        .into_par_iter()
-        .map(|t| {
-            let (r0, c0) = ((t / tw) * TILE, (t % tw) * TILE);
-            let rows = r0..(r0 + TILE).min(height);
-            let cols = c0..(c0 + TILE).min(width);
-            #[cfg(target_arch = "x86_64")]
-            #[allow(unsafe_code)]
-            if wide {
-                // SAFETY: `wide_tiles` found the features this function is compiled for.
-                return unsafe { fill_tile_wide(shader, rows, cols) };
-            }
-            let _ = wide;
-            fill_tile(shader, rows, cols)
+    // Bands of up to TILE rows, at least four per thread for one picture.
+    let band = (height / (4 * rayon::current_num_threads()).max(1)).clamp(1, TILE);
+    let mut frames: Vec<RgbImage> = shaders
+        .iter()
+        .map(|_| RgbImage {
+            width,
+            height,
+            rgb: vec![0u8; 3 * width * height],
+            depth_mm: vec![f32::NAN; width * height],
         })
         .collect();
-    let mut rgb = vec![0u8; 3 * width * height];
-    let mut depth_mm = vec![f32::NAN; width * height];
-    for (t, (px, d)) in tiles.iter().enumerate() {
-        let (r0, c0) = ((t / tw) * TILE, (t % tw) * TILE);
-        let cols = (c0 + TILE).min(width) - c0;
-        for (k, (px, d)) in px
-            .chunks_exact(3 * cols)
-            .zip(d.chunks_exact(cols))
-            .enumerate()
-        {
-            let o = (r0 + k) * width + c0;
-            rgb[3 * o..3 * (o + cols)].copy_from_slice(px);
-            depth_mm[o..o + cols].copy_from_slice(d);
+    if width == 0 || height == 0 {
+        return frames;
+    }
+    let mut work = Vec::new();
+    for (shader, f) in shaders.iter().zip(frames.iter_mut()) {
+        let bands = f
+            .rgb
+            .chunks_mut(3 * width * band)
+            .zip(f.depth_mm.chunks_mut(width * band));
+        for (k, (rgb, depth)) in bands.enumerate() {
+            work.push((shader, k * band, rgb, depth));
         }
     }
-    RgbImage {
-        width,
-        height,
-        rgb,
-        depth_mm,
-    }
+    work.into_par_iter().for_each(|(shader, r0, rgb, depth)| {
+        #[cfg(target_arch = "x86_64")]
+        #[allow(unsafe_code)]
+        if wide {
+            // SAFETY: `wide_tiles` found the features this function is compiled for.
+            return unsafe { fill_band_wide(shader, r0, width, rgb, depth) };
+        }
+        let _ = wide;
+        fill_band(shader, r0, width, rgb, depth)
+    });
+    frames
 }
 
-/// A tile's bytes and depths, row by row.
-type Tile = (Vec<u8>, Vec<f32>);
-
-/// The pixels `rows × cols` of one tile.
+/// The pixels of the rows from `r0` whose bytes and depths are `rgb` and `depth` (`width` pixels a row).
 #[inline(always)]
-fn fill_tile(
-    shader: &impl Shade,
-    rows: std::ops::Range<usize>,
-    cols: std::ops::Range<usize>,
-) -> Tile {
+fn fill_band(shader: &impl Shade, r0: usize, width: usize, rgb: &mut [u8], depth: &mut [f32]) {
     let mut scratch = shader.scratch();
-    let n = rows.len() * cols.len();
-    let (mut rgb, mut depth) = (Vec::with_capacity(3 * n), Vec::with_capacity(n));
-    for r in rows {
-        for c in cols.clone() {
-            let (px, d) = shader.shade(&mut scratch, r, c);
-            depth.push(d);
-            rgb.extend(px.map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8));
+    let rows = depth.len() / width.max(1);
+    for c0 in (0..width).step_by(TILE) {
+        let cols = c0..(c0 + TILE).min(width);
+        for dr in 0..rows {
+            for c in cols.clone() {
+                let (px, d) = shader.shade(&mut scratch, r0 + dr, c);
+                let o = dr * width + c;
+                depth[o] = d;
+                for (b, v) in rgb[3 * o..3 * o + 3].iter_mut().zip(px) {
+                    *b = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
+                }
+            }
         }
     }
-    (rgb, depth)
 }
 
-/// [`fill_tile`] compiled for AVX2, FMA and BMI2.
+/// [`fill_band`] compiled for AVX2, FMA and BMI2.
 ///
 /// # Safety
 /// The CPU must have those features ([`wide_tiles`]).
 #[cfg(target_arch = "x86_64")]
-#[allow(unsafe_code)] // Kernel entry compiled for more CPU features; the tests compare it with `fill_tile`.
+#[allow(unsafe_code)] // Kernel entry compiled for more CPU features; the tests compare it with `fill_band`.
 #[target_feature(enable = "avx2,fma,bmi1,bmi2,lzcnt,popcnt")]
-unsafe fn fill_tile_wide(
+unsafe fn fill_band_wide(
     shader: &impl Shade,
-    rows: std::ops::Range<usize>,
-    cols: std::ops::Range<usize>,
-) -> Tile {
-    fill_tile(shader, rows, cols)
+    r0: usize,
+    width: usize,
+    rgb: &mut [u8],
+    depth: &mut [f32],
+) {
+    fill_band(shader, r0, width, rgb, depth)
 }
 
-/// Whether tiles take [`fill_tile_wide`].
+/// Whether bands take [`fill_band_wide`].
 fn wide_tiles() -> bool {
     #[cfg(test)]
     if PORTABLE_ONLY.load(std::sync::atomic::Ordering::Relaxed) {
@@ -216,41 +214,52 @@ pub fn encode_rgb_apng(
 mod tests {
     use super::*;
     use crate::render::{
-        Camera, Clip, ClipPlane, Preset, Scene, Shading, SsdOptions, Surface, VrOptions,
-        surface_render, volume_render,
+        Camera, Clip, ClipPlane, Preset, RenderError, Scene, Shading, SsdOptions, Surface,
+        VrOptions, surface_render, surface_render_frames, volume_render, volume_render_frames,
     };
     use crate::volume::{Frame, Volume};
     use ndarray::Array3;
     use std::sync::atomic::Ordering;
 
-    /// A pixel's colour and depth made from its place, to see where each lands.
-    struct Places;
+    /// A pixel's colour and depth made from its place and picture, to see where each lands.
+    struct Places(usize);
     impl Shade for Places {
         type Scratch = ();
         fn scratch(&self) {}
         #[inline(always)]
         fn shade(&self, _: &mut (), r: usize, c: usize) -> ([f32; 3], f32) {
-            let v = (r * 1000 + c) as f32;
-            ([r as f32 / 255.0, c as f32 / 255.0, 2.0], v)
+            let v = (self.0 * 1_000_000 + r * 1000 + c) as f32;
+            let (r, c) = ((r % 256) as f32, (c % 256) as f32);
+            ([r / 255.0, c / 255.0, (100 * self.0) as f32 / 255.0], v)
         }
     }
 
     #[test]
-    fn every_pixel_of_every_tile_lands_in_its_place() {
-        for (w, h) in [(70, 45), (32, 32), (1, 97), (100, 1)] {
-            let img = render_tiles(w, h, &Places);
-            assert_eq!((img.width, img.height, img.rgb.len()), (w, h, 3 * w * h));
-            for r in 0..h {
-                for c in 0..w {
-                    assert_eq!(
-                        img.pixel(r, c),
-                        [r as u8, c as u8, 255],
-                        "{w}×{h} ({r}, {c})"
-                    );
-                    assert_eq!(img.depth(r, c), (r * 1000 + c) as f32);
+    fn every_pixel_of_every_picture_lands_in_its_place() {
+        let shaders = [Places(0), Places(1), Places(2)];
+        for (w, h) in [(70, 45), (32, 32), (1, 97), (100, 1), (517, 300)] {
+            let frames = render_frames(w, h, &shaders);
+            assert_eq!(frames.len(), 3);
+            for (k, img) in frames.iter().enumerate() {
+                assert_eq!((img.width, img.height, img.rgb.len()), (w, h, 3 * w * h));
+                for r in 0..h {
+                    for c in 0..w {
+                        assert_eq!(
+                            img.pixel(r, c),
+                            [r as u8, c as u8, 100 * k as u8],
+                            "{w}×{h} picture {k} ({r}, {c})"
+                        );
+                        assert_eq!(img.depth(r, c), (k * 1_000_000 + r * 1000 + c) as f32);
+                    }
                 }
             }
         }
+        assert!(
+            render_frames(0, 5, &shaders)
+                .iter()
+                .all(|f| f.rgb.is_empty())
+        );
+        assert!(render_frames::<Places>(8, 8, &[]).is_empty());
     }
 
     #[test]
@@ -347,5 +356,82 @@ mod tests {
         if !wide_tiles() {
             eprintln!("NOTE: this CPU has no AVX2/FMA/BMI2: both loops were the portable one");
         }
+    }
+
+    #[test]
+    fn a_sequence_rendered_together_equals_its_frames_rendered_one_by_one() {
+        let vol = Volume {
+            data: Array3::from_shape_fn((30, 34, 38), |(k, j, i)| {
+                let r = ((k as f32 - 15.0).powi(2)
+                    + (j as f32 - 17.0).powi(2)
+                    + (i as f32 - 19.0).powi(2))
+                .sqrt();
+                if r < 8.0 {
+                    900.0
+                } else if r < 13.0 {
+                    40.0
+                } else {
+                    -1000.0
+                }
+            }),
+            frame: Frame {
+                spacing_mm: [1.0, 0.9, 0.9],
+                origin_mm: [0.0; 3],
+                direction: Frame::AXIS_ALIGNED,
+            },
+        };
+        let scene = Scene::new(&vol).unwrap();
+        let rays: Vec<_> = (0..5)
+            .map(|k| {
+                Camera {
+                    azimuth_deg: 72.0 * k as f64,
+                    ..Camera::default()
+                }
+                .rays(&vol.frame, vol.data.dim(), 45, 37, 4096)
+                .unwrap()
+            })
+            .collect();
+        let vr = VrOptions {
+            transfer_function: Preset::Bone.transfer_function(),
+            shading: Shading::default(),
+            clip: Clip::default(),
+            background: [0.0; 3],
+            step_mm: None,
+        };
+        let ssd = SsdOptions {
+            surfaces: vec![Surface {
+                iso: 300.0,
+                color: [0.95, 0.92, 0.84],
+                opacity: 1.0,
+            }],
+            shading: Shading::default(),
+            depth_cue: 0.4,
+            clip: Clip::default(),
+            background: [0.0; 3],
+            step_mm: None,
+        };
+        let together = volume_render_frames(&scene, &rays, &vr).unwrap();
+        let surfaces = surface_render_frames(&scene, &rays, &ssd).unwrap();
+        assert_eq!((together.len(), surfaces.len()), (5, 5));
+        for (k, r) in rays.iter().enumerate() {
+            let one = volume_render(&scene, r, &vr).unwrap();
+            assert_eq!(one.rgb, together[k].rgb, "VR frame {k}");
+            assert!(
+                one.rgb.iter().any(|&b| b > 0),
+                "VR frame {k} shows the ball"
+            );
+            let one = surface_render(&scene, r, &ssd).unwrap();
+            assert_eq!(one.rgb, surfaces[k].rgb, "SSD frame {k}");
+        }
+        // Frames of different sizes are not one sequence.
+        let other = Camera::default()
+            .rays(&vol.frame, vol.data.dim(), 20, 37, 4096)
+            .unwrap();
+        let mixed = [rays[0], other];
+        assert!(matches!(
+            volume_render_frames(&scene, &mixed, &vr),
+            Err(RenderError::InvalidParameter { name: "size", .. })
+        ));
+        assert!(volume_render_frames(&scene, &[], &vr).unwrap().is_empty());
     }
 }

@@ -41,12 +41,12 @@ pub use camera::{
     Camera, DEFAULT_MAX_SIDE, NamedView, Projection, ViewRays, inside_box, volume_bounds,
 };
 pub use clip::{Clip, ClipBox, ClipPlane, Keep};
-pub use composite::{VrOptions, volume_render};
+pub use composite::{VrOptions, volume_render, volume_render_frames};
 pub use image::{RgbImage, encode_rgb_apng, encode_rgb_png};
 pub use sampler::Sampler;
 pub use scene::Scene;
 pub use shading::Shading;
-pub use surface::{SsdOptions, Surface, surface_render};
+pub use surface::{SsdOptions, Surface, surface_render, surface_render_frames};
 pub use transfer::{ControlPoint, Preset, TransferFunction};
 
 /// A render request that cannot be honoured, with a stable code for the API catalogue.

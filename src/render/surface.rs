@@ -10,7 +10,8 @@ use serde::{Deserialize, Serialize};
 
 use super::bricks::{BrickMask, RayDir, Samples};
 use super::clip::Span;
-use super::image::{Shade, render_tiles};
+use super::composite::same_size;
+use super::image::{Shade, render_frames};
 use super::occupancy::Occupancy;
 use super::scene::Scene;
 use super::{Clip, RenderError, RgbImage, Sampler, Shading, V3, ViewRays, dot};
@@ -95,7 +96,19 @@ pub fn surface_render(
     rays: &ViewRays,
     opts: &SsdOptions,
 ) -> Result<RgbImage, RenderError> {
+    let mut frames = surface_render_frames(scene, std::slice::from_ref(rays), opts)?;
+    frames.pop().ok_or(RenderError::BadVolume)
+}
+
+/// [`surface_render`] for each of `rays` (pictures of one size, a turning sequence), rendered together as
+/// [`volume_render_frames`](super::volume_render_frames) does.
+pub fn surface_render_frames(
+    scene: &Scene<'_>,
+    rays: &[ViewRays],
+    opts: &SsdOptions,
+) -> Result<Vec<RgbImage>, RenderError> {
     opts.validate()?;
+    let (width, height) = same_size(rays)?;
     let step = scene.step(opts.step_mm)?;
     let samples = Samples::new(step);
     let isos: Vec<f32> = opts.surfaces.iter().map(|s| s.iso as f32).collect();
@@ -110,19 +123,22 @@ pub fn surface_render(
         },
         isos.iter().map(|&iso| (iso, iso)).collect(),
     );
-    let shader = SsdShader {
-        rays,
-        s: &scene.sampler,
-        opts,
-        mask: &prepared.mask,
-        cells: prepared.cells.as_ref(),
-        samples,
-        isos,
-        bg: opts.background.map(|c| c as f32),
-        centre: scene.centre,
-        radius: scene.radius,
-    };
-    Ok(render_tiles(rays.width, rays.height, &shader))
+    let shaders: Vec<SsdShader<'_>> = rays
+        .iter()
+        .map(|rays| SsdShader {
+            rays,
+            s: &scene.sampler,
+            opts,
+            mask: &prepared.mask,
+            cells: prepared.cells.as_ref(),
+            samples,
+            isos: isos.clone(),
+            bg: opts.background.map(|c| c as f32),
+            centre: scene.centre,
+            radius: scene.radius,
+        })
+        .collect();
+    Ok(render_frames(width, height, &shaders))
 }
 
 /// What [`surface_render`] needs for each pixel.
