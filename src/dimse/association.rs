@@ -5,13 +5,14 @@
 use std::sync::Arc;
 
 use dicom_ul::association::AsyncServerAssociation;
-use dicom_ul::pdu::{AbortRQServiceProviderReason, AbortRQSource, PDataValue, PDataValueType, Pdu};
+use dicom_ul::pdu::{AbortRQServiceProviderReason, AbortRQSource, Pdu};
 use tokio::net::TcpStream;
 
 use super::command::{self, Command, status};
 use super::inbox::{InstanceSink, SinkError};
 use super::query::{self, Retrieval};
 use super::tracker::{Arrival, Tracker};
+use super::wire::{self, Incoming, Pdv};
 use crate::dicom::{header_of, part10_prefix, read_header};
 
 /// What this association may do, and the limits it runs under.
@@ -59,46 +60,47 @@ pub async fn serve(
     let mut command_bytes: Vec<u8> = Vec::new();
     let mut pending: Option<Pending> = None;
     let mut stored = 0usize;
+    let max_pdu = assoc.acceptor_max_pdu_length();
     loop {
-        let pdu = match tokio::time::timeout(grant.dimse_timeout, assoc.receive()).await {
-            Ok(Ok(pdu)) => pdu,
-            Ok(Err(e)) => {
-                // A PDU that cannot be read (malformed, or over the negotiated maximum length) ends the
-                // association with an A-ABORT (PS3.8 §9.3.8); a connection already gone takes none.
-                let _ = assoc.abort().await;
-                return Err(AssociationEnd::Network(e.to_string()));
-            }
-            Err(_) => {
-                let _ = assoc.abort().await;
-                return Err(AssociationEnd::Timeout(grant.dimse_timeout));
-            }
-        };
-        match pdu {
-            Pdu::PData { data } => {
-                for value in data {
-                    let step = match value.value_type {
-                        PDataValueType::Command => {
-                            on_command(
-                                &mut assoc,
-                                &grant,
-                                &tracker,
-                                value,
-                                &mut command_bytes,
-                                &mut pending,
-                            )
-                            .await
-                        }
-                        PDataValueType::Data => {
-                            on_data(
-                                &mut assoc,
-                                &grant,
-                                &tracker,
-                                retrieval.as_ref(),
-                                value,
-                                &mut pending,
-                            )
-                            .await
-                        }
+        let pdu =
+            match tokio::time::timeout(grant.dimse_timeout, wire::receive(&mut assoc, max_pdu))
+                .await
+            {
+                Ok(Ok(pdu)) => pdu,
+                Ok(Err(e)) => {
+                    // A PDU that cannot be read (malformed, or over the negotiated maximum length) ends the
+                    // association with an A-ABORT (PS3.8 §9.3.8); a connection already gone takes none.
+                    let _ = assoc.abort().await;
+                    return Err(AssociationEnd::Network(e.to_string()));
+                }
+                Err(_) => {
+                    let _ = assoc.abort().await;
+                    return Err(AssociationEnd::Timeout(grant.dimse_timeout));
+                }
+            };
+        let pdu = match pdu {
+            Incoming::Data(data) => {
+                for value in data.values() {
+                    let step = if value.command {
+                        on_command(
+                            &mut assoc,
+                            &grant,
+                            &tracker,
+                            value,
+                            &mut command_bytes,
+                            &mut pending,
+                        )
+                        .await
+                    } else {
+                        on_data(
+                            &mut assoc,
+                            &grant,
+                            &tracker,
+                            retrieval.as_ref(),
+                            value,
+                            &mut pending,
+                        )
+                        .await
                     };
                     match step {
                         Ok(true) => stored += 1,
@@ -115,7 +117,11 @@ pub async fn serve(
                         }
                     }
                 }
+                continue;
             }
+            Incoming::Other(pdu) => pdu,
+        };
+        match pdu {
             Pdu::ReleaseRQ => {
                 let _ = assoc.send(&Pdu::ReleaseRP).await;
                 return Ok(stored);
@@ -154,7 +160,7 @@ async fn on_command(
     assoc: &mut AsyncServerAssociation<TcpStream>,
     grant: &Grant,
     tracker: &Tracker,
-    value: PDataValue,
+    value: Pdv<'_>,
     buf: &mut Vec<u8>,
     pending: &mut Option<Pending>,
 ) -> Result<bool, AssociationEnd> {
@@ -166,8 +172,8 @@ async fn on_command(
     if buf.len() + value.data.len() > command::MAX_COMMAND_BYTES {
         return Err(AssociationEnd::Protocol("command set too long".into()));
     }
-    buf.extend_from_slice(&value.data);
-    if !value.is_last {
+    buf.extend_from_slice(value.data);
+    if !value.last {
         return Ok(false);
     }
     let cmd = command::parse(buf).map_err(|e| AssociationEnd::Protocol(e.to_string()))?;
@@ -175,14 +181,14 @@ async fn on_command(
     let context = assoc
         .presentation_contexts()
         .iter()
-        .find(|pc| pc.id == value.presentation_context_id)
+        .find(|pc| pc.id == value.context_id)
         .cloned()
         .ok_or_else(|| AssociationEnd::Protocol("unknown presentation context".into()))?;
     match cmd.field {
         command::C_ECHO_RQ => {
             reply(
                 assoc,
-                value.presentation_context_id,
+                value.context_id,
                 command::echo_response(cmd.message_id, status::SUCCESS),
             )
             .await?;
@@ -229,7 +235,7 @@ async fn on_command(
             };
             *pending = Some(Pending {
                 command: cmd,
-                context_id: value.presentation_context_id,
+                context_id: value.context_id,
                 sink,
                 refusal,
                 identifier: None,
@@ -238,7 +244,7 @@ async fn on_command(
         command::C_FIND_RQ | command::C_MOVE_RQ if cmd.has_data_set => {
             *pending = Some(Pending {
                 command: cmd,
-                context_id: value.presentation_context_id,
+                context_id: value.context_id,
                 sink: None,
                 refusal: None,
                 identifier: Some(Vec::new()),
@@ -250,7 +256,7 @@ async fn on_command(
         _ => {
             reply(
                 assoc,
-                value.presentation_context_id,
+                value.context_id,
                 command::unrecognized_response(&cmd),
             )
             .await?;
@@ -265,7 +271,7 @@ async fn on_data(
     grant: &Grant,
     tracker: &Arc<Tracker>,
     retrieval: Option<&Retrieval>,
-    value: PDataValue,
+    value: Pdv<'_>,
     pending: &mut Option<Pending>,
 ) -> Result<bool, AssociationEnd> {
     let Some(p) = pending.as_mut() else {
@@ -273,7 +279,7 @@ async fn on_data(
             "a data set fragment arrived without a C-STORE request".into(),
         ));
     };
-    if p.context_id != value.presentation_context_id {
+    if p.context_id != value.context_id {
         return Err(AssociationEnd::Protocol(
             "a data set fragment on another presentation context".into(),
         ));
@@ -282,8 +288,8 @@ async fn on_data(
         if buf.len() + value.data.len() > crate::dicom::MAX_IDENTIFIER_BYTES {
             return Err(AssociationEnd::Protocol("identifier too long".into()));
         }
-        buf.extend_from_slice(&value.data);
-        if !value.is_last {
+        buf.extend_from_slice(value.data);
+        if !value.last {
             return Ok(false);
         }
         let Some(Pending {
@@ -299,7 +305,7 @@ async fn on_data(
         return Ok(false);
     }
     if let Some(sink) = p.sink.as_mut()
-        && let Err(e) = sink.write(&value.data).await
+        && let Err(e) = sink.write(value.data).await
     {
         p.sink = None;
         p.refusal = Some(match e {
@@ -313,7 +319,7 @@ async fn on_data(
             }
         });
     }
-    if !value.is_last {
+    if !value.last {
         return Ok(false);
     }
     let Some(Pending {

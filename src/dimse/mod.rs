@@ -27,6 +27,7 @@ pub mod query;
 pub mod scu;
 pub mod sender;
 pub mod tracker;
+mod wire;
 
 pub use crate::config::dicom::{NodeSettings, Peer};
 pub use feed::serve_node;
