@@ -618,17 +618,28 @@ async fn malformed_pdus_are_aborted_and_the_node_stays_up_with_nothing_kept() {
         let (got, _) = until_closed(&mut s).await;
         assert!(aborted_or_closed(&got), "{garbage:?} answered with {got:?}");
     }
-    // Inside an association: a P-DATA-TF whose value item claims more bytes than the PDU holds.
-    let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
-    let stream = assoc.inner_stream();
-    stream
-        .write_all(&[
+    // Inside an association: a P-DATA-TF whose value item claims more bytes than the PDU holds, and a
+    // P-DATA-TF and an A-ASSOCIATE-RQ that claim 1 GiB, over the negotiated maximum: aborted at once,
+    // without waiting for (or making room for) what they claim.
+    for pdu in [
+        vec![
             0x04, 0x00, 0x00, 0x00, 0x00, 0x0A, 0x00, 0x00, 0x03, 0xE8, 0x01, 0x03, 0, 0, 0, 0,
-        ])
-        .await
-        .unwrap();
-    let (got, _) = until_closed(stream).await;
-    assert!(aborted_or_closed(&got), "{got:?}");
+        ],
+        vec![
+            0x04, 0x00, 0x40, 0x00, 0x00, 0x00, 0x00, 0x00, 0x00, 0x10, 0x01, 0x00,
+        ],
+        vec![0x01, 0x00, 0x40, 0x00, 0x00, 0x00, 0x00, 0x01, 0x00, 0x00],
+    ] {
+        let mut assoc = associate(&node, &[(CT, EXPLICIT_LE)]).await;
+        let stream = assoc.inner_stream();
+        stream.write_all(&pdu).await.unwrap();
+        let (got, took) = until_closed(stream).await;
+        assert!(aborted_or_closed(&got), "{pdu:?} answered with {got:?}");
+        assert!(
+            took < Duration::from_secs(5),
+            "{pdu:?} closed after {took:?}"
+        );
+    }
     still_up_and_nothing_kept(&node, dir.path()).await;
 }
 

@@ -107,32 +107,29 @@ pub async fn receive(
     loop {
         if buf.len() >= HEADER {
             let length = u32::from_be_bytes([buf[2], buf[3], buf[4], buf[5]]);
-            if buf[0] == P_DATA_TF {
-                if length > max_pdu {
-                    return Err(WireError::TooLong {
-                        length,
-                        max: max_pdu,
-                    });
-                }
-                let whole = HEADER + length as usize;
-                if buf.len() >= whole {
+            if length > max_pdu {
+                return Err(WireError::TooLong {
+                    length,
+                    max: max_pdu,
+                });
+            }
+            let whole = HEADER + length as usize;
+            if buf.len() >= whole {
+                if buf[0] == P_DATA_TF {
                     return Ok(Incoming::Data(PData::parse(buf.split_to(whole).freeze())?));
                 }
-                // Room for the rest of this PDU, so that it arrives in as few reads as the network allows.
-                buf.reserve(whole - buf.len());
-            } else {
-                let mut cursor = std::io::Cursor::new(&buf[..]);
-                let parsed = read_pdu(&mut cursor, max_pdu, true)
-                    .map_err(|e| WireError::Other(e.to_string()))?;
-                if let Some(pdu) = parsed {
-                    let used = cursor.position() as usize;
-                    buf.advance(used);
-                    return Ok(Incoming::Other(pdu));
-                }
+                let mut cursor = std::io::Cursor::new(&buf[..whole]);
+                let pdu = read_pdu(&mut cursor, max_pdu, true)
+                    .map_err(|e| WireError::Other(e.to_string()))?
+                    .ok_or(WireError::Malformed("a PDU shorter than its length"))?;
+                buf.advance(whole);
+                return Ok(Incoming::Other(pdu));
             }
-        }
-        if buf.capacity() - buf.len() < HEADER {
-            buf.reserve(HEADER.max(4096));
+            // Room for the rest of this PDU (at most the negotiated maximum), so that it arrives in as few
+            // reads as the network allows.
+            buf.reserve(whole - buf.len());
+        } else {
+            buf.reserve(HEADER - buf.len());
         }
         if socket.read_buf(buf).await? == 0 {
             return Err(WireError::Closed);
