@@ -88,7 +88,8 @@ pub enum Incoming {
 pub enum WireError {
     #[error("the connection closed")]
     Closed,
-    #[error("network: {0}")]
+    /// Shown inside [`AssociationEnd::Network`](super::association::AssociationEnd), which names it.
+    #[error("{0}")]
     Io(#[from] std::io::Error),
     #[error("a PDU of {length} bytes, over the negotiated maximum of {max}")]
     TooLong { length: u32, max: u32 },
