@@ -618,3 +618,42 @@ async fn retention_removes_what_aged_out_at_start_and_periodically_but_never_an_
     wait_gone(&server, &format!("/v1/datasets/{b}"), 30).await;
     wait_storage(&server, "datasets", 0, 10).await;
 }
+
+/// Each job and each request's computation runs on a pool of its own. On one shared pool, a thread waiting
+/// for a stolen part of a simulation could take up a job started meanwhile and run it whole before
+/// returning: the simulation then waited for the job (a request timeout after 10 min).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_simulation_never_waits_for_a_job_started_beside_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut server = Server::start(dir.path(), |_| {}).await;
+    let input = server.simulate(cone_geometry(120, 64)).await;
+    // Runs for hours unless canceled.
+    let long = json!({"input": input, "algorithm": {"name": "sirt", "iterations": 10000},
+                      "grid": {"nx": 96, "ny": 96, "nz": 96, "spacing_mm": [0.5, 0.5, 0.5]}});
+    for round in 0..10 {
+        let (job, simulated) = tokio::join!(
+            server.submit(&long),
+            tokio::time::timeout(
+                Duration::from_secs(60),
+                server.simulate(cone_geometry(360, 128))
+            )
+        );
+        assert!(
+            simulated.is_ok(),
+            "round {round}: the simulation waited for the job"
+        );
+        // The job ran beside the simulation.
+        server
+            .wait_until(&job, 120, |j| j["status"] != "queued")
+            .await;
+        let (status, _) = server
+            .post_json(&format!("/v1/jobs/{job}/cancel"), &json!({}))
+            .await;
+        assert_eq!(status, 202);
+        assert_eq!(
+            server.wait_until(&job, 120, terminal).await["status"],
+            "canceled"
+        );
+    }
+    server.shut_down().await;
+}

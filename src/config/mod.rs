@@ -5,7 +5,7 @@
 //! |---|---|---|
 //! | `bind` | `CTRECON_BIND` | `127.0.0.1:8080` |
 //! | `data_dir` | `CTRECON_DATA_DIR` | `./data` |
-//! | `worker_threads` | `CTRECON_WORKER_THREADS` | 0 = one per CPU |
+//! | `worker_threads` | `CTRECON_WORKER_THREADS` | 0 = one per CPU; threads of each running job's (and request computation's) pool |
 //! | `max_concurrent_jobs` | `CTRECON_MAX_CONCURRENT_JOBS` | 2; 0 = API only (PostgreSQL and `ctrecon worker` processes) |
 //! | `memory_budget_bytes` | `CTRECON_MEMORY_BUDGET_BYTES` | 4 GiB, shared by all running jobs |
 //! | `max_upload_bytes` | `CTRECON_MAX_UPLOAD_BYTES` | 2 GiB per uploaded `.npy` |

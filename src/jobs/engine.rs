@@ -1,8 +1,9 @@
-//! The engine: a dedicated rayon pool that does all computation, a scheduler that starts queued jobs
+//! The engine: rayon pools that do all computation (one per running job or request computation,
+//! [`pools`]), a scheduler that starts queued jobs
 //! within the concurrency limit and the memory budget, cancellation, progress (broadcast live, persisted
 //! at a bounded rate), and crash recovery at start.
 //!
-//! The async runtime never computes: work goes to the pool and its result comes back through a oneshot
+//! The async runtime never computes: work goes to a pool and its result comes back through a oneshot
 //! channel. Job state lives in the database; the engine keeps in memory only the cancel flags and memory
 //! reservations of the jobs it is running.
 //!
@@ -14,6 +15,7 @@ mod cancel;
 mod dispatch;
 mod leases;
 mod memory;
+mod pools;
 mod progress;
 mod pulled;
 mod relay;
@@ -97,7 +99,10 @@ struct Running {
 struct Inner {
     db: Database,
     store: BlobStore,
-    pool: rayon::ThreadPool,
+    /// One pool per running job.
+    job_pools: pools::Pools,
+    /// One pool per computation of a request ([`Engine::compute`]), [`COMPUTE_SLOTS`] at most at once.
+    compute_pools: pools::Pools,
     config: EngineConfig,
     running: Mutex<HashMap<JobId, Running>>,
     wake: Notify,
@@ -123,6 +128,9 @@ enum Work {
     Volume(VolumeJobRequest, VolumeInput),
 }
 
+/// Computations of requests (simulations, renders, assemblies, exports) that run at once; more wait.
+pub const COMPUTE_SLOTS: usize = 4;
+
 /// Handle to the engine; cheap to clone.
 #[derive(Clone)]
 pub struct Engine {
@@ -137,11 +145,6 @@ impl Engine {
         store: BlobStore,
         config: EngineConfig,
     ) -> Result<Self, StartError> {
-        let pool = rayon::ThreadPoolBuilder::new()
-            .num_threads(config.worker_threads)
-            .thread_name(|i| format!("ctrecon-worker-{i}"))
-            .build()
-            .map_err(|e| StartError::Pool(e.to_string()))?;
         let (requeued, failed) = db.recover(config.max_attempts).await?;
         if requeued + failed > 0 {
             tracing::warn!(
@@ -162,7 +165,12 @@ impl Engine {
             inner: Arc::new(Inner {
                 db,
                 store,
-                pool,
+                job_pools: pools::Pools::new(
+                    "job",
+                    config.worker_threads,
+                    config.max_concurrent_jobs,
+                ),
+                compute_pools: pools::Pools::new("compute", config.worker_threads, COMPUTE_SLOTS),
                 config,
                 running: Mutex::new(HashMap::new()),
                 wake: Notify::new(),
@@ -253,7 +261,8 @@ impl Engine {
         let _ = self.inner.events.send(event);
     }
 
-    /// Run `f` on the worker pool and await its result; a panic becomes an internal error.
+    /// Run `f` on a pool of its own (once one of the [`COMPUTE_SLOTS`] is free) and await its result; a
+    /// panic becomes an internal error.
     pub async fn compute<T, F>(&self, f: F) -> Result<T, Problem>
     where
         T: Send + 'static,
@@ -261,10 +270,17 @@ impl Engine {
     {
         let (tx, rx) = oneshot::channel();
         let span = tracing::Span::current();
-        self.inner.pool.spawn(move || {
-            let _g = span.enter();
-            let _ = tx.send(std::panic::catch_unwind(AssertUnwindSafe(f)));
-        });
+        let slot = self.inner.compute_pools.slot().await;
+        self.inner
+            .compute_pools
+            .spawn(slot, move || {
+                let _g = span.enter();
+                let _ = tx.send(std::panic::catch_unwind(AssertUnwindSafe(f)));
+            })
+            .map_err(|e| {
+                tracing::error!(error = %e, "a computation could not start");
+                Problem::internal()
+            })?;
         match rx.await {
             Ok(Ok(r)) => r,
             _ => {

@@ -230,7 +230,7 @@ impl Engine {
         let mu_water = self.inner.config.mu_water_per_mm;
         let (tx, mut rx) = oneshot::channel();
         let span = tracing::Span::current();
-        self.inner.pool.spawn(move || {
+        let spawned = self.inner.job_pools.spawn(None, move || {
             let _g = span.enter();
             let after_pull = Scaled {
                 inner: &sink,
@@ -260,6 +260,10 @@ impl Engine {
             }));
             let _ = tx.send(r);
         });
+        if let Err(e) = spawned {
+            tracing::error!(error = %e, "a job could not start");
+            return failed(Problem::internal());
+        }
         let mut tick = tokio::time::interval(self.inner.config.progress_interval);
         let mut heartbeat = tokio::time::interval(heartbeat_interval(self.inner.config.lease));
         let outcome = loop {
