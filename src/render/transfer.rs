@@ -180,7 +180,6 @@ impl TransferFunction {
 
 /// A lookup table of a transfer function for one sample step: premultiplied-free colour and step opacity on
 /// `LUT_SIZE` values between the first and last control points.
-#[derive(Clone)]
 pub(crate) struct Lut {
     lo: f32,
     scale: f32,
