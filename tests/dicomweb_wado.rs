@@ -120,9 +120,9 @@ async fn compressed_instances_are_sent_decoded_in_explicit_vr_unless_the_stored_
         });
     }
     // The pydicom corpus: JPEG 2000 (a CT, and a YCbCr colour Secondary Capture that decodes to RGB),
-    // JPEG baseline of YCbCr colour, colour RLE, JPEG-LS near-lossless, and JPEG extended 12-bit, which
-    // the reader does not decode (the last). Each gets UIDs of its own (DCMTK rewrites the header, the
-    // pixel data is left as it is).
+    // JPEG baseline of YCbCr colour, colour RLE, JPEG-LS near-lossless, JPEG extended 12-bit, and the same
+    // 12-bit stream turned progressive (SOF2), which no decoder of the build reads (the last). Each gets
+    // UIDs of its own (DCMTK rewrites the header, the pixel data is left as it is).
     for (k, name) in [
         "693_J2KI.dcm",
         "GDCMJ2K_TextGBR.dcm",
@@ -130,12 +130,23 @@ async fn compressed_instances_are_sent_decoded_in_explicit_vr_unless_the_stored_
         "SC_rgb_rle.dcm",
         "JPEGLSNearLossless_16.dcm",
         "JPEG-lossy.dcm",
+        "JPEG-lossy-progressive",
     ]
     .iter()
     .enumerate()
     {
         let out = w(&format!("corpus-{k}.dcm"));
-        std::fs::copy(pydicom.join(name), &out).unwrap();
+        if *name == "JPEG-lossy-progressive" {
+            let mut b = std::fs::read(pydicom.join("JPEG-lossy.dcm")).unwrap();
+            let sof = b
+                .windows(5)
+                .position(|w| w == [0xFF, 0xC1, 0x00, 0x0B, 12])
+                .unwrap();
+            b[sof + 1] = 0xC2;
+            std::fs::write(&out, b).unwrap();
+        } else {
+            std::fs::copy(pydicom.join(name), &out).unwrap();
+        }
         let uid = |n: u32| format!("2.25.{}{n}", 1000 + k);
         dcmtk(
             "dcmodify",
@@ -189,7 +200,7 @@ async fn compressed_instances_are_sent_decoded_in_explicit_vr_unless_the_stored_
             p.remove(0)
         }
     };
-    // JPEG extended 12-bit is stored and sent as stored, and refused with 406 in explicit VR little
+    // A progressive 12-bit JPEG is stored and sent as stored, and refused with 406 in explicit VR little
     // endian, whose pixels would have to be decoded.
     let undecodable = cases.pop().unwrap();
     let h = ctrecon::dicom::header_of(&undecodable.name, &undecodable.stored).unwrap();
@@ -319,8 +330,8 @@ async fn compressed_instances_are_sent_decoded_in_explicit_vr_unless_the_stored_
             ))
         );
     }
-    // JPEG baseline and lossless (two), JPEG 2000 (two), JPEG-LS (two), RLE and deflate.
-    assert_eq!(syntaxes.len(), 9, "{syntaxes:?}");
+    // JPEG baseline, extended and lossless (two), JPEG 2000 (two), JPEG-LS (two), RLE and deflate.
+    assert_eq!(syntaxes.len(), 10, "{syntaxes:?}");
 }
 
 fn png_grey(bytes: &[u8]) -> (u32, u32, Vec<u8>) {
@@ -663,4 +674,112 @@ async fn a_series_sent_in_two_stow_requests_is_answered_at_once_and_assembled_on
     .await;
     assert_eq!(inst.as_array().unwrap().len(), 6);
     assert_eq!(value(&inst[0], "0020000E"), Some(series));
+}
+
+/// 12-bit JPEG Extended as DCMTK writes it from CT slices (`dcmcjpeg +ee`, which maps the signed 16-bit
+/// values to 12 bits under a new rescale) reads as DCMTK's own decoder (`dcmdjpeg`) decodes it, sample for
+/// sample, and its Hounsfield units are the original's within the 12-bit step and the compression's error:
+/// a synthetic series, and LIDC-IDRI-0001's first slices when present.
+#[test]
+fn twelve_bit_jpeg_extended_reads_as_dcmtk_decodes_it() {
+    if !dcmtk_present() {
+        return;
+    }
+    let work = tempfile::tempdir().unwrap();
+    let w = |name: &str| work.path().join(name).to_string_lossy().into_owned();
+    let (_, _, files) = synthetic(3, None, "DW-J12");
+    let mut sources: Vec<(String, Vec<u8>)> = files
+        .into_iter()
+        .enumerate()
+        .map(|(k, f)| (format!("synthetic-{k}"), f))
+        .collect();
+    // Already 12-bit JPEG Extended (its scan header's spectral values are not a sequential scan's; DCMTK
+    // decodes it as sequential after a warning, and so does ctrecon).
+    let made_elsewhere = corpus().map(|d| std::fs::read(d.join("JPEG-lossy.dcm")).unwrap());
+    let lidc = Path::new(env!("CARGO_MANIFEST_DIR")).join(".testdata/lidc");
+    if lidc.is_dir() {
+        let mut slices: Vec<PathBuf> = std::fs::read_dir(&lidc)
+            .unwrap()
+            .map(|e| e.unwrap().path())
+            .filter(|p| p.extension().is_some_and(|e| e == "dcm"))
+            .collect();
+        slices.sort();
+        for p in slices.iter().step_by(40) {
+            let name = p.file_name().unwrap().to_string_lossy().into_owned();
+            sources.push((name, std::fs::read(p).unwrap()));
+        }
+    } else {
+        eprintln!("skipped (LIDC part): {} is missing", lidc.display());
+    }
+    if let Some(stored) = &made_elsewhere {
+        let (jpeg, back) = (w("JPEG-lossy.dcm"), w("JPEG-lossy-dec.dcm"));
+        std::fs::write(&jpeg, stored).unwrap();
+        dcmtk("dcmdjpeg", &[&jpeg, &back]);
+        let ours = read("JPEG-lossy.dcm", stored);
+        let theirs = read("JPEG-lossy.dcm (dcmdjpeg)", &std::fs::read(&back).unwrap());
+        assert_eq!(ours.transfer_syntax, "1.2.840.10008.1.2.4.51");
+        assert_eq!(
+            ours.slices[0].stored, theirs.slices[0].stored,
+            "JPEG-lossy.dcm"
+        );
+    }
+    for (name, original) in &sources {
+        let (src, jpeg, back) = (
+            w(&format!("{name}.dcm")),
+            w(&format!("{name}-ee.dcm")),
+            w(&format!("{name}-dec.dcm")),
+        );
+        std::fs::write(&src, original).unwrap();
+        dcmtk("dcmcjpeg", &["+ee", &src, &jpeg]);
+        dcmtk("dcmdjpeg", &[&jpeg, &back]);
+        let stored = std::fs::read(&jpeg).unwrap();
+        assert_eq!(
+            ctrecon::dicom::header_of(name, &stored)
+                .unwrap()
+                .transfer_syntax,
+            "1.2.840.10008.1.2.4.51"
+        );
+        let ours = read(name, &stored);
+        let theirs = read(
+            &format!("{name} (dcmdjpeg)"),
+            &std::fs::read(&back).unwrap(),
+        );
+        let orig = read(&format!("{name} (original)"), original);
+        let (a, b, o) = (&ours.slices[0], &theirs.slices[0], &orig.slices[0]);
+        assert_eq!((a.rows, a.columns), (o.rows, o.columns), "{name}");
+        let differ = a
+            .stored
+            .iter()
+            .zip(&b.stored)
+            .filter(|(x, y)| x != y)
+            .count();
+        assert_eq!(
+            differ, 0,
+            "{name}: {differ} samples differ from DCMTK's decoding"
+        );
+        assert!(
+            a.stored.iter().all(|&v| (0.0..=4095.0).contains(&v)),
+            "{name}: 12-bit values"
+        );
+        assert_eq!(
+            (a.rescale_slope, a.rescale_intercept),
+            (b.rescale_slope, b.rescale_intercept)
+        );
+        // Hounsfield units against the original: within four 12-bit steps (the new slope) on average, the
+        // compression at DCMTK's default quality (90) included.
+        let hu = |s: &ctrecon::series::Slice, k: usize| {
+            f64::from(s.stored[k]) * s.rescale_slope + s.rescale_intercept
+        };
+        let n = o.stored.len();
+        let mean_err = (0..n).map(|k| (hu(a, k) - hu(o, k)).abs()).sum::<f64>() / n as f64;
+        assert!(
+            mean_err <= 4.0 * a.rescale_slope.max(1.0),
+            "{name}: mean |ΔHU| {mean_err:.2} (slope {})",
+            a.rescale_slope
+        );
+        println!(
+            "{name}: slope {:.4}, mean |ΔHU| {mean_err:.2}",
+            a.rescale_slope
+        );
+    }
 }

@@ -14,9 +14,9 @@ pub fn is_jpeg_ls(transfer_syntax: &str) -> bool {
     transfer_syntax == LOSSLESS || transfer_syntax == NEAR_LOSSLESS
 }
 
-/// The fragments of each frame: one frame per fragment, or (PS3.5 A.4) a frame over several fragments,
+/// The fragments of each frame (JPEG-LS and 12-bit JPEG): one frame per fragment, or (PS3.5 A.4) a frame over several fragments,
 /// each frame starting in a fragment that begins with SOI.
-fn frame_streams(fragments: &[&[u8]], frames: usize) -> Result<Vec<Vec<u8>>, String> {
+pub(super) fn frame_streams(fragments: &[&[u8]], frames: usize) -> Result<Vec<Vec<u8>>, String> {
     if fragments.len() == frames {
         return Ok(fragments.iter().map(|f| f.to_vec()).collect());
     }

@@ -2,7 +2,8 @@
 //!
 //! - [`read_bytes`] / [`read_path`]: one Part 10 file into an [`Instance`] whose frames are
 //!   [`crate::series::Slice`]s (stored values plus placement and rescale); native, deflated and the compressed transfer
-//!   syntaxes dicom-pixeldata decodes (JPEG baseline/lossless, RLE, JPEG 2000), implicit VR and big endian,
+//!   syntaxes dicom-pixeldata decodes (JPEG baseline/extended/lossless, RLE, JPEG 2000), JPEG-LS and 12-bit JPEG
+//!   Extended (decoded here), implicit VR and big endian,
 //!   multi-frame Enhanced CT with functional groups, signed/unsigned pixels and pixel padding.
 //! - [`unpack`]: an upload body (a single file or a ZIP, with bomb limits; names inside the ZIP are labels,
 //!   never paths) into named byte buffers; [`read_upload`] decodes them in parallel and splits them by
@@ -29,6 +30,7 @@ mod fuzz;
 mod header;
 mod identifier;
 mod jpeg;
+mod jpeg12;
 mod jpeg_ls;
 pub mod multipart;
 mod pixels;

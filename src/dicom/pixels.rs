@@ -1,7 +1,7 @@
 //! The pixel data of one DICOM file: the image layout checked against the limits before any buffer exists,
 //! the compressed streams checked where codecs trust their headers (JPEG frame headers, RLE segment tables,
-//! RGB JPEG colour markers), then decoded (JPEG-LS here, every other codec by dicom-pixeldata, whose panics on
-//! hostile data become errors), and each frame's samples read as stored values.
+//! RGB JPEG colour markers), then decoded (JPEG-LS and 12-bit JPEG Extended here, every other codec by dicom-pixeldata,
+//! whose panics on hostile data become errors), and each frame's samples read as stored values.
 
 use dicom_dictionary_std::tags;
 use dicom_object::FileDicomObject;
@@ -12,7 +12,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 use super::error::DicomError;
 use super::framing::Framed;
 use super::read::{ReadLimits, int, text};
-use super::{jpeg, jpeg_ls};
+use super::{jpeg, jpeg_ls, jpeg12};
 
 /// The image layout the header declares, checked against the limits.
 #[derive(Debug, Clone, PartialEq)]
@@ -43,14 +43,15 @@ pub(super) struct Decoded<'a> {
 }
 
 enum Data<'a> {
-    JpegLs(Vec<u8>),
+    /// Decoded here (JPEG-LS, 12-bit JPEG Extended): little-endian samples.
+    Own(Vec<u8>),
     Codec(DecodedPixelData<'a>),
 }
 
 impl Decoded<'_> {
     pub fn bytes(&self) -> &[u8] {
         match &self.data {
-            Data::JpegLs(v) => v,
+            Data::Own(v) => v,
             Data::Codec(d) => d.data(),
         }
     }
@@ -290,8 +291,31 @@ pub(super) fn decode<'a>(
         transfer_syntax: transfer_syntax.clone(),
         reason,
     };
-    let (data, decoded_spp, decoded_bits, decoded_colour) = if jpeg_ls::is_jpeg_ls(&transfer_syntax)
-    {
+    let twelve_bit = transfer_syntax == jpeg12::EXTENDED
+        && pixel
+            .fragments()
+            .and_then(|f| f.first())
+            .is_some_and(|f| jpeg12::is_12bit_dct(f));
+    let (data, decoded_spp, decoded_bits, decoded_colour) = if twelve_bit {
+        if spp != 1 || bits_allocated != 16 {
+            return Err(DicomError::Unsupported {
+                label: label_s.clone(),
+                what: format!(
+                    "12-bit JPEG of {spp} samples per pixel and {bits_allocated} bits allocated; grey 16-bit images are read"
+                ),
+            });
+        }
+        let fragments: Vec<&[u8]> = pixel
+            .fragments()
+            .into_iter()
+            .flatten()
+            .map(|f| f.as_slice())
+            .collect();
+        // ctrecon's own decoder: not contained, so that the fuzzer sees any panic in it.
+        let decoded =
+            jpeg12::decode_frames(&fragments, frames, rows, columns).map_err(decode_err)?;
+        (Data::Own(decoded), 1, 16, None)
+    } else if jpeg_ls::is_jpeg_ls(&transfer_syntax) {
         let fragments: Vec<&[u8]> = pixel
             .fragments()
             .into_iter()
@@ -307,7 +331,7 @@ pub(super) fn decode<'a>(
             bits_allocated as u16,
         )
         .map_err(decode_err)?;
-        (Data::JpegLs(jls), 1, bits_allocated as usize, None)
+        (Data::Own(jls), 1, bits_allocated as usize, None)
     } else {
         let decoded = match super::contain::contained(|| obj.decode_pixel_data()) {
             Ok(Ok(d)) => d,
@@ -339,7 +363,7 @@ pub(super) fn decode<'a>(
     let frame_len = rows * columns * spp;
     let frame_bytes = frame_len * bytes_per / spp * decoded_spp;
     let len = match &data {
-        Data::JpegLs(v) => v.len(),
+        Data::Own(v) => v.len(),
         Data::Codec(d) => d.data().len(),
     };
     if len < frame_bytes * frames {
