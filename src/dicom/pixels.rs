@@ -291,11 +291,15 @@ pub(super) fn decode<'a>(
         transfer_syntax: transfer_syntax.clone(),
         reason,
     };
+    // The fragments, for the decoders of this module.
+    let fragments: Vec<&[u8]> = pixel
+        .fragments()
+        .into_iter()
+        .flatten()
+        .map(|f| f.as_slice())
+        .collect();
     let twelve_bit = transfer_syntax == jpeg12::EXTENDED
-        && pixel
-            .fragments()
-            .and_then(|f| f.first())
-            .is_some_and(|f| jpeg12::is_12bit_dct(f));
+        && fragments.first().is_some_and(|f| jpeg12::is_12bit_dct(f));
     let (data, decoded_spp, decoded_bits, decoded_colour) = if twelve_bit {
         if spp != 1 || bits_allocated != 16 {
             return Err(DicomError::Unsupported {
@@ -305,23 +309,11 @@ pub(super) fn decode<'a>(
                 ),
             });
         }
-        let fragments: Vec<&[u8]> = pixel
-            .fragments()
-            .into_iter()
-            .flatten()
-            .map(|f| f.as_slice())
-            .collect();
         // ctrecon's own decoder: not contained, so that the fuzzer sees any panic in it.
         let decoded =
             jpeg12::decode_frames(&fragments, frames, rows, columns).map_err(decode_err)?;
         (Data::Own(decoded), 1, 16, None)
     } else if jpeg_ls::is_jpeg_ls(&transfer_syntax) {
-        let fragments: Vec<&[u8]> = pixel
-            .fragments()
-            .into_iter()
-            .flatten()
-            .map(|f| f.as_slice())
-            .collect();
         let jls = jpeg_ls::decode_frames(
             &fragments,
             frames,

@@ -1,7 +1,6 @@
-//! The engine: rayon pools that do all computation (one per running job or request computation,
-//! [`pools`]), a scheduler that starts queued jobs
-//! within the concurrency limit and the memory budget, cancellation, progress (broadcast live, persisted
-//! at a bounded rate), and crash recovery at start.
+//! The engine: rayon pools that do all computation (one for each running job or request computation,
+//! [`pools`]), a scheduler that starts queued jobs within the concurrency limit and the memory budget,
+//! cancellation, progress (broadcast live, persisted at a bounded rate), and crash recovery at start.
 //!
 //! The async runtime never computes: work goes to a pool and its result comes back through a oneshot
 //! channel. Job state lives in the database; the engine keeps in memory only the cancel flags and memory

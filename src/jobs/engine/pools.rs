@@ -48,8 +48,8 @@ impl Pools {
         self.slots.clone().acquire_owned().await.ok()
     }
 
-    /// Run `f` alone on a pool of its own, holding `slot` until it returns; `f`'s panic is caught and
-    /// returned as `Err` by the closure's own result channel (`f` reports its result itself).
+    /// Run `f` alone on a pool of its own, holding `slot` until it returns. `f` sends its result itself
+    /// and catches its own panics.
     pub(super) fn spawn<F>(&self, slot: Option<OwnedSemaphorePermit>, f: F) -> Result<(), PoolError>
     where
         F: FnOnce() + Send + 'static,
