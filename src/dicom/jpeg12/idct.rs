@@ -78,7 +78,7 @@ pub(super) fn range_limit(x: i64) -> u16 {
     }
 }
 
-pub(super) fn idct_islow(coef: &[i32; 64], q: &[i64; 64], out: &mut [u16; 64]) {
+pub(super) fn idct_islow(coef: &[i16; 64], q: &[i64; 64], out: &mut [u16; 64]) {
     let mut ws = [0i64; 64];
     for c in 0..8 {
         let v = std::array::from_fn(|r| i64::from(coef[r * 8 + c]) * q[r * 8 + c]);

@@ -182,7 +182,9 @@ pub(super) fn scan(
         qn[z] = i64::from(v);
     }
     let mut pred = 0i32;
-    let mut block = [0i32; 64];
+    // Coefficients are kept in 16 bits as IJG keeps them (`JCOEF`), which also bounds the inverse DCT's
+    // arithmetic whatever a damaged stream holds.
+    let mut block = [0i16; 64];
     let mut out = [0u16; 64];
     for b in 0..bw * bh {
         if restart > 0 && b > 0 && b % restart == 0 {
@@ -195,7 +197,7 @@ pub(super) fn scan(
             return Err(format!("a DC difference of {t} bits"));
         }
         pred = pred.wrapping_add(extend(bits.receive(t), t));
-        block[0] = pred;
+        block[0] = pred as i16;
         let mut k = 1;
         while k < 64 {
             let rs = ac.decode(bits)?;
@@ -211,7 +213,7 @@ pub(super) fn scan(
             if k > 63 {
                 return Err("AC coefficients past the end of a block".into());
             }
-            block[ZIGZAG[k]] = extend(bits.receive(s), s);
+            block[ZIGZAG[k]] = extend(bits.receive(s), s) as i16;
             k += 1;
         }
         idct_islow(&block, &qn, &mut out);
