@@ -9,7 +9,7 @@
 
 /// SOFn markers (C0–CF but DHT C4, JPG C8 and DAC CC): the frame header of a baseline, extended,
 /// progressive or lossless stream.
-fn is_frame_header(marker: u8) -> bool {
+pub(super) fn is_frame_header(marker: u8) -> bool {
     (0xC0..=0xCF).contains(&marker) && !matches!(marker, 0xC4 | 0xC8 | 0xCC)
 }
 
@@ -20,7 +20,7 @@ fn standalone(marker: u8) -> bool {
 
 /// The next marker at or after `p`, as the decoder reads it: bytes up to an FF skipped, fill FFs skipped, an
 /// FF 00 (stuffed byte) not a marker. Returns the marker and the offset after it.
-fn next_marker(d: &[u8], mut p: usize) -> Option<(u8, usize)> {
+pub(super) fn next_marker(d: &[u8], mut p: usize) -> Option<(u8, usize)> {
     loop {
         while *d.get(p)? != 0xFF {
             p += 1;

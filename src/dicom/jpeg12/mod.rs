@@ -31,7 +31,7 @@ pub fn is_12bit_dct(stream: &[u8]) -> bool {
     }
     while let Some(m) = r.marker() {
         match m {
-            0xC0..=0xCF if !matches!(m, 0xC4 | 0xC8 | 0xCC) => {
+            m if super::jpeg::is_frame_header(m) => {
                 return m == SOF1 && r.d.get(r.p + 2) == Some(&12);
             }
             0xD9 | 0xDA => return false,
@@ -226,19 +226,9 @@ struct Reader<'a> {
 impl<'a> Reader<'a> {
     /// The next marker: bytes up to an FF skipped, fill FFs skipped, a stuffed FF 00 not a marker.
     fn marker(&mut self) -> Option<u8> {
-        loop {
-            while *self.d.get(self.p)? != 0xFF {
-                self.p += 1;
-            }
-            while *self.d.get(self.p)? == 0xFF {
-                self.p += 1;
-            }
-            let m = *self.d.get(self.p)?;
-            self.p += 1;
-            if m != 0 {
-                return Some(m);
-            }
-        }
+        let (m, p) = super::jpeg::next_marker(self.d, self.p)?;
+        self.p = p;
+        Some(m)
     }
 
     /// The segment after a marker with a length field, without the length.
