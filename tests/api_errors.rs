@@ -1,7 +1,7 @@
 //! Bad input is answered with a 4xx `application/problem+json` and its catalogue code, never a panic or
 //! a 5xx; bearer tokens; the OpenAPI contract lists every route and every error code.
 
-mod common;
+use crate::common;
 
 use common::{assert_problem, cone_geometry, npy, parallel_geometry, spawn_app, spawn_app_with};
 use ctrecon::error_code::ErrorCode;

@@ -1,7 +1,7 @@
 //! The job API end to end over HTTP against the real server: simulate → reconstruct → poll → results;
 //! cancel; the concurrency limit; idempotency; Server-Sent Events; and (ignored) the load figure.
 
-mod common;
+use crate::common;
 
 use std::time::{Duration, Instant};
 
@@ -463,7 +463,7 @@ async fn server_sent_events_deliver_progress_and_the_final_state() {
 }
 
 /// The load figure: latency of `GET /v1/jobs/{id}` from 50 concurrent clients while reconstructions keep
-/// both workers busy. Prints median and p99; run with `cargo test --release --test api_jobs -- --ignored
+/// both workers busy. Prints median and p99; run with `cargo test --release --test service api_jobs:: -- --ignored
 /// --nocapture load`.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 #[ignore = "a measurement, not a check: prints the load figure"]

@@ -1,7 +1,7 @@
 //! The service's life cycle: shutdown drains open connections for a bounded time, jobs stopped by a graceful
 //! shutdown go back to the queue without spending an attempt, and retention removes what has aged out.
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::time::{Duration, Instant};

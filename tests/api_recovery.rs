@@ -1,7 +1,7 @@
 //! Crash recovery: the server process is killed (SIGKILL) while a job runs, restarted on the same data
 //! directory, and the job completes; no job or dataset is lost and no partial result is ever served.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::process::{Child, Command, Stdio};

@@ -3,7 +3,7 @@
 //! Encapsulated STL). The synthetic series are written by ctrecon from analytic ellipsoids of known geometry;
 //! LIDC-IDRI-0001 runs when `scripts/fetch-test-data.sh` fetched it (required with `CTRECON_REQUIRE_TEST_DATA=1`).
 
-mod common;
+use crate::common;
 
 use std::f64::consts::PI;
 use std::io::Write;

@@ -5,9 +5,8 @@
 //! `Last-Event-ID` and asks for a reload when it cannot; `GET /v1/protocols` lists the protocols the rules
 //! run, each a volume job body the API takes, and a rule and the listed body make the same job.
 
-mod common;
-#[path = "common/sse.rs"]
-mod sse;
+use crate::common;
+use crate::sse;
 
 use serde_json::{Value, json};
 

@@ -15,8 +15,7 @@ mod directory {
 }
 
 #[cfg(feature = "s3")]
-#[path = "common/s3.rs"]
-mod s3server;
+use crate::s3 as s3server;
 
 #[cfg(feature = "s3")]
 mod s3 {

@@ -9,7 +9,7 @@ use ctrecon::recon::phantom::{Phantom2, Table2};
 use ndarray::{Array2, ArrayD};
 use ndarray_npy::ReadNpyExt;
 
-mod common;
+use crate::common;
 
 fn ctrecon(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_ctrecon"))

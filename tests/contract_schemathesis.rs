@@ -8,7 +8,7 @@
 //! Without schemathesis (neither `.peers/venv/bin/schemathesis` nor one on `PATH`) the test prints one skip
 //! line and passes, unless `CTRECON_REQUIRE_PEERS=1` (as CI sets), where it fails.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

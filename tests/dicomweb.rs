@@ -7,11 +7,9 @@
 //!
 //! Without Orthanc or its DICOMweb plugin each test prints one skip line, unless `CTRECON_REQUIRE_PEERS=1`.
 
-mod common;
-#[path = "common/dicomweb.rs"]
-mod dw;
-#[path = "common/orthanc.rs"]
-mod orthanc;
+use crate::common;
+use crate::dw;
+use crate::orthanc;
 
 use std::collections::BTreeSet;
 use std::time::{Duration, Instant};

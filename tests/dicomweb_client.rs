@@ -8,9 +8,8 @@
 //! Also, with no peer and the DICOM node off: QIDO-RS finds an HTTP-uploaded series and a volume job's
 //! derived CT, Secondary Capture and Encapsulated STL results, which go with the job.
 
-mod common;
-#[path = "common/orthanc.rs"]
-mod orthanc;
+use crate::common;
+use crate::orthanc;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};

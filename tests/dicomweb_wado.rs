@@ -9,9 +9,8 @@
 //! DCMTK comes from Debian's `dcmtk` package; without it the tests that need it print one skip line, unless
 //! `CTRECON_REQUIRE_PEERS=1`.
 
-mod common;
-#[path = "common/dicomweb.rs"]
-mod dw;
+use crate::common;
+use crate::dw;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

@@ -5,7 +5,7 @@
 //! DCMTK comes from Debian's `dcmtk` package. Without it each test prints one skip line, unless
 //! `CTRECON_REQUIRE_PEERS=1` (as in CI), when it fails.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::Output;

@@ -7,9 +7,8 @@
 //! Orthanc and DCMTK come from Debian packages. Without them the tests that need a peer print one skip line,
 //! unless `CTRECON_REQUIRE_PEERS=1` (as in CI), when they fail.
 
-mod common;
-#[path = "common/orthanc.rs"]
-mod orthanc;
+use crate::common;
+use crate::orthanc;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

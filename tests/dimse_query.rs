@@ -6,7 +6,7 @@
 //! DCMTK comes from Debian's `dcmtk` package. Without it each test prints one skip line, unless
 //! `CTRECON_REQUIRE_PEERS=1` (as in CI), when it fails.
 
-mod common;
+use crate::common;
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};

@@ -6,9 +6,8 @@
 //!
 //! Without Orthanc or DCMTK each test prints one skip line, unless `CTRECON_REQUIRE_PEERS=1`.
 
-mod common;
-#[path = "common/orthanc.rs"]
-mod orthanc;
+use crate::common;
+use crate::orthanc;
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};

@@ -4,7 +4,7 @@
 //! cases must still give the answers written next to them. (`tests/dicom_hostile.rs` replays the DICOM and
 //! `.npy` targets.)
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

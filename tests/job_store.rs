@@ -30,8 +30,7 @@ mod sqlite {
     ctrecon::job_store_conformance!(fresh());
 }
 
-#[path = "common/postgres.rs"]
-mod cluster;
+use crate::cluster;
 
 mod postgres {
     use super::*;

@@ -7,13 +7,10 @@
 //! Needs root and `ip` (iproute2); elsewhere it prints one skip line, unless `CTRECON_REQUIRE_PEERS=1`,
 //! where it fails. Namespaces, links and the bridge are named uniquely per run and removed by a drop guard.
 
-#[path = "common/postgres.rs"]
-mod cluster;
-mod common;
-#[path = "common/roles.rs"]
-mod roles;
-#[path = "common/s3.rs"]
-mod s3;
+use crate::cluster;
+use crate::common;
+use crate::roles;
+use crate::s3;
 
 use std::process::Command;
 

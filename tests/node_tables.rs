@@ -20,8 +20,7 @@ mod sqlite {
     ctrecon::node_tables_conformance!(fresh());
 }
 
-#[path = "common/postgres.rs"]
-mod cluster;
+use crate::cluster;
 
 mod postgres {
     use super::*;

@@ -4,7 +4,7 @@
 //! mask and first-hit depths. On a noisy synthetic chest always, and on LIDC-IDRI-0001 when `.testdata/lidc` is
 //! present (else one skip line, or a failure with `CTRECON_REQUIRE_TEST_DATA=1`).
 //!
-//! `cargo test --test render_skipping -- --ignored --nocapture` times both paths on LIDC at 512 × 512,
+//! `cargo test --test kernels render_skipping:: -- --ignored --nocapture` times both paths on LIDC at 512 × 512,
 //! interleaved, on a 2-thread pool, and prints the comparison figures (the figures in `benches/README.md`).
 
 use std::path::Path;

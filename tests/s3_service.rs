@@ -10,13 +10,10 @@
 //! Without PostgreSQL or s3s-fs (`scripts/install-peers.sh postgres s3`) a test prints one skip line, unless
 //! `CTRECON_REQUIRE_PEERS=1`, where it fails.
 
-#[path = "common/postgres.rs"]
-mod cluster;
-mod common;
-#[path = "common/roles.rs"]
-mod roles;
-#[path = "common/s3.rs"]
-mod s3;
+use crate::cluster;
+use crate::common;
+use crate::roles;
+use crate::s3;
 #[path = "s3_service/uploads.rs"]
 mod uploads;
 

@@ -8,9 +8,8 @@
 //! PostgreSQL is a throwaway cluster (`common/postgres.rs`); without it those tests print one skip line,
 //! unless `CTRECON_REQUIRE_PEERS=1`.
 
-#[path = "common/postgres.rs"]
-mod cluster;
-mod common;
+use crate::cluster;
+use crate::common;
 
 use std::io::{BufRead, BufReader};
 use std::path::Path;

@@ -9,15 +9,11 @@
 //! PostgreSQL is a throwaway cluster (`common/postgres.rs`) and the S3 server s3s-fs (`common/s3.rs`);
 //! without them a test prints one skip line, unless `CTRECON_REQUIRE_PEERS=1`.
 
-#[path = "common/postgres.rs"]
-mod cluster;
-mod common;
-#[path = "common/roles.rs"]
-mod roles;
-#[path = "common/s3.rs"]
-mod s3;
-#[path = "common/sse.rs"]
-mod sse;
+use crate::cluster;
+use crate::common;
+use crate::roles;
+use crate::s3;
+use crate::sse;
 
 use std::time::Instant;
 

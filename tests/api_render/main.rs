@@ -4,8 +4,7 @@
 //! surface above every value of the volume among them, in `iso`; one that smoothing pushed above is warned
 //! about).
 
-#[path = "../common/mod.rs"]
-mod common;
+use crate::common;
 
 mod iso;
 

@@ -5,8 +5,7 @@
 //! data is refused before any work, and what a surface could not honour comes back as a warning, in the mesh
 //! product and in the mesh view's `X-Ctrecon-Warnings` header.
 
-#[path = "../common/mod.rs"]
-mod common;
+use crate::common;
 
 mod http;
 mod pinch;

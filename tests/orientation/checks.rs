@@ -6,12 +6,12 @@ use ctrecon::storage::{JobId, SeriesId};
 use dicom_dictionary_std::tags;
 use serde_json::Value;
 
+use super::dicom::{self, Placement, assert_placed, assert_volume_series, open};
+use super::geometry::{self, Planar, patient_orientation, sides};
+use super::images::{Grey, Plane, get_bytes, npy, png_brightness, png_json, png_text};
+use super::phantom::{MARKERS, N, lps};
+use super::products::{Expect, Product, display_first_pixel, fixed_axis, patient_box, screen};
 use crate::common::TestApp;
-use crate::dicom::{self, Placement, assert_placed, assert_volume_series, open};
-use crate::geometry::{self, Planar, patient_orientation, sides};
-use crate::images::{Grey, Plane, get_bytes, npy, png_brightness, png_json, png_text};
-use crate::phantom::{MARKERS, N, lps};
-use crate::products::{Expect, Product, display_first_pixel, fixed_axis, patient_box, screen};
 
 pub const AXES: [&str; 3] = ["axial", "coronal", "sagittal"];
 

@@ -7,8 +7,8 @@ use dicom_dictionary_std::{tags, uids};
 use dicom_object::{DefaultDicomObject, OpenFileOptions};
 use serde_json::Value;
 
-use crate::geometry::{V3, axpy, close, v3};
-use crate::phantom::{MARKERS, N, O, S, lps};
+use super::geometry::{V3, axpy, close, v3};
+use super::phantom::{MARKERS, N, O, S, lps};
 
 pub fn open(bytes: &[u8]) -> DefaultDicomObject {
     assert_eq!(&bytes[128..132], b"DICM");

@@ -10,8 +10,7 @@
 //! documented conventions; `products`: the products of a job and what each must show; `images`, `dicom`:
 //! reading the outputs; `checks`: what every acquisition goes through; `tilted`: the gantry-tilted series.
 
-#[path = "../common/mod.rs"]
-mod common;
+use crate::common;
 
 mod checks;
 mod dicom;

@@ -3,11 +3,11 @@
 
 use serde_json::{Value, json};
 
-use crate::geometry::{
+use super::geometry::{
     Planar, Turning, V3, axpy, close, dot, oblique, radiological, rendered, sides, sub, unit, v3,
 };
-use crate::images::{Grey, Plane, assert_marker, blob};
-use crate::phantom::{MARKERS, N, O, S, lps};
+use super::images::{Grey, Plane, assert_marker, blob};
+use super::phantom::{MARKERS, N, O, S, lps};
 use ctrecon::volume::Frame;
 
 /// What a product is, as far as the checks need to know.
@@ -447,7 +447,7 @@ impl Expect {
             }
             Expect::Rotating { frames } => {
                 let (frame, dim) = patient_box();
-                let (centre, _) = crate::geometry::bounds(&frame, dim);
+                let (centre, _) = super::geometry::bounds(&frame, dim);
                 let turning = Turning {
                     centre,
                     pixel: p["pixel_mm"][0].as_f64().unwrap(),

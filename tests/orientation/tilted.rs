@@ -4,14 +4,14 @@
 
 use serde_json::{Value, json};
 
-use crate::checks::AXES;
+use super::checks::AXES;
+use super::dicom::Placement;
+use super::geometry::{self, Planar, bounds, sides};
+use super::images::{Plane, assert_marker, get_bytes, npy, png_brightness, png_json};
+use super::phantom::{MARKERS, S, tilted, upload};
+use super::products::Expect;
+use super::volume_job;
 use crate::common::spawn_app;
-use crate::dicom::Placement;
-use crate::geometry::{self, Planar, bounds, sides};
-use crate::images::{Plane, assert_marker, get_bytes, npy, png_brightness, png_json};
-use crate::phantom::{MARKERS, S, tilted, upload};
-use crate::products::Expect;
-use crate::volume_job;
 
 /// Where the tilted series has each marker: the mean position of the samples that hold its value (its
 /// sampling shifts it by up to 0.8 mm from the lattice point).

@@ -16,8 +16,7 @@
 //! `CTRECON_SCREENSHOT_DIR`); the figures (page load, time to first slice, frames per second, page weight)
 //! are printed.
 
-#[path = "../common/mod.rs"]
-mod common;
+use crate::common;
 
 mod browser;
 mod checks;
