@@ -4,6 +4,8 @@
 #                                      geometry_json, upload)
 #   scripts/fuzz.sh --ci [SECONDS]     every target for SECONDS each (default 60); exits non-zero on any crash,
 #                                      leak, timeout or out-of-memory input, after printing it
+#   scripts/fuzz.sh --build            build every target and nothing else (CI builds them while other
+#                                      stages run; a later run or --ci then starts at once)
 # Seeds come from tests/fuzz-regressions/TARGET (and, for dicom_read, the synthetic files of .testdata/pydicom
 # when present). Every finding lands in fuzz/artifacts/TARGET: fix its class, then move it to
 # tests/fuzz-regressions/TARGET with a descriptive name so that `cargo test` (tests/dicom_hostile.rs) replays it
@@ -33,10 +35,20 @@ run() {
         -max_total_time="$seconds" -rss_limit_mb=2048 -malloc_limit_mb=256 -max_len=65536 -print_final_stats=1 "${extra[@]}")
 }
 
-if [ "${1:-}" = --ci ]; then
-    seconds=${2:-60}
+tools() {
     command -v cargo-fuzz >/dev/null || cargo install cargo-fuzz --locked
     rustup toolchain list | grep -q '^nightly' || rustup toolchain install nightly --profile minimal
+}
+
+if [ "${1:-}" = --build ]; then
+    tools
+    # The same build `cargo fuzz run` makes (release, address sanitizer, debug assertions), so it finds it done.
+    cd "$root/fuzz" && exec cargo +nightly fuzz build
+fi
+
+if [ "${1:-}" = --ci ]; then
+    seconds=${2:-60}
+    tools
     failed=()
     for target in "${targets[@]}"; do
         echo "== fuzz $target for ${seconds} s"
