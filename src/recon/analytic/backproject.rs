@@ -12,7 +12,7 @@ pub const PAD: usize = 2;
 
 /// Clamp a stored position into `[0, hi]` (NaN goes to 0) and split it into index and fraction.
 #[inline(always)]
-fn split(pos: f32, hi: f32) -> (usize, f32) {
+pub(super) fn split(pos: f32, hi: f32) -> (usize, f32) {
     let p = if pos > 0.0 { pos } else { 0.0 };
     let p = if p < hi { p } else { hi };
     let i = p as usize;

@@ -4,24 +4,31 @@
 //! Virtual detector at the isocentre, coordinates (p, ζ) = (u, v)·D/DSD: pre-weight D/√(D² + p² + ζ²)
 //! (times the redundancy weight of the in-plane fan angle), ramp along detector rows only (h/2, the ½ of
 //! a full turn), backproject Σ Δβ D²/lc² Q(u′, v′) with lc the distance from the source along the central
-//! ray. The volume is accumulated in batches of [`VIEWS_PER_THREAD`] projections per thread: filter the batch
-//! (projections in parallel), backproject it into every slice (slices in parallel), drop it. Memory: the
-//! volume plus a few filtered projections per thread; each pass reads and writes the volume once, so larger
-//! batches mean fewer passes.
+//! ray. The volume is accumulated in batches of projections: filter the batch (projections in parallel),
+//! backproject it (in parallel over planes of the volume), drop it.
+//!
+//! Two backprojection loops. Where the detector's u axis has no z component (every parametric geometry),
+//! a line of voxels along z projects into one detector column position with one distance weight and row
+//! positions affine in z: the views are stored by detector columns and each (x, y) line of the volume is
+//! backprojected by `column::cone_column`, all views of the batch into a plane of lines held per thread,
+//! which is then added to the volume ([`COLUMN_BATCH`] views per pass). Otherwise (a detector rolled about
+//! the central ray) rows along x are backprojected by `backproject::cone_row` ([`VIEWS_PER_THREAD`] views
+//! per thread and pass). Memory: the volume plus the batch's filtered projections and a plane per thread.
 
 use ndarray::{Array3, ArrayView3, Axis};
 use rayon::prelude::*;
 
 use super::backproject::{PAD, Panel, RowLine, cone_row};
+use super::column::{ColumnPanel, SLACK, ZLine, cone_column_spanned};
 use super::fbp2d::fan_extent;
-use super::filter::{Kernel, RowFilter, padded_len};
+use super::filter::{FilterScratch, Kernel, RowFilter, padded_len};
 use super::orbit::{Frame, cone_frames};
 use super::progress::Ticker;
 use super::weights::{Redundancy, extension};
 use crate::recon::algorithm::FbpParams;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
-use crate::recon::geometry::{Views3, angular_steps};
+use crate::recon::geometry::{Detector2, Views3, angular_steps};
 use crate::recon::grid::VolumeGrid;
 
 /// FDK; see the module docs.
@@ -31,6 +38,19 @@ pub fn fdk(
     grid: &VolumeGrid,
     params: &FbpParams,
     ctl: Control<'_>,
+) -> Result<Array3<f32>, ReconError> {
+    fdk_with(views, proj, grid, params, ctl, None)
+}
+
+/// [`fdk`] with the backprojection loop forced (`Some(true)`: along z, which the geometry must allow;
+/// `Some(false)`: along x), for the tests that compare the two.
+pub(crate) fn fdk_with(
+    views: &Views3,
+    proj: ArrayView3<'_, f32>,
+    grid: &VolumeGrid,
+    params: &FbpParams,
+    ctl: Control<'_>,
+    along_z: Option<bool>,
 ) -> Result<Array3<f32>, ReconError> {
     grid.validate()?;
     params.validate()?;
@@ -44,109 +64,348 @@ pub fn fdk(
     if views.views.is_empty() {
         return Err(ReconError::param("geometry", "no views"));
     }
+    let setup = Setup::new(views, params)?;
     let det = views.detector;
-    let frames = cone_frames(views)?;
-    let f0 = frames[0];
-    let (nu, nv) = (det.nu, det.nv);
-    let angles: Vec<f64> = frames.iter().map(|f| f.angle_rad).collect();
-    let steps = angular_steps(&angles);
-    let ends = (det.u(0) + f0.u0, det.u(nu - 1) + f0.u0);
-    let (gmin, gmax, element) = fan_extent(ends, det.du_mm, Some(f0.dsd));
-    let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
-    // Offset panels are filtered on rows extended with zeros on the short side.
-    let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.du_mm);
-    let full = redundancy.is_full();
-    let ne = nu + lo + hi;
-    let kernel = Kernel::Ramp {
-        spacing: det.du_mm * f0.dso / f0.dsd,
+    let (width, rows) = (setup.ne + 2 * PAD, det.nv + 2 * PAD);
+    let columns = along_z.unwrap_or_else(|| lines_along_z(&setup.frames, grid, &det));
+    let panel_len = if columns {
+        width * rows + SLACK
+    } else {
+        width * rows
     };
-    let filter = RowFilter::new(ne, kernel, 0.5, params)?;
-    let (width, rows) = (ne + 2 * PAD, nv + 2 * PAD);
-    let batch = rayon::current_num_threads().max(1) * VIEWS_PER_THREAD;
-    let mut volume = Array3::<f32>::zeros(grid.shape());
-    let mut panels = vec![0.0f32; batch * width * rows];
+    let batch = batch_views(columns, panel_len);
+    // Along x the views are added to the volume itself; along z to blocks of lines (see `Lines`).
+    let mut volume = if columns {
+        Array3::<f32>::zeros((0, 0, 0))
+    } else {
+        Array3::<f32>::zeros(grid.shape())
+    };
+    let mut lines = if columns {
+        Lines::new(grid)
+    } else {
+        Lines::default()
+    };
+    let mut panels = vec![0.0f32; batch * panel_len];
     let ticker = Ticker::new(ctl, "fdk", views.views.len());
-    let sampling = det_map(&det, lo);
+    let sampling = det_map(&det, setup.lo);
     for first in (0..views.views.len()).step_by(batch) {
         let last = (first + batch).min(views.views.len());
-        panels[..(last - first) * width * rows]
-            .par_chunks_mut(width * rows)
+        panels[..(last - first) * panel_len]
+            .par_chunks_mut(panel_len)
             .enumerate()
             .try_for_each_init(
-                || filter.scratch(),
+                || setup.filter.scratch(),
                 |scratch, (b, panel)| {
                     ctl.check()?;
-                    let k = first + b;
-                    let f = &frames[k];
-                    let post = steps[k] * f.dso * f.dso;
-                    for r in 0..nv {
-                        let v = det.v(r) + f.v0;
-                        let data = proj.slice(ndarray::s![k, r, ..]);
-                        let input = scratch.input(ne);
-                        for (i, o) in input.iter_mut().enumerate() {
-                            *o = if i >= lo && i < lo + nu {
-                                let u = det.u(0) + (i - lo) as f64 * det.du_mm + f.u0;
-                                let pre = f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt();
-                                let w = if full {
-                                    1.0
-                                } else {
-                                    redundancy.weight(f.angle_rad, (u / f.dsd).atan())
-                                };
-                                data[i - lo] as f64 * pre * w
-                            } else {
-                                0.0
-                            };
+                    setup.filter_view(proj, first + b, scratch, |r, values| {
+                        if columns {
+                            let column = panel[PAD * rows + r + PAD..].iter_mut().step_by(rows);
+                            for (o, v) in column.zip(values) {
+                                *o = *v;
+                            }
+                        } else {
+                            let start = (r + PAD) * width + PAD;
+                            panel[start..start + values.len()].copy_from_slice(values);
                         }
-                        filter.run(scratch);
-                        let start = (r + PAD) * width + PAD;
-                        let out = &mut panel[start..start + ne];
-                        for (o, q) in out.iter_mut().zip(scratch.output(ne).iter()) {
-                            *o = (q * post) as f32;
-                        }
-                    }
+                    });
                     Ok::<(), ReconError>(())
                 },
             )?;
         ctl.check()?;
-        let batch_frames = &frames[first..last];
+        let batch_frames = &setup.frames[first..last];
         let maps: Vec<[f32; 4]> = batch_frames
             .iter()
             .map(|f| panel_map(f, &sampling))
             .collect();
-        let panels = &panels;
-        volume
-            .axis_iter_mut(Axis(0))
-            .into_par_iter()
-            .enumerate()
-            .for_each(|(z, mut slice)| {
-                let mut acc = vec![0.0f32; grid.nx];
-                for y in 0..grid.ny {
-                    acc.fill(0.0);
-                    for (b, (f, map)) in batch_frames.iter().zip(&maps).enumerate() {
-                        let panel = Panel {
-                            q: &panels[b * width * rows..(b + 1) * width * rows],
-                            width,
-                            rows,
-                        };
-                        cone_row(&mut acc, panel, &volume_row(f, grid, y, z), *map);
-                    }
-                    for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
-                        *o += *a;
-                    }
-                }
-            });
+        let panels = &panels[..(last - first) * panel_len];
+        if columns {
+            let stored: Vec<ColumnPanel<'_>> = panels
+                .chunks_exact(panel_len)
+                .map(|q| ColumnPanel {
+                    q,
+                    cols: width,
+                    rows,
+                })
+                .collect();
+            backproject_columns(&mut lines, grid, batch_frames, &maps, &stored);
+        } else {
+            backproject_rows(&mut volume, grid, batch_frames, &maps, panels, width, rows);
+        }
         ticker.add(last - first);
+    }
+    if columns {
+        volume = lines.into_volume(grid);
     }
     Ok(volume)
 }
 
-/// Filtered projections held per worker thread: each pass over the volume adds this many views per thread,
-/// so the volume is read and written once per `threads × VIEWS_PER_THREAD` views.
+/// The per-scan filtering set-up: orbit frames, angular steps, redundancy weights and the row filter.
+struct Setup {
+    frames: Vec<Frame>,
+    steps: Vec<f64>,
+    redundancy: Redundancy,
+    /// Zero columns added on the left of offset panels, and the filtered row length.
+    lo: usize,
+    ne: usize,
+    filter: RowFilter,
+    det: Detector2,
+    /// The pre-weight D/√(D² + p² + ζ²) of every detector element (`[v][u]`) where all views share
+    /// the detector's distance and centre (every parametric geometry); otherwise computed per view.
+    pre: Option<Vec<f64>>,
+}
+
+impl Setup {
+    fn new(views: &Views3, params: &FbpParams) -> Result<Self, ReconError> {
+        let det = views.detector;
+        let frames = cone_frames(views)?;
+        let f0 = frames[0];
+        let angles: Vec<f64> = frames.iter().map(|f| f.angle_rad).collect();
+        let steps = angular_steps(&angles);
+        let ends = (det.u(0) + f0.u0, det.u(det.nu - 1) + f0.u0);
+        let (gmin, gmax, element) = fan_extent(ends, det.du_mm, Some(f0.dsd));
+        let redundancy = Redundancy::classify(&angles, gmin, gmax, element)?;
+        // Offset panels are filtered on rows extended with zeros on the short side.
+        let (lo, hi) = extension(&redundancy, (ends.0 + ends.1) / det.du_mm);
+        let ne = det.nu + lo + hi;
+        let kernel = Kernel::Ramp {
+            spacing: det.du_mm * f0.dso / f0.dsd,
+        };
+        let filter = RowFilter::new(ne, kernel, 0.5, params)?;
+        let shared = frames
+            .iter()
+            .all(|f| (f.dsd, f.u0, f.v0) == (f0.dsd, f0.u0, f0.v0));
+        let pre = shared.then(|| {
+            (0..det.nv)
+                .flat_map(|r| (0..det.nu).map(move |c| pre_weight(&f0, &det, r, c)))
+                .collect()
+        });
+        Ok(Setup {
+            frames,
+            steps,
+            redundancy,
+            lo,
+            ne,
+            filter,
+            det,
+            pre,
+        })
+    }
+
+    /// Weight and filter every detector row of view `k`, handing each filtered row (`ne` values, the
+    /// angular step and D² folded in) to `put` with its row index.
+    fn filter_view(
+        &self,
+        proj: ArrayView3<'_, f32>,
+        k: usize,
+        scratch: &mut FilterScratch,
+        mut put: impl FnMut(usize, &[f32]),
+    ) {
+        let (det, f, lo, ne) = (&self.det, &self.frames[k], self.lo, self.ne);
+        let full = self.redundancy.is_full();
+        let post = self.steps[k] * f.dso * f.dso;
+        let mut row = vec![0.0f32; ne];
+        let mut computed = Vec::new();
+        for r in 0..det.nv {
+            let data = proj.slice(ndarray::s![k, r, ..]);
+            let pre = match &self.pre {
+                Some(table) => &table[r * det.nu..(r + 1) * det.nu],
+                None => {
+                    computed.clear();
+                    computed.extend((0..det.nu).map(|c| pre_weight(f, det, r, c)));
+                    &computed[..]
+                }
+            };
+            let input = scratch.input(ne);
+            input.fill(0.0);
+            let data_part = &mut input[lo..lo + det.nu];
+            for (c, ((o, d), p)) in data_part.iter_mut().zip(data.iter()).zip(pre).enumerate() {
+                let w = if full {
+                    1.0
+                } else {
+                    let u = det.u(c) + f.u0;
+                    self.redundancy.weight(f.angle_rad, (u / f.dsd).atan())
+                };
+                *o = *d as f64 * p * w;
+            }
+            self.filter.run(scratch);
+            for (o, q) in row.iter_mut().zip(scratch.output(ne).iter()) {
+                *o = (q * post) as f32;
+            }
+            put(r, &row);
+        }
+    }
+}
+
+/// D/√(D² + p² + ζ²) at detector element (row `r`, column `c`) of view `f`, in detector coordinates
+/// relative to the central ray.
+fn pre_weight(f: &Frame, det: &Detector2, r: usize, c: usize) -> f64 {
+    let (u, v) = (det.u(c) + f.u0, det.v(r) + f.v0);
+    f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt()
+}
+
+/// Whether every line of voxels along z projects into one detector column position: the detector's
+/// u axis has no z component, up to 10⁻⁴ of a detector column over the volume's height.
+fn lines_along_z(frames: &[Frame], grid: &VolumeGrid, det: &Detector2) -> bool {
+    let (z0, z1) = (grid.z(0), grid.z(grid.nz.saturating_sub(1)));
+    frames.iter().all(|f| {
+        let reach = (z0 - f.source[2]).abs().max((z1 - f.source[2]).abs());
+        f.e_u[2].abs() * reach <= 1e-4 * det.du_mm && f.dir[2].abs() * reach <= 1e-4 * det.du_mm
+    })
+}
+
+/// Filtered projections held per worker thread by the backprojection along x: each pass over the
+/// volume adds this many views per thread.
 pub const VIEWS_PER_THREAD: usize = 4;
+
+/// Filtered projections per pass of the backprojection along z, where every thread reads every view
+/// of the batch: a pass zeroes a plane of lines per thread and adds it to the volume, so more views per
+/// pass spread that cost thinner. Held to [`COLUMN_BATCH_BYTES`] of filtered projections.
+pub const COLUMN_BATCH: usize = 32;
+
+/// Memory the filtered projections of one pass along z may take.
+pub const COLUMN_BATCH_BYTES: usize = 256 << 20;
+
+/// Views per pass for a loop and a stored projection of `panel_len` values.
+fn batch_views(columns: bool, panel_len: usize) -> usize {
+    let per_threads = rayon::current_num_threads().max(1) * VIEWS_PER_THREAD;
+    if columns {
+        let fit = COLUMN_BATCH_BYTES / (4 * panel_len).max(1);
+        fit.min(COLUMN_BATCH).max(per_threads)
+    } else {
+        per_threads
+    }
+}
+
+/// Side of the square tiles of lines along z that a thread backprojects together: the tile's lines
+/// read only a narrow band of detector columns of every view of the batch, which stays in the core's
+/// cache while the tile's lines are summed (a whole plane of lines would stream every view through it).
+const TILE: usize = 8;
+
+/// The volume while it is backprojected along z: blocks of [`TILE`] planes y (the last may be thinner),
+/// each holding its lines along z contiguous, `[y][x][z]`. Turned into the `[z][y][x]` volume once at
+/// the end, block by block, each block freed once copied.
+#[derive(Default)]
+struct Lines {
+    blocks: Vec<Vec<f32>>,
+}
+
+impl Lines {
+    fn new(grid: &VolumeGrid) -> Self {
+        let plane = grid.nx * grid.nz;
+        let blocks = (0..grid.ny)
+            .step_by(TILE)
+            .map(|y0| vec![0.0f32; TILE.min(grid.ny - y0) * plane])
+            .collect();
+        Lines { blocks }
+    }
+
+    fn into_volume(self, grid: &VolumeGrid) -> Array3<f32> {
+        let (nx, nz) = (grid.nx, grid.nz);
+        let mut volume = Array3::<f32>::zeros(grid.shape());
+        volume
+            .axis_chunks_iter_mut(Axis(1), TILE)
+            .into_par_iter()
+            .zip(self.blocks.into_par_iter())
+            .for_each(|(mut planes, block)| {
+                let ys = planes.len_of(Axis(1));
+                if let Ok(block) = ArrayView3::from_shape((ys, nx, nz), &block[..]) {
+                    planes.assign(&block.permuted_axes([2, 0, 1]));
+                }
+            });
+        volume
+    }
+}
+
+/// Add the batch, stored by columns, to the lines: blocks of [`TILE`] planes y in parallel, within a
+/// block tile by tile (`TILE × TILE` lines) and within a tile view by view, so that each view's band
+/// of detector columns is read from the cache by every line of the tile.
+fn backproject_columns(
+    lines: &mut Lines,
+    grid: &VolumeGrid,
+    frames: &[Frame],
+    maps: &[[f32; 4]],
+    panels: &[ColumnPanel<'_>],
+) {
+    let (nx, nz) = (grid.nx, grid.nz);
+    let dz = grid.spacing_mm[2];
+    lines
+        .blocks
+        .par_iter_mut()
+        .enumerate()
+        .for_each(|(block, acc)| {
+            let ys = acc.len() / (nx * nz).max(1);
+            // Per plane y of the block and view: the line of the volume's first row along x.
+            let rows: Vec<(RowLine, f32)> = (0..ys)
+                .flat_map(|j| {
+                    frames.iter().map(move |f| {
+                        let y = block * TILE + j;
+                        (volume_row(f, grid, y, 0), (dz * f.e_v[2]) as f32)
+                    })
+                })
+                .collect();
+            let mut set = Vec::with_capacity(TILE * TILE);
+            for x0 in (0..nx).step_by(TILE) {
+                let xs = TILE.min(nx - x0);
+                for (b, (map, panel)) in maps.iter().zip(panels).enumerate() {
+                    // The tile's lines are set up first, so that their divisions overlap.
+                    set.clear();
+                    for j in 0..ys {
+                        let (line, dlatv) = &rows[j * frames.len() + b];
+                        for i in 0..xs {
+                            let x = (x0 + i) as f32;
+                            let lc = line.lc0 + x * line.dlc;
+                            let lat = line.lat0 + x * line.dlat;
+                            let latv = line.latv0 + x * line.dlatv;
+                            if let Some(z) = ZLine::new(lc, lat, latv, *dlatv, *map, panel.cols) {
+                                set.push(((j * nx + x0 + i) * nz, z, z.span(nz, panel.rows)));
+                            }
+                        }
+                    }
+                    for (start, z, span) in &set {
+                        cone_column_spanned(&mut acc[*start..*start + nz], *panel, z, *span);
+                    }
+                }
+            }
+        });
+}
+
+/// Add the batch, stored by rows, to the volume: slices z in parallel, each row along x against every
+/// view of the batch.
+fn backproject_rows(
+    volume: &mut Array3<f32>,
+    grid: &VolumeGrid,
+    frames: &[Frame],
+    maps: &[[f32; 4]],
+    panels: &[f32],
+    width: usize,
+    rows: usize,
+) {
+    volume
+        .axis_iter_mut(Axis(0))
+        .into_par_iter()
+        .enumerate()
+        .for_each(|(z, mut slice)| {
+            let mut acc = vec![0.0f32; grid.nx];
+            for y in 0..grid.ny {
+                acc.fill(0.0);
+                for (b, (f, map)) in frames.iter().zip(maps).enumerate() {
+                    let panel = Panel {
+                        q: &panels[b * width * rows..(b + 1) * width * rows],
+                        width,
+                        rows,
+                    };
+                    cone_row(&mut acc, panel, &volume_row(f, grid, y, z), *map);
+                }
+                for (o, a) in slice.row_mut(y).iter_mut().zip(&acc) {
+                    *o += *a;
+                }
+            }
+        });
+}
 
 /// Detector sampling (du, dv, offset_u, offset_v, base_u, base_v): stored column =
 /// (u − offset_u)/du + (nu − 1)/2 + PAD + lo, with `lo` zero columns added on the left.
-fn det_map(det: &crate::recon::geometry::Detector2, lo: usize) -> [f64; 6] {
+fn det_map(det: &Detector2, lo: usize) -> [f64; 6] {
     [
         det.du_mm,
         det.dv_mm,
@@ -181,23 +440,33 @@ fn volume_row(f: &Frame, grid: &VolumeGrid, y: usize, z: usize) -> RowLine {
     }
 }
 
-/// Bytes FDK allocates: the volume, [`VIEWS_PER_THREAD`] filtered projections per thread and per-thread
-/// filter buffers.
+/// Bytes FDK allocates: the volume, the filtered projections of one pass, a plane of lines (or a row)
+/// and filter buffers per thread.
 pub fn estimate_bytes(views: &Views3, grid: &VolumeGrid, params: &FbpParams) -> u64 {
     let d = views.detector;
     // Offset panels are extended up to twice their width before filtering.
-    let panel = ((2 * d.nu + 2 * PAD) as u64)
-        .saturating_mul((d.nv + 2 * PAD) as u64)
-        .saturating_mul(4);
+    let panel = (2 * d.nu + 2 * PAD)
+        .saturating_mul(d.nv + 2 * PAD)
+        .saturating_add(SLACK);
+    let threads = rayon::current_num_threads() as u64;
+    let batch = batch_views(true, panel).max(threads as usize * VIEWS_PER_THREAD) as u64;
     let padded = padded_len(d.nu, params.padded_len)
         .map(|p| p as u64)
         .unwrap_or(0);
-    let threads = rayon::current_num_threads() as u64;
-    let per_thread = panel
-        .saturating_mul(VIEWS_PER_THREAD as u64)
-        .saturating_add(padded.saturating_mul(8 * 4))
-        .saturating_add((grid.nx as u64) * 4);
+    let per_thread = padded
+        .saturating_mul(8 * 4)
+        .saturating_add((d.nu as u64 * 2).saturating_mul(4))
+        .saturating_add(
+            (grid.nx as u64)
+                .saturating_mul(grid.nz as u64)
+                .saturating_mul(4),
+        );
     grid.voxels()
         .saturating_mul(4)
+        .saturating_add((panel as u64).saturating_mul(4).saturating_mul(batch))
         .saturating_add(threads.saturating_mul(per_thread))
 }
+
+#[cfg(test)]
+#[path = "fdk_tests.rs"]
+mod tests;

@@ -3,7 +3,8 @@
 //!
 //! - [`filter`]: Kak–Slaney spatial ramp kernels (flat and equiangular), windows, cut-off, zero padding.
 //! - [`weights`]: which redundancy weighting a scan needs, Parker and Wang weights.
-//! - `fbp2d` / `fdk`: the algorithms ([`fbp_2d`], [`fdk`]); `backproject`: the hot kernels.
+//! - `fbp2d` / `fdk`: the algorithms ([`fbp_2d`], [`fdk`]); `backproject` (rows along x) and `column`
+//!   (cone-beam lines along z): the hot kernels.
 //! - [`check`]: what the algorithms would refuse about a geometry and parameters, checked before any data.
 //!
 //! Every algorithm reads only the canonical per-view geometry; divergent beams must come from a planar
@@ -17,6 +18,9 @@ mod admit;
 mod backproject;
 #[cfg(target_arch = "x86_64")]
 mod backproject_x86;
+mod column;
+#[cfg(target_arch = "x86_64")]
+mod column_x86;
 mod fbp2d;
 mod fdk;
 pub mod filter;

@@ -1,0 +1,194 @@
+//! Cone-beam backprojection along z: one line of voxels parallel to the rotation axis against one filtered
+//! view.
+//!
+//! On a planar circular orbit whose detector u axis has no z component, every voxel of a line along z
+//! has the same distance from the source along the central ray and the same lateral offset, so it
+//! projects into one detector column position (index `iu`, fraction `fu`) with one distance weight,
+//! and its row position is affine in z. The kernel then interpolates between two stored detector
+//! columns at rows that advance by a fixed step: no division per voxel, and the samples of a vector of
+//! voxels lie close together in the column. Views for this kernel are stored by columns
+//! ([`ColumnPanel`]), zero-padded by [`PAD`] samples on all sides like the row-major panels of
+//! `backproject`. On x86-64 CPUs with AVX2 and FMA (and AVX-512F) the public kernel runs the vector forms
+//! of `super::column_x86`; [`cone_column_scalar`] is the portable reference.
+
+use super::backproject::{MIN_DEPTH, PAD, split};
+
+/// Values stored after the last column of a [`ColumnPanel`], so that the vector kernels may load a
+/// window of samples from any row of the last column.
+pub const SLACK: usize = 64;
+
+/// A filtered cone-beam projection stored by detector columns: `cols` columns of `rows` values each
+/// (`q[c·rows + r]`), zero-padded by [`PAD`] on all sides, then at least [`SLACK`] more values.
+#[derive(Debug, Clone, Copy)]
+pub struct ColumnPanel<'a> {
+    pub q: &'a [f32],
+    pub cols: usize,
+    pub rows: usize,
+}
+
+impl<'a> ColumnPanel<'a> {
+    /// The stored columns `iu` and `iu + 1`, as pointers for the vector kernels.
+    ///
+    /// # Safety
+    /// `iu + 1 < cols` and `cols·rows ≤ q.len()`.
+    #[allow(unsafe_code)]
+    pub(super) unsafe fn columns(&self, iu: usize) -> (*const f32, *const f32) {
+        // SAFETY: iu + 1 < cols and cols·rows ≤ q.len(), so both columns start inside q.
+        unsafe {
+            let a = self.q.as_ptr().add(iu * self.rows);
+            (a, a.add(self.rows))
+        }
+    }
+
+    /// Whether the panel holds what its sizes promise (the kernels do nothing otherwise).
+    fn valid(&self) -> bool {
+        self.cols >= 2
+            && self.rows >= 2 * PAD
+            && self
+                .cols
+                .checked_mul(self.rows)
+                .and_then(|n| n.checked_add(SLACK))
+                .is_some_and(|n| n <= self.q.len() && n < i32::MAX as usize)
+    }
+}
+
+/// One line of voxels along z seen from one view: stored column position `iu + fu`, distance weight
+/// `w` (1/lc²) and stored row position `pos0 + k·dpos` of voxel k.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ZLine {
+    pub iu: usize,
+    pub fu: f32,
+    pub w: f32,
+    pub pos0: f32,
+    pub dpos: f32,
+}
+
+impl ZLine {
+    /// The line of voxels at distance `lc` along the central ray and lateral offset `lat`, whose first
+    /// voxel has vertical offset `latv` and whose voxels are `dlatv` apart vertically, on a panel of
+    /// `cols` stored columns; `map = [au, bu, av, bv]` maps `lat/lc` and `latv/lc` to stored columns and
+    /// rows. `None` where the line adds nothing: at or behind the source, or projecting outside the
+    /// stored columns (whose clamped reads are the zero padding).
+    #[inline]
+    pub fn new(
+        lc: f32,
+        lat: f32,
+        latv: f32,
+        dlatv: f32,
+        map: [f32; 4],
+        cols: usize,
+    ) -> Option<Self> {
+        if lc.is_nan() || lc <= MIN_DEPTH {
+            return None;
+        }
+        let inv = 1.0 / lc;
+        let [au, bu, av, bv] = map;
+        let pu = lat * inv * au + bu;
+        if pu.is_nan() || pu <= 0.0 || pu >= cols.saturating_sub(2) as f32 {
+            return None;
+        }
+        let iu = pu as usize;
+        Some(ZLine {
+            iu,
+            fu: pu - iu as f32,
+            w: inv * inv,
+            pos0: latv * inv * av + bv,
+            dpos: dlatv * inv * av,
+        })
+    }
+
+    /// The voxels `k0..k1` (within `0..n`) that can read data, each with its row position inside
+    /// `[0, rows − 2]`: the voxels whose position lies in `[0.5, rows − 1.5]`. The bounds carry f32
+    /// rounding of about 10⁻⁷ of the row positions involved, far below the half sample of margin on
+    /// either side for the steps the kernels' windows take (at most four rows per voxel). Every voxel
+    /// outside lies below row 1 or above row `rows − 2`, where the interpolation reads only padding.
+    #[inline]
+    pub fn span(&self, n: usize, rows: usize) -> (usize, usize) {
+        let (lo, hi) = (0.5f32, rows as f32 - 1.5);
+        let (p0, d) = (self.pos0, self.dpos);
+        let top = n as f32;
+        let (first, last) = if d != 0.0 {
+            let inv = 1.0 / d;
+            let (a, b) = ((lo - p0) * inv, (hi - p0) * inv);
+            (a.min(b), a.max(b))
+        } else if p0 >= lo && p0 <= hi {
+            (0.0, top)
+        } else {
+            (1.0, 0.0)
+        };
+        // k0 = ⌈first⌉ and k1 = ⌊last⌋ + 1, clamped into [0, n] before the conversions (NaN fails
+        // both comparisons and gives an empty span).
+        let k0 = if first > 0.0 {
+            let t = first.min(top);
+            let k = t as usize;
+            k + usize::from((k as f32) < t)
+        } else {
+            0
+        };
+        let k1 = if last >= 0.0 {
+            (last.min(top) as usize + 1).min(n)
+        } else {
+            0
+        };
+        (k0.min(k1), k1)
+    }
+}
+
+/// Cone beam along z: `acc[k] += w · Q(iu + fu, pos0 + k·dpos)` (bilinear) for the voxels of
+/// [`ZLine::span`]; the others would add zero.
+#[cfg(test)]
+pub fn cone_column(acc: &mut [f32], panel: ColumnPanel<'_>, line: &ZLine) {
+    let span = line.span(acc.len(), panel.rows);
+    cone_column_spanned(acc, panel, line, span);
+}
+
+/// [`cone_column`] with the line's span computed by the caller (`line.span(acc.len(), panel.rows)`),
+/// so that the set-up of many lines can run ahead of their kernels.
+#[allow(unsafe_code)]
+pub fn cone_column_spanned(
+    acc: &mut [f32],
+    panel: ColumnPanel<'_>,
+    line: &ZLine,
+    (k0, k1): (usize, usize),
+) {
+    if !panel.valid() || line.iu + 2 > panel.cols || k0 >= k1 || k1 > acc.len() {
+        return;
+    }
+    #[cfg(target_arch = "x86_64")]
+    if crate::recon::cpu::avx2_fma() {
+        let wide = crate::recon::cpu::avx512f();
+        // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time; the
+        // panel is valid and iu + 1 < cols, checked above; k0 < k1 ≤ acc.len(), the caller's span.
+        unsafe { super::column_x86::cone_column(&mut acc[k0..k1], k0, panel, line, wide) };
+        return;
+    }
+    cone_column_from(&mut acc[k0..k1], k0, panel, line);
+}
+
+/// The portable (reference) form of [`cone_column`], over every voxel of `acc`.
+#[cfg(test)]
+pub fn cone_column_scalar(acc: &mut [f32], panel: ColumnPanel<'_>, line: &ZLine) {
+    if !panel.valid() || line.iu + 2 > panel.cols {
+        return;
+    }
+    cone_column_from(acc, 0, panel, line);
+}
+
+/// [`cone_column_scalar`] for `acc` holding voxels `k0..k0 + acc.len()`; the vector forms' tails.
+/// The panel must be valid and `iu + 1 < cols`.
+pub(super) fn cone_column_from(acc: &mut [f32], k0: usize, panel: ColumnPanel<'_>, line: &ZLine) {
+    let ColumnPanel { q, rows, .. } = panel;
+    let start = line.iu * rows;
+    let (a, b) = (&q[start..start + rows], &q[start + rows..start + 2 * rows]);
+    let hv = (rows - 2) as f32;
+    for (j, out) in acc.iter_mut().enumerate() {
+        let (iv, fv) = split(line.pos0 + (k0 + j) as f32 * line.dpos, hv);
+        let c0 = a[iv] + line.fu * (b[iv] - a[iv]);
+        let c1 = a[iv + 1] + line.fu * (b[iv + 1] - a[iv + 1]);
+        *out += line.w * (c0 + fv * (c1 - c0));
+    }
+}
+
+#[cfg(test)]
+#[path = "column_tests.rs"]
+mod tests;
