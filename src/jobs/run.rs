@@ -93,10 +93,17 @@ pub fn volume_grid(grid: &OutputGrid) -> VolumeGrid {
     }
 }
 
-fn truth(phantom: &PhantomSpec, grid: &OutputGrid, s: usize) -> Result<Array3<f32>, ReconError> {
+/// The phantom on the output grid; a volume is rasterised slice by slice with cancel checks (seconds
+/// for a few hundred slices at supersampling 2).
+fn truth(
+    phantom: &PhantomSpec,
+    grid: &OutputGrid,
+    s: usize,
+    ctl: Control<'_>,
+) -> Result<Array3<f32>, ReconError> {
     Ok(match grid {
         OutputGrid::Image(g) => phantom.phantom2()?.rasterize(g, s).insert_axis(Axis(0)),
-        OutputGrid::Volume(g) => phantom.phantom3()?.rasterize(g, s),
+        OutputGrid::Volume(g) => phantom.phantom3()?.rasterize_cancelable(g, s, ctl)?,
     })
 }
 
@@ -145,7 +152,7 @@ pub fn execute(
         (Some(phantom), true) => {
             ctl.step("metrics", 0.9);
             let s = if vol.len_of(Axis(0)) == 1 { 4 } else { 2 };
-            let t = truth(phantom, &req.grid, s)?;
+            let t = truth(phantom, &req.grid, s, ctl)?;
             Some(quality(vol.view(), t.view(), s)?)
         }
         _ => None,

@@ -127,9 +127,14 @@ pub(crate) fn fdk_with(
                     rows,
                 })
                 .collect();
-            backproject_columns(&mut lines, grid, batch_frames, &maps, &stored);
+            backproject_columns(&mut lines, grid, batch_frames, &maps, &stored, ctl)?;
         } else {
-            backproject_rows(&mut volume, grid, batch_frames, &maps, panels, width, rows);
+            let stored = Panel {
+                q: panels,
+                width,
+                rows,
+            };
+            backproject_rows(&mut volume, grid, batch_frames, &maps, stored, ctl)?;
         }
         ticker.add(last - first);
     }
@@ -325,14 +330,17 @@ fn backproject_columns(
     frames: &[Frame],
     maps: &[[f32; 4]],
     panels: &[ColumnPanel<'_>],
-) {
+    ctl: Control<'_>,
+) -> Result<(), ReconError> {
     let (nx, nz) = (grid.nx, grid.nz);
     let dz = grid.spacing_mm[2];
     lines
         .blocks
         .par_iter_mut()
         .enumerate()
-        .for_each(|(block, acc)| {
+        .try_for_each(|(block, acc)| {
+            // A block of a pass takes tens of milliseconds: a cancel is seen well within a second.
+            ctl.check()?;
             let ys = acc.len() / (nx * nz).max(1);
             // Per plane y of the block and view: the line of the volume's first row along x.
             let rows: Vec<(RowLine, f32)> = (0..ys)
@@ -366,25 +374,31 @@ fn backproject_columns(
                     }
                 }
             }
-        });
+            Ok(())
+        })
 }
 
-/// Add the batch, stored by rows, to the volume: slices z in parallel, each row along x against every
-/// view of the batch.
+/// Add the batch, stored by rows (`stored` holds the batch's views one after the other), to the volume:
+/// slices z in parallel, each row along x against every view of the batch.
 fn backproject_rows(
     volume: &mut Array3<f32>,
     grid: &VolumeGrid,
     frames: &[Frame],
     maps: &[[f32; 4]],
-    panels: &[f32],
-    width: usize,
-    rows: usize,
-) {
+    stored: Panel<'_>,
+    ctl: Control<'_>,
+) -> Result<(), ReconError> {
+    let Panel {
+        q: panels,
+        width,
+        rows,
+    } = stored;
     volume
         .axis_iter_mut(Axis(0))
         .into_par_iter()
         .enumerate()
-        .for_each(|(z, mut slice)| {
+        .try_for_each(|(z, mut slice)| {
+            ctl.check()?;
             let mut acc = vec![0.0f32; grid.nx];
             for y in 0..grid.ny {
                 acc.fill(0.0);
@@ -400,7 +414,8 @@ fn backproject_rows(
                     *o += *a;
                 }
             }
-        });
+            Ok(())
+        })
 }
 
 /// Detector sampling (du, dv, offset_u, offset_v, base_u, base_v): stored column =

@@ -7,6 +7,7 @@ use serde::{Deserialize, Serialize};
 
 use super::quadric::{Quadric, fill_row, mapped_interval, mul};
 use super::{MAX_BODIES, Table3, check_scale, finite_field, positive_field};
+use crate::recon::control::{Control, unattended};
 use crate::recon::error::ReconError;
 use crate::recon::geometry::vectors::{add3, dot3, norm3, scale3, sub3};
 use crate::recon::geometry::{Detector2, Vec3, View3, Views3};
@@ -197,6 +198,18 @@ impl Phantom3 {
     /// The phantom sampled on `grid`, shape `[nz][ny][nx]`: each voxel is the mean of `supersample³`
     /// point samples spread evenly over the voxel (`supersample` 0 counts as 1). Slices run in parallel.
     pub fn rasterize(&self, grid: &VolumeGrid, supersample: usize) -> Array3<f32> {
+        // Never canceled, so never an error.
+        self.rasterize_cancelable(grid, supersample, unattended())
+            .unwrap_or_else(|_| Array3::zeros(grid.shape()))
+    }
+
+    /// [`Self::rasterize`], checking `ctl`'s cancel flag before each slice.
+    pub fn rasterize_cancelable(
+        &self,
+        grid: &VolumeGrid,
+        supersample: usize,
+        ctl: Control<'_>,
+    ) -> Result<Array3<f32>, ReconError> {
         let s = supersample.max(1);
         let sf = s as f64;
         let bodies = self.quadrics();
@@ -209,7 +222,8 @@ impl Phantom3 {
         out.axis_iter_mut(Axis(0))
             .into_par_iter()
             .enumerate()
-            .for_each(|(k, mut slice)| {
+            .try_for_each(|(k, mut slice)| {
+                ctl.check()?;
                 let mut buf = vec![0.0f64; grid.nx * s];
                 let mut acc = vec![0.0f64; grid.nx];
                 for (j, mut row) in slice.axis_iter_mut(Axis(0)).enumerate() {
@@ -229,8 +243,9 @@ impl Phantom3 {
                         *o = (a * norm) as f32;
                     }
                 }
-            });
-        out
+                Ok::<(), ReconError>(())
+            })?;
+        Ok(out)
     }
 
     /// Exact cone-beam projections, shape `[views][nv][nu]`: element `[i][r][c]` is the line integral

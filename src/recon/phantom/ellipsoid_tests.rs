@@ -160,3 +160,20 @@ fn the_seed_grid_samples_both_ends_and_the_modified_table_has_its_known_values()
         vol[[64, 64, 64]]
     );
 }
+
+/// A canceled flag stops the rasterisation with `Canceled`; an unset one gives the plain raster.
+#[test]
+fn rasterising_checks_the_cancel_flag() {
+    use crate::recon::control::{Cancel, Control, NoProgress};
+    let ph = Phantom3::from_table(Table3::ModifiedSheppLogan, 30.0);
+    let grid = VolumeGrid::cube(24, 2.5);
+    let cancel = Cancel::new();
+    let ctl = Control::new(&cancel, &NoProgress);
+    let vol = ph.rasterize_cancelable(&grid, 2, ctl).unwrap();
+    assert_eq!(vol, ph.rasterize(&grid, 2));
+    cancel.cancel();
+    assert!(matches!(
+        ph.rasterize_cancelable(&grid, 2, ctl),
+        Err(ReconError::Canceled)
+    ));
+}
