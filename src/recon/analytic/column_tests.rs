@@ -190,34 +190,20 @@ fn inconsistent_panels_are_ignored() {
     };
     let mut acc = vec![0.0f32; 20];
     // No slack after the columns.
-    cone_column(
-        &mut acc,
-        ColumnPanel {
-            q: &q,
-            cols: 10,
-            rows: 10,
-        },
-        &line,
-    );
-    cone_column_scalar(
-        &mut acc,
-        ColumnPanel {
-            q: &q,
-            cols: 10,
-            rows: 10,
-        },
-        &line,
-    );
+    let short = ColumnPanel {
+        q: &q,
+        cols: 10,
+        rows: 10,
+    };
+    cone_column(&mut acc, short, &line);
+    cone_column_scalar(&mut acc, short, &line);
     let q = vec![1.0f32; 10 * 10 + SLACK];
     let edge = ZLine { iu: 9, ..line };
-    cone_column(
-        &mut acc,
-        ColumnPanel {
-            q: &q,
-            cols: 10,
-            rows: 10,
-        },
-        &edge,
-    );
+    let full = ColumnPanel {
+        q: &q,
+        cols: 10,
+        rows: 10,
+    };
+    cone_column(&mut acc, full, &edge);
     assert!(acc.iter().all(|v| *v == 0.0));
 }

@@ -254,7 +254,8 @@ fn lines_along_z(frames: &[Frame], grid: &VolumeGrid, det: &Detector2) -> bool {
     let (z0, z1) = (grid.z(0), grid.z(grid.nz.saturating_sub(1)));
     frames.iter().all(|f| {
         let reach = (z0 - f.source[2]).abs().max((z1 - f.source[2]).abs());
-        f.e_u[2].abs() * reach <= 1e-4 * det.du_mm && f.dir[2].abs() * reach <= 1e-4 * det.du_mm
+        // The central ray is horizontal by construction (`orbit::frames`): only the panel can tilt lines.
+        f.e_u[2].abs() * reach <= 1e-4 * det.du_mm
     })
 }
 
@@ -464,7 +465,8 @@ pub fn estimate_bytes(views: &Views3, grid: &VolumeGrid, params: &FbpParams) -> 
         .saturating_mul(d.nv + 2 * PAD)
         .saturating_add(SLACK);
     let threads = rayon::current_num_threads() as u64;
-    let batch = batch_views(true, panel).max(threads as usize * VIEWS_PER_THREAD) as u64;
+    // At least the batch of the loop along x (`batch_views` never returns less).
+    let batch = batch_views(true, panel) as u64;
     let padded = padded_len(d.nu, params.padded_len)
         .map(|p| p as u64)
         .unwrap_or(0);

@@ -46,6 +46,12 @@ fn cone(angles: Angles, nu: usize, offset_u_mm: f64, offset_v_mm: f64) -> Views3
     .unwrap()
 }
 
+/// FDK with the loop along z (`true`) or along x (`false`) forced.
+fn along(views: &Views3, proj: &Array3<f32>, grid: &VolumeGrid, z: bool) -> Array3<f32> {
+    let params = FbpParams::default();
+    fdk_with(views, proj.view(), grid, &params, unattended(), Some(z)).unwrap()
+}
+
 fn grid() -> VolumeGrid {
     VolumeGrid {
         nx: 40,
@@ -94,24 +100,8 @@ fn the_loops_along_z_and_along_x_agree() {
             &grid,
             &views.detector
         ));
-        let z = fdk_with(
-            &views,
-            proj.view(),
-            &grid,
-            &params,
-            unattended(),
-            Some(true),
-        )
-        .unwrap();
-        let x = fdk_with(
-            &views,
-            proj.view(),
-            &grid,
-            &params,
-            unattended(),
-            Some(false),
-        )
-        .unwrap();
+        let z = along(&views, &proj, &grid, true);
+        let x = along(&views, &proj, &grid, false);
         let top = x.iter().fold(0.0f32, |m, v| m.max(v.abs()));
         let worst = z
             .iter()
@@ -155,14 +145,6 @@ fn a_rolled_panel_takes_the_loop_along_x() {
     let proj = phantom().project(&views);
     let params = FbpParams::default();
     let default = fdk(&views, proj.view(), &grid, &params, unattended()).unwrap();
-    let x = fdk_with(
-        &views,
-        proj.view(),
-        &grid,
-        &params,
-        unattended(),
-        Some(false),
-    )
-    .unwrap();
+    let x = along(&views, &proj, &grid, false);
     assert_eq!(default, x);
 }
