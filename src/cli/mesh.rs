@@ -46,7 +46,7 @@ pub fn run(args: MeshArgs) -> CliResult<()> {
         target_triangles: args.target_triangles,
         clip: Default::default(),
     };
-    let (mesh, stats) = Local::default().mesh(volume, [x, y, z], &options)?;
+    let (mesh, stats) = super::on_pool(|| Local::default().mesh(volume, [x, y, z], &options))?;
     std::fs::write(&args.out, mesh.to_stl_binary())
         .map_err(|e| format!("writing {}: {e}", args.out.display()))?;
     for w in &stats.warnings {

@@ -30,3 +30,11 @@ pub mod phantom;
 pub mod progress;
 pub mod recon;
 pub mod serve;
+
+/// Runs `f` on a thread of rayon's global pool, as a job of the service runs on its pool: the kernels'
+/// parallel loops then start on a pool thread, instead of each loop being handed over from the main
+/// thread, which then sleeps until it is done (a wake-up and a sleep per loop, more than a small loop
+/// costs; SART runs thousands of them).
+pub(crate) fn on_pool<R: Send>(f: impl FnOnce() -> R + Send) -> R {
+    rayon::scope(|_| f())
+}

@@ -87,7 +87,7 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
                 incident_photons,
                 seed: args.seed,
             });
-            let data = local.simulate(spec, geometry.clone(), noise)?;
+            let data = super::on_pool(|| local.simulate(spec, geometry.clone(), noise))?;
             write_geometry(&sidecar(&args.out), &geometry)?;
             data
         }

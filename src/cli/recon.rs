@@ -138,7 +138,7 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
     let data = read_npy(&args.input)?;
     let cancel = Cancel::new();
     let bar = Bar::new();
-    let out = local.reconstruct(&admitted, data.view(), &bar, &cancel);
+    let out = super::on_pool(|| local.reconstruct(&admitted, data.view(), &bar, &cancel));
     bar.finish();
     let out = out?;
     write_npy(&args.output, &out)?;
