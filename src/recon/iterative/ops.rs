@@ -50,13 +50,18 @@ pub fn residual_in_place(out: &mut [f32], b: &[f32]) {
         });
 }
 
-/// Element-wise reciprocal with a floor: values at most `1e-6 × max` (rays or pixels that the geometry
-/// barely touches) map to 0, so they are left alone instead of blowing up.
+/// Element-wise reciprocal with a floor: values at most [`reciprocal_floor`] of the largest (rays or
+/// pixels that the geometry barely touches) map to 0, so they are left alone instead of blowing up.
 pub fn safe_reciprocal(v: &mut [f32]) {
     let max = v.iter().fold(0.0f32, |m, &x| m.max(x));
-    let floor = max * 1e-6;
+    let floor = reciprocal_floor(max);
     v.par_iter_mut()
         .for_each(|x| *x = if *x > floor { 1.0 / *x } else { 0.0 });
+}
+
+/// The floor of [`safe_reciprocal`] for values whose largest is `max`: `1e-6 × max`.
+pub fn reciprocal_floor(max: f32) -> f32 {
+    max * 1e-6
 }
 
 /// Clamp every value into `bounds`.

@@ -7,13 +7,14 @@ use rand::rngs::StdRng;
 use rand::seq::SliceRandom;
 
 use super::ops::{
-    axpy_scaled, column_sums, constrain, converged, norm, report, residual_in_place, row_sums,
-    safe_reciprocal, subsets,
+    axpy_scaled, column_sums, constrain, converged, norm, reciprocal_floor, report,
+    residual_in_place, row_sums, safe_reciprocal, subsets,
 };
 use super::params::{Bounds, SartParams};
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::projector::Operator;
+use crate::recon::projector::parallel2::LineSweep;
 
 /// Most f32 values of per-subset column sums kept in memory; beyond this they are recomputed on each
 /// use (one extra back projection per subset).
@@ -34,6 +35,9 @@ pub struct Sweep {
     r_weight: Vec<f32>,
     /// 1 / column sums per subset, when stored.
     c_weights: Option<Vec<Vec<f32>>>,
+    /// The fused single-view updates, when every subset is one view that the line kernels take
+    /// (they compute the column sums as they go: no `c_weights` then).
+    lines: Option<LineSweep>,
 }
 
 impl Sweep {
@@ -45,7 +49,14 @@ impl Sweep {
         // Visit the subsets in a fixed pseudo-random order (as ASTRA's SART does): successive updates
         // from nearby angles are nearly parallel and converge slowly.
         subsets.shuffle(&mut StdRng::seed_from_u64(ORDER_SEED));
-        let c_weights = if stores_weights(count, op.image_len()) {
+        let single = subsets.iter().all(|s| s.len() == 1);
+        let lines = match op.line_plans() {
+            Some((plans, nx, ny)) if single => {
+                LineSweep::new(plans, nx, ny, reciprocal_floor, ctl.cancel)?
+            }
+            _ => None,
+        };
+        let c_weights = if lines.is_none() && stores_weights(count, op.image_len()) {
             let mut w = Vec::with_capacity(count);
             for s in &subsets {
                 let mut c = column_sums(op, s, ctl)?;
@@ -60,13 +71,14 @@ impl Sweep {
             subsets,
             r_weight,
             c_weights,
+            lines,
         })
     }
 
     /// One pass over all subsets; returns the residual accumulated over the pass, each subset measured
     /// just before its update: √Σ_S ‖b_S − A_S x‖².
     pub fn run(
-        &self,
+        &mut self,
         op: &dyn Operator,
         b: &[f32],
         x: &mut [f32],
@@ -75,6 +87,18 @@ impl Sweep {
         ctl: &Control<'_>,
     ) -> Result<f64, ReconError> {
         let m = op.view_len();
+        if let Some(lines) = &mut self.lines {
+            lines.load(x);
+            let mut sum2 = 0.0f64;
+            for s in &self.subsets {
+                ctl.check()?;
+                let v = s[0];
+                let (b, w) = (&b[v * m..(v + 1) * m], &self.r_weight[v * m..(v + 1) * m]);
+                sum2 += lines.update(v, b, w, lambda, bounds.lower, bounds.upper);
+            }
+            lines.store(x);
+            return Ok(sum2.sqrt());
+        }
         let mut bp = vec![0.0f32; x.len()];
         let mut sum2 = 0.0f64;
         // The subset's data and residual, reused by every subset (no allocation per view).
@@ -124,7 +148,7 @@ pub fn sart(
     stage: &str,
     ctl: &Control<'_>,
 ) -> Result<(), ReconError> {
-    let sweep = Sweep::new(op, subsets, ctl)?;
+    let mut sweep = Sweep::new(op, subsets, ctl)?;
     let b_norm = norm(b);
     constrain(x, p.bounds());
     for k in 1..=p.iterations {
@@ -136,3 +160,7 @@ pub fn sart(
     }
     Ok(())
 }
+
+#[cfg(test)]
+#[path = "sart_tests.rs"]
+mod tests;

@@ -181,7 +181,7 @@ pub fn tv(
     shape: Shape3,
     ctl: &Control<'_>,
 ) -> Result<(), ReconError> {
-    let sweep = Sweep::new(op, p.subsets, ctl)?;
+    let mut sweep = Sweep::new(op, p.subsets, ctl)?;
     let mut w = p.tv_weight as f32;
     for k in 1..=p.iterations {
         let res = sweep.run(op, b, x, 1.0, p.bounds(), ctl)?;

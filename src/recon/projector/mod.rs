@@ -75,6 +75,12 @@ pub trait Operator: Sync {
     fn ray_axpy(&self, view: usize, element: usize, alpha: f32, image: &mut [f32]);
     /// ‖a_i‖² for that ray.
     fn ray_norm2(&self, view: usize, element: usize) -> f32;
+    /// The line-kernel plan of every view with the grid's `(nx, ny)`, when every view has one (2D
+    /// parallel views that [`parallel2`] takes, on a CPU that runs it), for SART's single-view updates
+    /// ([`parallel2::LineSweep`]). `None` by default.
+    fn line_plans(&self) -> Option<(Vec<parallel2::LineView>, usize, usize)> {
+        None
+    }
 }
 
 /// Number of image-sized buffers a projection allocates at most: one volume per thread for a cone-beam
@@ -253,6 +259,9 @@ impl Operator for Projector2<'_> {
             w.visit(|_, wt| s += wt * wt);
         }
         s
+    }
+    fn line_plans(&self) -> Option<(Vec<parallel2::LineView>, usize, usize)> {
+        operator2::every_line_plan(self.views, self.grid).map(|p| (p, self.grid.nx, self.grid.ny))
     }
 }
 

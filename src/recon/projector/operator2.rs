@@ -186,6 +186,18 @@ pub fn forward(
     Ok(())
 }
 
+/// The line-kernel plan of every view, when the grid fits the padded layouts and every view has one
+/// (see [`parallel2::LineView::plan`]).
+pub fn every_line_plan(views: &Views2, grid: &ImageGrid) -> Option<Vec<LineView>> {
+    if !fits(grid) || !parallel2::available() {
+        return None;
+    }
+    (0..views.views.len())
+        .into_par_iter()
+        .map(|v| LineView::plan(views, v, grid))
+        .collect()
+}
+
 /// The line-kernel plans of the views of `subset` (see [`parallel2`]); all `None` where the CPU
 /// does not run the line kernels.
 fn line_plans(views: &Views2, grid: &ImageGrid, subset: &[usize]) -> Vec<Option<LineView>> {

@@ -158,15 +158,16 @@ impl LineView {
         if self.reversed { self.count - 1 - k } else { k }
     }
 
-    /// The lines `[lo, hi)` on which one of the sorted rays `first .. first + 8` may touch a pixel (a
-    /// superset: the positions of the vector's first and last lanes, with a margin for rounding).
-    fn group_lines(&self, first: usize) -> (usize, usize) {
+    /// The lines `[lo, hi)` on which one of the sorted rays `first .. first + width` may touch a
+    /// pixel (a superset: the positions of the vector's first and last lanes, with a margin for
+    /// rounding).
+    fn group_lines(&self, first: usize, width: usize) -> (usize, usize) {
         const MARGIN: f64 = 0.05;
         let s = f64::from(self.s);
         let lane0 = self.c0 + first as f64 * s;
-        let lane7 = lane0 + 7.0 * s;
+        let lane7 = lane0 + (width.max(1) - 1) as f64 * s;
         let (mut lo, mut hi) = (0.0f64, self.lines() as f64);
-        // lane 0 at line i lies below len: (len + m − lane0) − dc·i > 0; lane 7 lies above −1:
+        // lane 0 at line i lies below len: (len + m − lane0) − dc·i > 0; the last lane lies above −1:
         // (lane7 + 1 + m) + dc·i > 0.
         for (a, b) in [
             (self.len as f64 + MARGIN - lane0, -self.dc),
@@ -242,17 +243,28 @@ impl WideLines {
 /// # Panics
 /// If `lines` and `lv` disagree on the line count or length, or `out.len() != lv.count`, or the CPU
 /// lacks AVX2 and FMA.
-#[allow(unsafe_code)]
 pub fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
+    forward_view_with(lines, lv, out, wide_available())
+}
+
+/// [`forward_view`] with the 16-ray AVX-512F kernel when `wide` (which must then be available), else
+/// the 8-ray AVX2 one. Both compute the same values bit for bit.
+#[allow(unsafe_code)]
+fn forward_view_with(lines: &WideLines, lv: &LineView, out: &mut [f32], wide: bool) {
     assert!(
         lines.count == lv.lines() && lines.len == lv.len && out.len() == lv.count,
         "line layout, view plan and data row disagree"
     );
     assert!(available(), "the line kernels need AVX2 and FMA");
+    assert!(!wide || wide_available(), "the wide kernel needs AVX-512F");
     #[cfg(target_arch = "x86_64")]
-    // SAFETY: AVX2 and FMA are present; the sizes agree (checked above).
+    // SAFETY: AVX2 and FMA are present, and AVX-512F where `wide`; the sizes agree (checked above).
     unsafe {
-        simd::forward_view(lines, lv, out)
+        if wide {
+            simd::forward_view16(lines, lv, out)
+        } else {
+            simd::forward_view(lines, lv, out)
+        }
     }
 }
 
@@ -319,27 +331,10 @@ fn back_lines_with(
                 let i = task * LINES_PER_TASK + l;
                 scratch.fill(0.0);
                 for ((lv, _), r) in group.iter().zip(&rows) {
-                    #[cfg(target_arch = "x86_64")]
-                    // SAFETY: AVX2 and FMA are present, and AVX-512F where `wide`; `scratch` holds
-                    // step + padded values, `r` holds count + 40, and the plan's step lies in
-                    // [S_MIN, S_MAX].
-                    unsafe {
-                        let b = lv.b[i];
-                        match (wide, lv.s < ONE_RAY) {
-                            (true, true) => {
-                                simd::back_line16::<true>(&mut scratch, padded, r, lv, b)
-                            }
-                            (true, false) => {
-                                simd::back_line16::<false>(&mut scratch, padded, r, lv, b)
-                            }
-                            (false, true) => {
-                                simd::back_line::<true>(&mut scratch, padded, r, lv, b)
-                            }
-                            (false, false) => {
-                                simd::back_line::<false>(&mut scratch, padded, r, lv, b)
-                            }
-                        }
-                    }
+                    // SAFETY: AVX2 and FMA are present, and AVX-512F where `wide` (asserted above);
+                    // `scratch` holds step + padded values, `r` holds count + 40, and the plan's
+                    // step lies in [S_MIN, S_MAX].
+                    unsafe { back_line_into(&mut scratch, padded, r, lv, lv.b[i], wide) };
                 }
                 for (d, v) in dst.iter_mut().zip(&scratch[step..]) {
                     *d += v;
@@ -347,6 +342,68 @@ fn back_lines_with(
             }
             Ok(())
         })
+}
+
+/// Add the back projection of one view's data on the line at position `b` to `scratch` (pixel `q` at
+/// `scratch[step + q]` for `q < padded`, `step` = 16 when `wide`, else 8); `r` is the data in sorted ray
+/// order from `r[1]`, with a zero before and at least 39 after.
+///
+/// # Safety
+/// The CPU has AVX2 and FMA, and AVX-512F where `wide`; `scratch.len() ≥ step + padded` with `padded`
+/// a multiple of `step`, `r.len() ≥ lv.count + 40`, and `lv.s ∈ [S_MIN, S_MAX]` (every plan's).
+#[allow(unsafe_code)]
+#[inline]
+unsafe fn back_line_into(
+    scratch: &mut [f32],
+    padded: usize,
+    r: &[f32],
+    lv: &LineView,
+    b: f32,
+    wide: bool,
+) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: the caller's contract is the kernels'.
+    unsafe {
+        match (wide, lv.s < ONE_RAY) {
+            (true, true) => simd::back_line16::<true>(scratch, padded, r, lv, b),
+            (true, false) => simd::back_line16::<false>(scratch, padded, r, lv, b),
+            (false, true) => simd::back_line::<true>(scratch, padded, r, lv, b),
+            (false, false) => simd::back_line::<false>(scratch, padded, r, lv, b),
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (scratch, padded, r, lv, b, wide);
+}
+
+/// [`back_line_into`] for two data rows on the same line (`first` from `r[0]`, `second` from
+/// `r[1]`), sharing the rays' positions where the 16-pixel kernel runs; the same sums as two calls.
+///
+/// # Safety
+/// As [`back_line_into`], for both pairs.
+#[allow(unsafe_code)]
+#[inline]
+unsafe fn back_line_pair_into(
+    [first, second]: [&mut [f32]; 2],
+    padded: usize,
+    r: [&[f32]; 2],
+    lv: &LineView,
+    b: f32,
+    wide: bool,
+) {
+    #[cfg(target_arch = "x86_64")]
+    // SAFETY: the caller's contract is the kernels'.
+    unsafe {
+        match (wide, lv.s < ONE_RAY) {
+            (true, true) => simd::back_lines16::<true, 2>([first, second], padded, r, lv, b),
+            (true, false) => simd::back_lines16::<false, 2>([first, second], padded, r, lv, b),
+            (false, _) => {
+                back_line_into(first, padded, r[0], lv, b, false);
+                back_line_into(second, padded, r[1], lv, b, false);
+            }
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (first, second, padded, r, lv, b, wide);
 }
 
 /// The (pixel, weight) pairs of sorted ray `k` on line `i`, as the kernels compute them: pixels
@@ -362,6 +419,10 @@ pub fn pairs(lv: &LineView, i: usize, k: usize) -> [(i64, f32); 2] {
 #[allow(unsafe_code)]
 #[path = "parallel2_simd.rs"]
 mod simd;
+
+#[path = "parallel2_sweep.rs"]
+mod sweep;
+pub use sweep::LineSweep;
 
 #[cfg(test)]
 #[path = "parallel2_tests.rs"]

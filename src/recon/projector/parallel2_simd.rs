@@ -18,10 +18,10 @@ pub(super) unsafe fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f
     let mut sums = [0.0f32; 8];
     for first in (0..m).step_by(8) {
         let ks = _mm256_mul_ps(lanes(first as f32), vs);
-        let (lo, hi) = lv.group_lines(first);
+        let (lo, hi) = lv.group_lines(first, 8);
         let mut acc0 = _mm256_setzero_ps();
         let mut acc1 = _mm256_setzero_ps();
-        for (i, &b) in lv.b.iter().enumerate().take(hi).skip(lo) {
+        for (i, &b) in (lo..hi).zip(&lv.b[lo..hi]) {
             let t = _mm256_add_ps(_mm256_set1_ps(b), ks);
             let floor = _mm256_floor_ps(t);
             let j = _mm256_cvtps_epi32(floor);
@@ -45,6 +45,60 @@ pub(super) unsafe fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f
         }
         // SAFETY: `sums` holds 8 values.
         unsafe { _mm256_storeu_ps(sums.as_mut_ptr(), _mm256_add_ps(acc0, acc1)) };
+        for (l, &v) in sums.iter().enumerate().take(m - first) {
+            out[lv.element(first + l)] = v;
+        }
+    }
+}
+
+/// [`forward_view`] with AVX-512F, 16 neighbouring rays per vector: their pixel pairs lie in 32
+/// neighbouring values of the line (16 rays span at most 15·S_MAX + 2 < 31 pixels), picked by one
+/// two-register permute each. The same operations per ray as the 8-ray kernel, so the same values.
+///
+/// # Safety
+/// AVX2, FMA and AVX-512F must be available; `lines` and `lv` must agree and `out.len() == lv.count`.
+#[target_feature(enable = "avx2,fma,avx512f")]
+pub(super) unsafe fn forward_view16(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
+    let m = lv.count;
+    let vs = _mm512_set1_ps(lv.s);
+    let vw = _mm512_set1_ps(lv.weight);
+    let one = _mm512_set1_epi32(1);
+    let data = lines.data.as_ptr();
+    // The window [base, base + 32) stays inside the data for base ∈ [−PAD, len + PAD − 32].
+    let (lowest, highest) = (-(PAD as isize), (lines.len + PAD - 32) as isize);
+    let steps = _mm512_setr_ps(
+        0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
+    );
+    let mut sums = [0.0f32; 16];
+    for first in (0..m).step_by(16) {
+        let ks = _mm512_mul_ps(_mm512_add_ps(_mm512_set1_ps(first as f32), steps), vs);
+        let (lo, hi) = lv.group_lines(first, 16);
+        let mut acc0 = _mm512_setzero_ps();
+        let mut acc1 = _mm512_setzero_ps();
+        for (i, &b) in (lo..hi).zip(&lv.b[lo..hi]) {
+            let t = _mm512_add_ps(_mm512_set1_ps(b), ks);
+            let floor = _mm512_roundscale_ps::<{ _MM_FROUND_TO_NEG_INF | _MM_FROUND_NO_EXC }>(t);
+            let j = _mm512_cvtps_epi32(floor);
+            let w1 = _mm512_mul_ps(_mm512_sub_ps(t, floor), vw);
+            let w0 = _mm512_sub_ps(vw, w1);
+            // On the lines of `group_lines` every lane lies within 15·S_MAX + 2 pixels of the
+            // image, so the clamp never binds there; it only keeps the reads inside the data.
+            let base =
+                (_mm_cvtsi128_si32(_mm512_castsi512_si128(j)) as isize).clamp(lowest, highest);
+            let rel = _mm512_sub_epi32(j, _mm512_set1_epi32(base as i32));
+            // SAFETY: offset(i) + base ∈ [offset(i) − PAD, offset(i) + len + PAD − 32], and the 32
+            // values from there lie in the data (PAD zeros before each line and after the last).
+            let (l, h) = unsafe {
+                let p = data.add(lines.offset(i)).offset(base);
+                (_mm512_loadu_ps(p), _mm512_loadu_ps(p.add(16)))
+            };
+            let a = _mm512_permutex2var_ps(l, rel, h);
+            let c = _mm512_permutex2var_ps(l, _mm512_add_epi32(rel, one), h);
+            acc0 = _mm512_fmadd_ps(w0, a, acc0);
+            acc1 = _mm512_fmadd_ps(w1, c, acc1);
+        }
+        // SAFETY: `sums` holds 16 values.
+        unsafe { _mm512_storeu_ps(sums.as_mut_ptr(), _mm512_add_ps(acc0, acc1)) };
         for (l, &v) in sums.iter().enumerate().take(m - first) {
             out[lv.element(first + l)] = v;
         }
@@ -202,6 +256,24 @@ pub(super) unsafe fn back_line16<const TWO: bool>(
     lv: &LineView,
     b: f32,
 ) {
+    // SAFETY: the caller's.
+    unsafe { back_lines16::<TWO, 1>([acc], n16, [r], lv, b) }
+}
+
+/// [`back_line16`] for `N` data rows on the same line at once (`accs[n]` from `rs[n]`): the rays'
+/// positions and weights are found once for all, and each row's sums are those of
+/// [`back_line16`] alone, bit for bit.
+///
+/// # Safety
+/// As [`back_line16`], for every pair `(accs[n], rs[n])`.
+#[target_feature(enable = "avx2,fma,avx512f")]
+pub(super) unsafe fn back_lines16<const TWO: bool, const N: usize>(
+    accs: [&mut [f32]; N],
+    n16: usize,
+    rs: [&[f32]; N],
+    lv: &LineView,
+    b: f32,
+) {
     let count = lv.count as i32;
     let (vb, vs, vw) = (
         _mm512_set1_ps(b),
@@ -211,13 +283,13 @@ pub(super) unsafe fn back_line16<const TWO: bool>(
     let inv_s = _mm512_set1_ps(1.0 / lv.s);
     let (one, onef) = (_mm512_set1_epi32(1), _mm512_set1_ps(1.0));
     let sixteen = _mm512_set1_ps(16.0);
-    let rp = r.as_ptr();
-    let ap = acc.as_mut_ptr();
+    let rps = rs.map(|r| r.as_ptr());
+    let aps = accs.map(|a| a.as_mut_ptr());
     let lanes16 = _mm512_setr_ps(
         0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
     );
     let mut q = _mm512_add_ps(_mm512_set1_ps(-16.0), lanes16);
-    let mut c_prev = _mm512_setzero_si512();
+    let mut c_prev = [_mm512_setzero_si512(); N];
     for at in (0..=n16).step_by(16) {
         let (k, t) = first_rays16(q, vb, vs, inv_s, count);
         let q1 = _mm512_add_ps(q, onef);
@@ -226,35 +298,147 @@ pub(super) unsafe fn back_line16<const TWO: bool>(
         let base = _mm_cvtsi128_si32(_mm512_castsi512_si128(k));
         debug_assert!((-1..=count).contains(&base));
         let rel = _mm512_sub_epi32(k, _mm512_set1_epi32(base));
-        // SAFETY: base + 1 ∈ [0, count + 1] and r holds count + 40 values.
-        let (lo, hi) = unsafe {
-            let p = rp.add((base + 1) as usize);
-            (_mm512_loadu_ps(p), _mm512_loadu_ps(p.add(16)))
-        };
-        let rv = _mm512_maskz_permutex2var_ps(any, lo, rel, hi);
         let w1 = _mm512_mul_ps(_mm512_sub_ps(t, q), vw);
-        let mut a = _mm512_mul_ps(rv, _mm512_sub_ps(vw, w1));
-        let mut c = _mm512_mul_ps(rv, w1);
-        if TWO {
+        let w0 = _mm512_sub_ps(vw, w1);
+        // The second ray of each pixel, where it has one.
+        let (in_bin, rel2, w1b, w0b) = if TWO {
             let k2 = _mm512_add_epi32(k, one);
             let t2 = _mm512_add_ps(vb, _mm512_mul_ps(_mm512_cvtepi32_ps(k2), vs));
             let in_bin = _mm512_cmp_ps_mask::<_CMP_LT_OQ>(t2, q1);
-            let r2 = _mm512_maskz_permutex2var_ps(in_bin, lo, _mm512_add_epi32(rel, one), hi);
             let w1 = _mm512_mul_ps(_mm512_sub_ps(t2, q), vw);
-            a = _mm512_fmadd_ps(r2, _mm512_sub_ps(vw, w1), a);
-            c = _mm512_fmadd_ps(r2, w1, c);
+            (
+                in_bin,
+                _mm512_add_epi32(rel, one),
+                w1,
+                _mm512_sub_ps(vw, w1),
+            )
+        } else {
+            (0, rel, w1, w0)
+        };
+        for n in 0..N {
+            // SAFETY: base + 1 ∈ [0, count + 1] and every row holds count + 40 values.
+            let (lo, hi) = unsafe {
+                let p = rps[n].add((base + 1) as usize);
+                (_mm512_loadu_ps(p), _mm512_loadu_ps(p.add(16)))
+            };
+            let rv = _mm512_maskz_permutex2var_ps(any, lo, rel, hi);
+            let mut a = _mm512_mul_ps(rv, w0);
+            let mut c = _mm512_mul_ps(rv, w1);
+            if TWO {
+                let r2 = _mm512_maskz_permutex2var_ps(in_bin, lo, rel2, hi);
+                a = _mm512_fmadd_ps(r2, w0b, a);
+                c = _mm512_fmadd_ps(r2, w1b, c);
+            }
+            let c = _mm512_castps_si512(c);
+            let c_before = _mm512_castsi512_ps(_mm512_alignr_epi32::<15>(c, c_prev[n]));
+            // SAFETY: at ≤ n16 and every accumulator holds 16 + n16 values.
+            unsafe {
+                let p = aps[n].add(at);
+                _mm512_storeu_ps(
+                    p,
+                    _mm512_add_ps(_mm512_loadu_ps(p), _mm512_add_ps(a, c_before)),
+                );
+            }
+            c_prev[n] = c;
         }
-        let c = _mm512_castps_si512(c);
-        let c_before = _mm512_castsi512_ps(_mm512_alignr_epi32::<15>(c, c_prev));
-        // SAFETY: at ≤ n16 and acc holds 16 + n16 values.
-        unsafe {
-            let p = ap.add(at);
-            _mm512_storeu_ps(
-                p,
-                _mm512_add_ps(_mm512_loadu_ps(p), _mm512_add_ps(a, c_before)),
-            );
-        }
-        c_prev = c;
         q = _mm512_add_ps(q, sixteen);
+    }
+}
+
+/// `dst[j·dst_stride + i] = src[i·src_stride + j]` for `i, j < 8`.
+///
+/// # Safety
+/// AVX must be available; the 8 rows of 8 values at `src` and at `dst` lie inside their buffers.
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn transpose8(
+    src: *const f32,
+    src_stride: usize,
+    dst: *mut f32,
+    dst_stride: usize,
+) {
+    // SAFETY: the caller's.
+    unsafe {
+        let r: [__m256; 8] = std::array::from_fn(|i| _mm256_loadu_ps(src.add(i * src_stride)));
+        let t0 = _mm256_unpacklo_ps(r[0], r[1]);
+        let t1 = _mm256_unpackhi_ps(r[0], r[1]);
+        let t2 = _mm256_unpacklo_ps(r[2], r[3]);
+        let t3 = _mm256_unpackhi_ps(r[2], r[3]);
+        let t4 = _mm256_unpacklo_ps(r[4], r[5]);
+        let t5 = _mm256_unpackhi_ps(r[4], r[5]);
+        let t6 = _mm256_unpacklo_ps(r[6], r[7]);
+        let t7 = _mm256_unpackhi_ps(r[6], r[7]);
+        let s0 = _mm256_shuffle_ps::<0x44>(t0, t2);
+        let s1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
+        let s2 = _mm256_shuffle_ps::<0x44>(t1, t3);
+        let s3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        let s4 = _mm256_shuffle_ps::<0x44>(t4, t6);
+        let s5 = _mm256_shuffle_ps::<0xEE>(t4, t6);
+        let s6 = _mm256_shuffle_ps::<0x44>(t5, t7);
+        let s7 = _mm256_shuffle_ps::<0xEE>(t5, t7);
+        let out = [
+            _mm256_permute2f128_ps::<0x20>(s0, s4),
+            _mm256_permute2f128_ps::<0x20>(s1, s5),
+            _mm256_permute2f128_ps::<0x20>(s2, s6),
+            _mm256_permute2f128_ps::<0x20>(s3, s7),
+            _mm256_permute2f128_ps::<0x31>(s0, s4),
+            _mm256_permute2f128_ps::<0x31>(s1, s5),
+            _mm256_permute2f128_ps::<0x31>(s2, s6),
+            _mm256_permute2f128_ps::<0x31>(s3, s7),
+        ];
+        for (j, v) in out.into_iter().enumerate() {
+            _mm256_storeu_ps(dst.add(j * dst_stride), v);
+        }
+    }
+}
+
+/// `x ← clamp(x + (λ·c)·g)` value by value with `c = 1/s` where the column sum `s` exceeds `floor`,
+/// else 0 (a division, a multiply, a multiply and an add, as the scalar form), clamped below by
+/// `lower` and above by `upper` where given (`max` then `min`, which pick the bound for a NaN as
+/// `f32::max` and `f32::min` do).
+///
+/// # Safety
+/// AVX must be available; `sums` and `g` hold at least `x.len()` values.
+#[target_feature(enable = "avx2")]
+pub(super) unsafe fn step_line(
+    x: &mut [f32],
+    sums: &[f32],
+    floor: f32,
+    g: &[f32],
+    lambda: f32,
+    lower: Option<f32>,
+    upper: Option<f32>,
+) {
+    let n = x.len();
+    debug_assert!(sums.len() >= n && g.len() >= n);
+    let vl = _mm256_set1_ps(lambda);
+    let vf = _mm256_set1_ps(floor);
+    let one = _mm256_set1_ps(1.0);
+    let lo = _mm256_set1_ps(lower.unwrap_or(0.0));
+    let hi = _mm256_set1_ps(upper.unwrap_or(0.0));
+    let (xp, sp, gp) = (x.as_mut_ptr(), sums.as_ptr(), g.as_ptr());
+    let mut i = 0;
+    while i + 8 <= n {
+        // SAFETY: i + 8 ≤ n ≤ every length.
+        unsafe {
+            let s = _mm256_loadu_ps(sp.add(i));
+            let above = _mm256_cmp_ps::<_CMP_GT_OQ>(s, vf);
+            let c = _mm256_and_ps(_mm256_div_ps(one, s), above);
+            let d = _mm256_mul_ps(_mm256_mul_ps(vl, c), _mm256_loadu_ps(gp.add(i)));
+            let mut v = _mm256_add_ps(_mm256_loadu_ps(xp.add(i)), d);
+            if lower.is_some() {
+                v = _mm256_max_ps(v, lo);
+            }
+            if upper.is_some() {
+                v = _mm256_min_ps(v, hi);
+            }
+            _mm256_storeu_ps(xp.add(i), v);
+        }
+        i += 8;
+    }
+    for ((x, &s), &g) in x[i..].iter_mut().zip(&sums[i..n]).zip(&g[i..n]) {
+        let c = if s > floor { 1.0 / s } else { 0.0 };
+        let v = *x + lambda * c * g;
+        let v = lower.map_or(v, |l| v.max(l));
+        *x = upper.map_or(v, |u| v.min(u));
     }
 }

@@ -1,0 +1,164 @@
+//! SART's fused single-view updates ([`LineSweep`]) against the whole-image passes on the same
+//! operator: the same image bit for bit, after several passes, with and without bounds, on a
+//! rectangular grid of rectangular pixels whose sides are not multiples of the kernels' widths,
+//! with views along both axes and in both ray orders.
+
+use rand::rngs::StdRng;
+use rand::{Rng, SeedableRng};
+
+use super::*;
+use crate::recon::control::{Cancel, NoProgress};
+use crate::recon::geometry::{Angles, ParallelBeam, Views2};
+use crate::recon::grid::ImageGrid;
+use crate::recon::projector::Projector2;
+
+/// An operator without line plans: the sweep takes the whole-image passes.
+struct Passes<'a>(&'a dyn Operator);
+
+impl Operator for Passes<'_> {
+    fn image_len(&self) -> usize {
+        self.0.image_len()
+    }
+    fn view_count(&self) -> usize {
+        self.0.view_count()
+    }
+    fn view_len(&self) -> usize {
+        self.0.view_len()
+    }
+    fn forward(
+        &self,
+        image: &[f32],
+        s: &[usize],
+        out: &mut [f32],
+        c: &Cancel,
+    ) -> Result<(), ReconError> {
+        self.0.forward(image, s, out, c)
+    }
+    fn back(
+        &self,
+        data: &[f32],
+        s: &[usize],
+        image: &mut [f32],
+        c: &Cancel,
+    ) -> Result<(), ReconError> {
+        self.0.back(data, s, image, c)
+    }
+    fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
+        self.0.ray_dot(view, element, image)
+    }
+    fn ray_axpy(&self, view: usize, element: usize, alpha: f32, image: &mut [f32]) {
+        self.0.ray_axpy(view, element, alpha, image)
+    }
+    fn ray_norm2(&self, view: usize, element: usize) -> f32 {
+        self.0.ray_norm2(view, element)
+    }
+}
+
+fn setup() -> (Views2, ImageGrid, Vec<f32>) {
+    let grid = ImageGrid {
+        nx: 45,
+        ny: 38,
+        dx_mm: 1.0,
+        dy_mm: 0.8,
+        centre_mm: [0.6, -0.3],
+    };
+    // 41 views over a full turn: dominant axes x and y, rays in both orders.
+    let views = ParallelBeam {
+        angles: Angles::uniform(41, 360.0),
+        det_count: 61,
+        det_spacing_mm: 0.9,
+        det_offset_mm: -1.3,
+    }
+    .to_views()
+    .unwrap();
+    let mut rng = StdRng::seed_from_u64(21);
+    let b = (0..41 * 61)
+        .map(|_| rng.random_range(0.0..20.0f32))
+        .collect();
+    (views, grid, b)
+}
+
+fn bits(v: &[f32]) -> Vec<u32> {
+    v.iter().map(|x| x.to_bits()).collect()
+}
+
+#[test]
+fn fused_updates_match_the_whole_image_passes_bit_for_bit() {
+    let (views, grid, b) = setup();
+    let op = Projector2::with_walk_table(&views, &grid);
+    let cancel = Cancel::new();
+    let ctl = Control::new(&cancel, &NoProgress);
+    let mut fused = Sweep::new(&op, 41, &ctl).unwrap();
+    if fused.lines.is_none() {
+        assert!(
+            !crate::recon::cpu::avx2_fma(),
+            "the line plans were not taken"
+        );
+        println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
+        return;
+    }
+    let plain = Passes(&op);
+    let mut passes = Sweep::new(&plain, 41, &ctl).unwrap();
+    assert!(passes.lines.is_none());
+    let (plans, _, _) = op.line_plans().unwrap();
+    assert!(plans.iter().any(|p| p.along_x) && plans.iter().any(|p| !p.along_x));
+    assert!(plans.iter().any(|p| p.reversed) && plans.iter().any(|p| !p.reversed));
+    for bounds in [
+        Bounds::default(),
+        Bounds::new(true, Some(0.02)),
+        Bounds::new(false, Some(0.05)),
+    ] {
+        let mut rng = StdRng::seed_from_u64(22);
+        let start: Vec<f32> = (0..grid.nx * grid.ny)
+            .map(|_| rng.random_range(-0.05..0.05f32))
+            .collect();
+        let (mut x1, mut x2) = (start.clone(), start);
+        for _ in 0..3 {
+            let r1 = fused.run(&op, &b, &mut x1, 0.9, bounds, &ctl).unwrap();
+            let r2 = passes.run(&plain, &b, &mut x2, 0.9, bounds, &ctl).unwrap();
+            assert!((r1 - r2).abs() <= 1e-9 * r2, "residuals {r1} and {r2}");
+        }
+        assert_eq!(bits(&x1), bits(&x2), "bounds {bounds:?}");
+        assert!(x1.iter().any(|&v| v != 0.0));
+    }
+}
+
+#[test]
+fn fused_updates_on_the_avx2_kernels_match_the_whole_image_passes() {
+    let (views, grid, b) = setup();
+    let op = Projector2::with_walk_table(&views, &grid);
+    let cancel = Cancel::new();
+    let ctl = Control::new(&cancel, &NoProgress);
+    let mut fused = Sweep::new(&op, 41, &ctl).unwrap();
+    let Some(lines) = fused.lines.as_mut() else {
+        println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
+        return;
+    };
+    lines.narrow();
+    let plain = Passes(&op);
+    let mut passes = Sweep::new(&plain, 41, &ctl).unwrap();
+    let bounds = Bounds::new(true, None);
+    let (mut x1, mut x2) = (
+        vec![0.0f32; grid.nx * grid.ny],
+        vec![0.0f32; grid.nx * grid.ny],
+    );
+    for _ in 0..3 {
+        fused.run(&op, &b, &mut x1, 1.0, bounds, &ctl).unwrap();
+        passes.run(&plain, &b, &mut x2, 1.0, bounds, &ctl).unwrap();
+    }
+    // The 8- and 16-pixel back kernels sum a pixel's two rays in another order where it has two.
+    let max = x2.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    assert!(max > 0.0);
+    for (a, b) in x1.iter().zip(&x2) {
+        assert!((a - b).abs() <= 1e-5 * max, "{a} vs {b}");
+    }
+}
+
+#[test]
+fn subsets_of_several_views_keep_the_whole_image_passes() {
+    let (views, grid, _) = setup();
+    let op = Projector2::with_walk_table(&views, &grid);
+    let cancel = Cancel::new();
+    let ctl = Control::new(&cancel, &NoProgress);
+    assert!(Sweep::new(&op, 8, &ctl).unwrap().lines.is_none());
+}

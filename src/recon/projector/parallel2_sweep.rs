@@ -1,0 +1,287 @@
+//! SART's single-view updates on the line kernels of [`super`], fused.
+//!
+//! A SART update with one parallel view is small (one forward and one back projection of a single
+//! view), so the passes around the two kernels cost as much as the kernels: copying the image into a
+//! line layout for the forward pass, clearing and summing the back projection's layout into an image,
+//! then the weighted step and the constraint, each over the whole image. [`LineSweep`] keeps the image
+//! in the line layout of the last view (image rows or columns, with the zero margins of
+//! [`WideLines`]) and switches layout (a blocked transpose) only when the next view's dominant axis is
+//! the other one. The back projection runs line by line into a scratch line, beside the back
+//! projection of ones (the view's column sums), and each line's step `x ← clamp(x + λ·c·g)` is applied
+//! at once from there, with `c` the reciprocal column sums (0 where a sum is at most the view's
+//! floor). Computing the sums again costs about what reading them back from memory did, and no
+//! image-sized array per view is kept. The (pixel, weight) pairs, the data weights and the order of
+//! every sum are those of the whole-image passes, so the updates are the same bit for bit.
+
+use rayon::prelude::*;
+
+use super::{
+    LineView, PAD, WideLines, available, back_line_into, back_line_pair_into, forward_view_with,
+    wide_available,
+};
+use crate::recon::control::Cancel;
+use crate::recon::error::ReconError;
+
+/// Fewest pixels of a view for which its back projection and step run on several threads.
+const PARALLEL_PIXELS: usize = 1 << 17;
+
+/// Fewest lines per task of a parallel back projection and step.
+const PARALLEL_LINES: usize = 16;
+
+/// The state of a SART sweep over single parallel views (see the module docs).
+pub struct LineSweep {
+    plans: Vec<LineView>,
+    nx: usize,
+    ny: usize,
+    /// The image as rows (`ny` lines of `nx`) and as columns (`nx` lines of `ny`); `along_x` says
+    /// which one holds it.
+    rows: WideLines,
+    cols: WideLines,
+    along_x: bool,
+    /// Per view: the column sums at or below which a pixel's step weight is 0.
+    floors: Vec<f32>,
+    /// Pixels per back-kernel step (16 with AVX-512F, else 8).
+    step: usize,
+    wide: bool,
+    /// One view's projection, its data in sorted ray order (a zero before, 39 after), ones in the
+    /// same places, and two lines of back projection (of the data, of the ones).
+    projection: Vec<f32>,
+    data: Vec<f32>,
+    ones: Vec<f32>,
+    scratch: [Vec<f32>; 2],
+}
+
+impl LineSweep {
+    /// The sweep over `plans` (one per view, all of one `nx` × `ny` grid). `floor` gives, from the
+    /// largest column sum of a view, the sums at or below which its pixels get no step. `None` where
+    /// the CPU lacks the line kernels, a plan is for another grid, or there are no plans.
+    #[allow(unsafe_code)]
+    pub fn new(
+        plans: Vec<LineView>,
+        nx: usize,
+        ny: usize,
+        floor: impl Fn(f32) -> f32 + Sync,
+        cancel: &Cancel,
+    ) -> Result<Option<Self>, ReconError> {
+        let fits = |lv: &LineView| {
+            let (lines, len) = if lv.along_x { (nx, ny) } else { (ny, nx) };
+            lv.lines() == lines && lv.len == len
+        };
+        if !available() || plans.is_empty() || !plans.iter().all(fits) || nx == 0 || ny == 0 {
+            return Ok(None);
+        }
+        let wide = wide_available();
+        let step = if wide { 16 } else { 8 };
+        let count = plans[0].count;
+        if plans.iter().any(|lv| lv.count != count) {
+            return Ok(None);
+        }
+        let mut ones = vec![0.0f32; count + 40];
+        ones[1..=count].fill(1.0);
+        let longest = nx.max(ny).div_ceil(step) * step;
+        let floors = plans
+            .par_iter()
+            .map_init(
+                || vec![0.0f32; step + longest],
+                |scratch, lv| {
+                    cancel.check()?;
+                    let padded = lv.len.div_ceil(step) * step;
+                    let mut max = 0.0f32;
+                    for &b in &lv.b {
+                        let scratch = &mut scratch[..step + padded];
+                        scratch.fill(0.0);
+                        // SAFETY: the CPU has the kernels (checked above, AVX-512F where
+                        // `wide`); `scratch` holds step + padded values, `ones` count + 40, and
+                        // every plan's step lies in [S_MIN, S_MAX].
+                        unsafe { back_line_into(scratch, padded, &ones, lv, b, wide) };
+                        max = scratch[step..step + lv.len]
+                            .iter()
+                            .fold(max, |m, &v| m.max(v));
+                    }
+                    Ok(floor(max))
+                },
+            )
+            .collect::<Result<Vec<_>, ReconError>>()?;
+        Ok(Some(Self {
+            plans,
+            nx,
+            ny,
+            rows: WideLines::from_image(&vec![0.0; nx * ny], nx, ny, false),
+            cols: WideLines::from_image(&vec![0.0; nx * ny], nx, ny, true),
+            along_x: false,
+            floors,
+            step,
+            wide,
+            projection: vec![0.0; count],
+            data: vec![0.0; count + 40],
+            ones,
+            scratch: [vec![0.0; step + longest], vec![0.0; step + longest]],
+        }))
+    }
+
+    /// Use the 8-lane AVX2 kernels even where the CPU has AVX-512F.
+    #[cfg(test)]
+    pub(crate) fn narrow(&mut self) {
+        self.wide = false;
+        self.step = 8;
+    }
+
+    /// Take the image `x` (`[y][x]`, `nx·ny` values).
+    pub fn load(&mut self, x: &[f32]) {
+        debug_assert_eq!(x.len(), self.nx * self.ny);
+        self.along_x = false;
+        let nx = self.nx;
+        for (y, row) in x.chunks_exact(nx).enumerate().take(self.ny) {
+            let o = self.rows.offset(y);
+            self.rows.data[o..o + nx].copy_from_slice(row);
+        }
+    }
+
+    /// Write the image back to `x`.
+    pub fn store(&self, x: &mut [f32]) {
+        let nx = self.nx;
+        if self.along_x {
+            for (y, row) in x.chunks_exact_mut(nx).enumerate().take(self.ny) {
+                for (i, v) in row.iter_mut().enumerate() {
+                    *v = self.cols.data[self.cols.offset(i) + y];
+                }
+            }
+        } else {
+            for (y, row) in x.chunks_exact_mut(nx).enumerate().take(self.ny) {
+                let o = self.rows.offset(y);
+                row.copy_from_slice(&self.rows.data[o..o + nx]);
+            }
+        }
+    }
+
+    /// Hold the image in the layout of lines along x (columns) when `along_x`, else rows.
+    #[allow(unsafe_code)]
+    fn hold(&mut self, along_x: bool) {
+        if self.along_x == along_x {
+            return;
+        }
+        let (from, to) = if along_x {
+            (&self.rows, &mut self.cols)
+        } else {
+            (&self.cols, &mut self.rows)
+        };
+        // Line `i` of `from`, value `j` → line `j` of `to`, value `i`: blocks of 8 × 8 by AVX
+        // transposes, the edges value by value.
+        let (count, len) = (from.count, from.len);
+        let (full_i, full_j) = (count / 8 * 8, len / 8 * 8);
+        #[cfg(target_arch = "x86_64")]
+        for i0 in (0..full_i).step_by(8) {
+            for j0 in (0..full_j).step_by(8) {
+                let (src, dst) = (from.offset(i0) + j0, to.offset(j0) + i0);
+                // SAFETY: the CPU has AVX2 (checked in `new`); rows i0 .. i0 + 8 of `from` hold
+                // values j0 .. j0 + 8 ≤ len, rows j0 .. j0 + 8 of `to` values i0 .. i0 + 8 ≤ count.
+                unsafe {
+                    super::simd::transpose8(
+                        from.data[src..].as_ptr(),
+                        from.stride(),
+                        to.data[dst..].as_mut_ptr(),
+                        to.stride(),
+                    )
+                };
+            }
+        }
+        // Without the AVX blocks every value is an edge value.
+        let (full_i, full_j) = if cfg!(target_arch = "x86_64") {
+            (full_i, full_j)
+        } else {
+            (0, 0)
+        };
+        for i in 0..count {
+            let src = from.offset(i);
+            let first = if i < full_i { full_j } else { 0 };
+            for j in first..len {
+                let dst = to.offset(j) + i;
+                to.data[dst] = from.data[src + j];
+            }
+        }
+        self.along_x = along_x;
+    }
+
+    /// One update with view `view`: `x ← clamp(x + λ·c ∘ Aᵀ(w ∘ (b − A x)))`, where `b` is the view's
+    /// data, `w` its ray weights and `c` its step weights, clamped to `lower` and `upper` where
+    /// given. Returns ‖b − A x‖² before the update.
+    #[allow(unsafe_code)]
+    pub fn update(
+        &mut self,
+        view: usize,
+        b: &[f32],
+        w: &[f32],
+        lambda: f32,
+        lower: Option<f32>,
+        upper: Option<f32>,
+    ) -> f64 {
+        let along_x = self.plans[view].along_x;
+        self.hold(along_x);
+        let lv = &self.plans[view];
+        let lines = if along_x {
+            &mut self.cols
+        } else {
+            &mut self.rows
+        };
+        forward_view_with(lines, lv, &mut self.projection, self.wide);
+        for (k, d) in self.data[1..=lv.count].iter_mut().enumerate() {
+            let e = lv.element(k);
+            *d = (b[e] - self.projection[e]) * w[e];
+        }
+        let sum2 = self
+            .projection
+            .iter()
+            .zip(b)
+            .map(|(&p, &q)| {
+                let r = f64::from(q - p);
+                r * r
+            })
+            .sum::<f64>();
+        let (step, wide) = (self.step, self.wide);
+        let (len, stride) = (lv.len, lines.stride());
+        let padded = len.div_ceil(step) * step;
+        let (data, ones, floor) = (&self.data, &self.ones, self.floors[view]);
+        // Line by line: the back projections of the data and of ones into the scratch lines, then
+        // the line's step.
+        let line_step = |[g, sums]: &mut [Vec<f32>; 2], b: f32, line: &mut [f32]| {
+            let (g, sums) = (&mut g[..step + padded], &mut sums[..step + padded]);
+            g.fill(0.0);
+            sums.fill(0.0);
+            // SAFETY: the CPU has the kernels (checked in `new`); the scratch lines hold step +
+            // padded values, `data` and `ones` count + 40, and the plan's step lies in
+            // [S_MIN, S_MAX].
+            unsafe { back_line_pair_into([g, sums], padded, [data, ones], lv, b, wide) };
+            #[cfg(target_arch = "x86_64")]
+            // SAFETY: the CPU has AVX2 (checked in `new`); both scratch lines hold len values
+            // from `step` on.
+            unsafe {
+                super::simd::step_line(
+                    &mut line[..len],
+                    &sums[step..],
+                    floor,
+                    &g[step..],
+                    lambda,
+                    lower,
+                    upper,
+                )
+            };
+            #[cfg(not(target_arch = "x86_64"))]
+            let _ = (line, floor, lambda, lower, upper);
+        };
+        // Each line is one chunk of the layout after the leading margin: its values, then the
+        // margin before the next line.
+        if rayon::current_num_threads() > 1 && lv.lines() * len >= PARALLEL_PIXELS {
+            let empty = || [vec![0.0f32; step + padded], vec![0.0f32; step + padded]];
+            lines.data[PAD..]
+                .par_chunks_mut(stride)
+                .zip(lv.b.par_iter())
+                .with_min_len(PARALLEL_LINES)
+                .for_each_init(empty, |scratch, (line, &b)| line_step(scratch, b, line));
+        } else {
+            for (line, &b) in lines.data[PAD..].chunks_mut(stride).zip(&lv.b) {
+                line_step(&mut self.scratch, b, line);
+            }
+        }
+        sum2
+    }
+}
