@@ -1,6 +1,7 @@
 """What `peers.py` and `scaling.py` share (standard library only): the analytic cases' geometries, one timed
 process with its peak memory, and the load average."""
 
+import math
 import os
 import subprocess
 import tempfile
@@ -10,6 +11,16 @@ import time
 def parallel_case(n, views, det):
     return {"dims": 2, "n": n, "geometry": {"type": "parallel", "angles": {"count": views},
                                             "det_count": det, "det_spacing_mm": 1.0}}
+
+
+def fan_case(n, views, det):
+    """A fan beam over 360° with a flat detector, for 1 mm pixels over n mm: DSO 2n, DSD 3n (magnification
+    1.5), `det` elements reaching the corners of the square with 2 % to spare."""
+    dso, dsd = 2.0 * n, 3.0 * n
+    half = dsd * math.tan(math.asin(1.02 * n / math.sqrt(2.0) / dso))
+    return {"dims": 2, "n": n, "geometry": {
+        "type": "fan", "angles": {"count": views}, "dso_mm": dso, "dsd_mm": dsd,
+        "detector": {"shape": "flat", "count": det, "spacing_mm": 2.0 * half / det, "offset_mm": 0.0}}}
 
 
 def cone_case(n, views, det):
