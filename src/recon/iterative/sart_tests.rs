@@ -162,3 +162,55 @@ fn subsets_of_several_views_keep_the_whole_image_passes() {
     let ctl = Control::new(&cancel, &NoProgress);
     assert!(Sweep::new(&op, 8, &ctl).unwrap().lines.is_none());
 }
+
+#[test]
+fn fused_updates_split_between_threads_match_the_whole_image_passes() {
+    // Enough pixels per view for the lines of an update to be split between threads.
+    let grid = ImageGrid {
+        nx: 411,
+        ny: 333,
+        dx_mm: 1.0,
+        dy_mm: 1.1,
+        centre_mm: [0.0, 0.4],
+    };
+    assert!(grid.nx * grid.ny >= 1 << 17);
+    let views = ParallelBeam {
+        angles: Angles::uniform(7, 180.0),
+        det_count: 530,
+        det_spacing_mm: 1.0,
+        det_offset_mm: 0.7,
+    }
+    .to_views()
+    .unwrap();
+    let mut rng = StdRng::seed_from_u64(23);
+    let b: Vec<f32> = (0..7 * 530)
+        .map(|_| rng.random_range(0.0..50.0f32))
+        .collect();
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(3)
+        .build()
+        .unwrap();
+    pool.install(|| {
+        let op = Projector2::with_walk_table(&views, &grid);
+        let cancel = Cancel::new();
+        let ctl = Control::new(&cancel, &NoProgress);
+        let mut fused = Sweep::new(&op, 7, &ctl).unwrap();
+        if fused.lines.is_none() {
+            println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
+            return;
+        }
+        let plain = Passes(&op);
+        let mut passes = Sweep::new(&plain, 7, &ctl).unwrap();
+        let bounds = Bounds::new(true, None);
+        let (mut x1, mut x2) = (
+            vec![0.0f32; grid.nx * grid.ny],
+            vec![0.0f32; grid.nx * grid.ny],
+        );
+        for _ in 0..2 {
+            fused.run(&op, &b, &mut x1, 1.0, bounds, &ctl).unwrap();
+            passes.run(&plain, &b, &mut x2, 1.0, bounds, &ctl).unwrap();
+        }
+        assert_eq!(bits(&x1), bits(&x2));
+        assert!(x1.iter().any(|&v| v > 0.0));
+    });
+}
