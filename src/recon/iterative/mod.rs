@@ -31,7 +31,9 @@ use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::geometry::Views;
 use crate::recon::grid::Limits;
-use crate::recon::projector::{Operator, Projector2, Projector3, back_buffers, cone_columns};
+use crate::recon::projector::{
+    Operator, Projector2, Projector3, back_buffers, cone_columns, operator2,
+};
 
 /// Check the parameters of an iterative `spec` for a geometry of `views` views.
 pub fn validate(spec: &AlgorithmSpec, views: usize) -> Result<(), ReconError> {
@@ -65,8 +67,19 @@ fn sizes(views: &Views, grid: &OutputGrid) -> (u64, u64, u64) {
     (n, m, shape[0] as u64)
 }
 
+/// True when SART with one view per subset runs the fused updates of
+/// [`crate::recon::projector::parallel2::LineSweep`] on this geometry and CPU, which keep no per-view
+/// weights.
+fn fused_sart(views: &Views, grid: &OutputGrid) -> bool {
+    match (views, grid) {
+        (Views::D2(v), OutputGrid::Image(g)) => operator2::every_line_plan(v, g).is_some(),
+        _ => false,
+    }
+}
+
 /// Bytes an iterative run allocates besides its input: image-sized and data-sized work arrays, one
-/// back-projection buffer per thread, stored per-subset weights, and the initial image.
+/// back-projection buffer per thread, stored per-subset weights (none for SART's fused updates), and the
+/// initial image.
 pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> u64 {
     let (n, m, nv) = sizes(views, grid);
     let stored = |s: u64| {
@@ -81,7 +94,9 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
     let (images, weights, data): (u64, u64, u64) = match spec {
         AlgorithmSpec::Sirt(_) | AlgorithmSpec::Cgls(_) => (3, 0, 2),
         AlgorithmSpec::Art(_) => (1, 0, 3),
+        AlgorithmSpec::Sart(_) if fused_sart(views, grid) => (2, 0, 2),
         AlgorithmSpec::Sart(_) => (2, stored(nv), 2),
+        AlgorithmSpec::OsSart(p) if p.subsets as u64 >= nv && fused_sart(views, grid) => (2, 0, 2),
         AlgorithmSpec::OsSart(p) => (2, stored(p.subsets as u64), 2),
         AlgorithmSpec::Mlem(p) => (3, stored(p.subsets as u64), 3),
         AlgorithmSpec::Tv(p) => (11, stored((p.subsets as u64).min(nv)), 2),

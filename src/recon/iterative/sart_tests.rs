@@ -7,9 +7,11 @@ use rand::rngs::StdRng;
 use rand::{Rng, SeedableRng};
 
 use super::*;
+use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
 use crate::recon::control::{Cancel, NoProgress};
-use crate::recon::geometry::{Angles, ParallelBeam, Views2};
+use crate::recon::geometry::{Angles, FanBeam, FanDetector, ParallelBeam, Views, Views2};
 use crate::recon::grid::ImageGrid;
+use crate::recon::iterative::estimate_bytes;
 use crate::recon::projector::Projector2;
 
 /// An operator without line plans: the sweep takes the whole-image passes.
@@ -213,4 +215,53 @@ fn fused_updates_split_between_threads_match_the_whole_image_passes() {
         assert_eq!(bits(&x1), bits(&x2));
         assert!(x1.iter().any(|&v| v > 0.0));
     });
+}
+
+#[test]
+fn the_memory_estimate_counts_per_view_weights_only_where_they_are_kept() {
+    let grid = OutputGrid::Image(ImageGrid::square(64, 1.0));
+    let parallel = Views::D2(
+        ParallelBeam {
+            angles: Angles::uniform(90, 180.0),
+            det_count: 91,
+            det_spacing_mm: 1.0,
+            det_offset_mm: 0.0,
+        }
+        .to_views()
+        .unwrap(),
+    );
+    let fan = Views::D2(
+        FanBeam {
+            angles: Angles::uniform(90, 360.0),
+            dso_mm: 200.0,
+            dsd_mm: 300.0,
+            detector: FanDetector::Flat {
+                count: 120,
+                spacing_mm: 1.2,
+                offset_mm: 0.0,
+            },
+            centre_mm: [0.0, 0.0],
+        }
+        .to_views()
+        .unwrap(),
+    );
+    let sart = AlgorithmSpec::Sart(SartParams::default());
+    let os = |subsets| {
+        AlgorithmSpec::OsSart(SartParams {
+            subsets,
+            ..SartParams::default()
+        })
+    };
+    let weights = |views: u64| views * 64 * 64 * 4;
+    let e = |spec: &AlgorithmSpec, views: &Views| estimate_bytes(spec, views, &grid);
+    // Fan views keep the whole-image passes: one stored image of weights per view.
+    assert_eq!(e(&sart, &fan), e(&os(45), &fan) + weights(45));
+    assert_eq!(e(&os(90), &fan), e(&sart, &fan));
+    if crate::recon::cpu::avx2_fma() {
+        // Parallel views take the fused updates: no weights for SART or OS-SART with single views.
+        assert_eq!(e(&sart, &parallel) + weights(45), e(&os(45), &parallel));
+        assert_eq!(e(&os(90), &parallel), e(&sart, &parallel));
+    } else {
+        assert_eq!(e(&sart, &parallel), e(&os(45), &parallel) + weights(45));
+    }
 }
