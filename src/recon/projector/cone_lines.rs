@@ -190,220 +190,69 @@ impl Form {
 
 #[cfg(target_arch = "x86_64")]
 #[allow(unsafe_code)]
-mod x86 {
-    //! The loops with explicit AVX2 and AVX-512F row loops (8 or 16 rows per step, positions and
-    //! weights in the same f32 operations as [`position`], no fused multiply-add) and the line blends
-    //! compiled with those sets. Calling them is `unsafe` only because the CPU must have the sets.
-    use std::arch::x86_64::*;
+#[path = "cone_lines_x86.rs"]
+mod x86;
 
+#[cfg(test)]
+mod tests {
+    //! Every compiled form against the portable loops, bit for bit, for every length of the last,
+    //! partial vector: rows closer than one value (several rows per value, so the back loops spread
+    //! some rows one by one), about one apart, farther apart, ascending and descending, and rows
+    //! whose positions are clamped into the padding.
     use super::*;
 
-    /// `line = w0·a + w1·b`.
-    #[inline(always)]
-    fn blend(a: &[f32], b: &[f32], line: &mut [f32], step: &PlaneStep) {
-        let len = line.len();
-        for ((l, x), y) in line.iter_mut().zip(&a[..len]).zip(&b[..len]) {
-            *l = step.w0 * *x + step.w1 * *y;
-        }
+    fn values(n: usize, seed: u32) -> Vec<f32> {
+        (0..n)
+            .map(|i| ((i as u32).wrapping_mul(2_654_435_761) ^ seed) % 1000)
+            .map(|v| v as f32 / 250.0 - 1.0)
+            .collect()
     }
 
-    macro_rules! row_loops {
-        ($forward:ident, $back:ident, $feature:literal, $lanes:literal, $v:ty, $set1:ident, $setr:expr,
-         $add:ident, $sub:ident, $mul:ident, $max:ident, $min:ident, $cvtt:ident, $cvt:ident,
-         $loadu:ident, $storeu:ident, $storei:ident, $gather:expr, $inc:expr, $scatter:expr) => {
-            #[target_feature(enable = $feature)]
-            pub unsafe fn $forward(
-                a: &[f32],
-                b: &[f32],
-                line: &mut [f32],
-                step: &PlaneStep,
-                rows: Range<usize>,
-                acc: &mut [f32],
-            ) {
-                blend(a, b, line, step);
-                let len = line.len();
-                let hi = (len - 2) as f32;
-                let acc = &mut acc[..rows.end];
-                let mut r = rows.start;
-                let (e0, de, one, zero, top) = (
-                    $set1(step.e0),
-                    $set1(step.de),
-                    $set1(1.0),
-                    $set1(0.0),
-                    $set1(hi),
-                );
-                let lane = $setr;
-                while r + $lanes <= rows.end {
-                    let rv = $add($set1(r as f32), lane);
-                    let q = $add($add(e0, $mul(rv, de)), one);
-                    let q = $min($max(q, zero), top);
-                    let i = $cvtt(q);
-                    let f = $sub(q, $cvt(i));
-                    // SAFETY: the clamp keeps every index in [0, len − 2], so `i` and `i + 1` read
-                    // inside `line`; `r + lanes ≤ rows.end ≤ acc.len()`.
-                    let (g0, g1) =
-                        unsafe { ($gather(line.as_ptr(), i), $gather(line.as_ptr(), $inc(i))) };
-                    let t = $add($mul($sub(one, f), g0), $mul(f, g1));
-                    unsafe {
-                        let p = acc.as_mut_ptr().add(r);
-                        $storeu(p, $add($loadu(p), t));
+    #[test]
+    fn every_form_gives_the_portable_values_for_every_tail() {
+        let n = 45; // a line of 45 voxels: 48 values with the padding
+        let (a, b) = (values(n + 3, 1), values(n + 3, 2));
+        let data = values(80, 3);
+        for &(e0, de) in &[
+            (3.2f32, 0.26f32),
+            (-1.7, 0.5),
+            (0.4, 0.93),
+            (10.1, 1.0),
+            (-20.0, 1.7),
+            (44.0, -0.61),
+            (50.0, -1.4),
+            (2.0, 3.1),
+        ] {
+            let step = PlaneStep {
+                w0: 0.37,
+                w1: 0.63,
+                e0,
+                de,
+            };
+            for start in [0usize, 3] {
+                for end in start..start + 40 {
+                    let rows = start..end;
+                    let mut line = vec![0.0f32; n + 3];
+                    let mut want = values(end, 4);
+                    Form::Portable.forward(&a, &b, &mut line, &step, rows.clone(), &mut want);
+                    let (mut wa, mut wb) = (a.clone(), b.clone());
+                    let mut lines = vec![0.0f32; 2 * (n + 3)];
+                    let d = &data[..rows.len()];
+                    Form::Portable.back(&mut wa, &mut wb, &mut lines, &step, rows.clone(), d);
+                    for form in Form::available() {
+                        let mut got = values(end, 4);
+                        form.forward(&a, &b, &mut line, &step, rows.clone(), &mut got);
+                        assert_eq!(got, want, "{form:?} forward, {step:?}, rows {rows:?}");
+                        let (mut ga, mut gb) = (a.clone(), b.clone());
+                        form.back(&mut ga, &mut gb, &mut lines, &step, rows.clone(), d);
+                        assert_eq!(
+                            (ga, gb),
+                            (wa.clone(), wb.clone()),
+                            "{form:?} back, {step:?}, rows {rows:?}"
+                        );
                     }
-                    r += $lanes;
-                }
-                for (j, out) in acc[r..].iter_mut().enumerate() {
-                    let (k, f) = position(step, r + j, hi);
-                    *out += (1.0 - f) * line[k.min(len - 2)] + f * line[(k + 1).min(len - 1)];
                 }
             }
-
-            #[target_feature(enable = $feature)]
-            pub unsafe fn $back(
-                a: &mut [f32],
-                b: &mut [f32],
-                lines: &mut [f32],
-                step: &PlaneStep,
-                rows: Range<usize>,
-                data: &[f32],
-            ) {
-                let len = lines.len() / 2;
-                lines.fill(0.0);
-                let hi = (len - 2) as f32;
-                let (first, second) = lines.split_at_mut(len);
-                let n = rows.len();
-                let data = &data[..n];
-                let (e0, de, one, zero, top) = (
-                    $set1(step.e0),
-                    $set1(step.de),
-                    $set1(1.0),
-                    $set1(0.0),
-                    $set1(hi),
-                );
-                let lane = $setr;
-                let lane2 = $add(lane, lane);
-                let every_other = $cvtt(lane2);
-                let (mut idx, mut p0, mut p1) =
-                    ([0i32; $lanes], [0.0f32; $lanes], [0.0f32; $lanes]);
-                for parity in 0..2 {
-                    let mut j = parity;
-                    while j + 2 * ($lanes - 1) < n {
-                        let rv = $add($set1((rows.start + j) as f32), lane2);
-                        let q = $add($add(e0, $mul(rv, de)), one);
-                        let q = $min($max(q, zero), top);
-                        let i = $cvtt(q);
-                        let f = $sub(q, $cvt(i));
-                        // SAFETY: rows j, j + 2, …, j + 2·(lanes − 1) < n lie in `data`.
-                        let d = unsafe { $gather(data.as_ptr().add(j), every_other) };
-                        let (v0, v1) = ($mul($sub(one, f), d), $mul(f, d));
-                        // SAFETY: the clamp keeps every index in [0, len − 2], inside both lines.
-                        if !unsafe { $scatter(first, second, i, v0, v1) } {
-                            // SAFETY: the stores fill the local arrays of `lanes` values.
-                            unsafe {
-                                $storei(idx.as_mut_ptr().cast(), i);
-                                $storeu(p0.as_mut_ptr(), v0);
-                                $storeu(p1.as_mut_ptr(), v1);
-                            }
-                            for l in 0..$lanes {
-                                let k = (idx[l] as usize).min(len - 2);
-                                first[k] += p0[l];
-                                second[k] += p1[l];
-                            }
-                        }
-                        j += 2 * $lanes;
-                    }
-                    while j < n {
-                        let (k, f) = position(step, rows.start + j, hi);
-                        let k = k.min(len - 2);
-                        first[k] += (1.0 - f) * data[j];
-                        second[k] += f * data[j];
-                        j += 2;
-                    }
-                }
-                merge_and_spread(a, b, first, second, step);
-            }
-        };
-    }
-
-    row_loops!(
-        forward_avx2,
-        back_avx2,
-        "avx2,fma",
-        8,
-        __m256,
-        _mm256_set1_ps,
-        _mm256_setr_ps(0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0),
-        _mm256_add_ps,
-        _mm256_sub_ps,
-        _mm256_mul_ps,
-        _mm256_max_ps,
-        _mm256_min_ps,
-        _mm256_cvttps_epi32,
-        _mm256_cvtepi32_ps,
-        _mm256_loadu_ps,
-        _mm256_storeu_ps,
-        _mm256_storeu_si256,
-        |p: *const f32, i: __m256i| _mm256_i32gather_ps::<4>(p, i),
-        |i: __m256i| _mm256_add_epi32(i, _mm256_set1_epi32(1)),
-        no_scatter
-    );
-
-    /// AVX2 has no scatter: the rows are spread one by one.
-    ///
-    /// # Safety
-    /// None beyond the CPU having AVX2 (the signature matches [`scatter_distinct`]).
-    #[target_feature(enable = "avx2,fma")]
-    unsafe fn no_scatter(_: &mut [f32], _: &mut [f32], _: __m256i, _: __m256, _: __m256) -> bool {
-        false
-    }
-
-    row_loops!(
-        forward_avx512,
-        back_avx512,
-        "avx512f,avx2,fma",
-        16,
-        __m512,
-        _mm512_set1_ps,
-        _mm512_setr_ps(
-            0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0
-        ),
-        _mm512_add_ps,
-        _mm512_sub_ps,
-        _mm512_mul_ps,
-        _mm512_max_ps,
-        _mm512_min_ps,
-        _mm512_cvttps_epi32,
-        _mm512_cvtepi32_ps,
-        _mm512_loadu_ps,
-        _mm512_storeu_ps,
-        _mm512_storeu_si512,
-        |p: *const f32, i: __m512i| _mm512_i32gather_ps::<4>(i, p),
-        |i: __m512i| _mm512_add_epi32(i, _mm512_set1_epi32(1)),
-        scatter_distinct
-    );
-
-    /// `first[i] += v0`, `second[i] += v1` in one gather and scatter each when the 16 indices are
-    /// distinct (they increase or decrease, so distinct neighbours suffice); false otherwise.
-    ///
-    /// # Safety
-    /// Every index must lie inside both slices, and the CPU must have AVX-512F.
-    #[target_feature(enable = "avx512f,avx2,fma")]
-    unsafe fn scatter_distinct(
-        first: &mut [f32],
-        second: &mut [f32],
-        i: __m512i,
-        v0: __m512,
-        v1: __m512,
-    ) -> bool {
-        let next = _mm512_alignr_epi32::<1>(i, i);
-        if _mm512_mask_cmpneq_epi32_mask(0x7fff, i, next) != 0x7fff {
-            return false;
         }
-        // SAFETY: the caller's indices lie inside both slices; distinct lanes write distinct values.
-        unsafe {
-            let g = _mm512_i32gather_ps::<4>(i, first.as_ptr());
-            _mm512_i32scatter_ps::<4>(first.as_mut_ptr(), i, _mm512_add_ps(g, v0));
-            let g = _mm512_i32gather_ps::<4>(i, second.as_ptr());
-            _mm512_i32scatter_ps::<4>(second.as_mut_ptr(), i, _mm512_add_ps(g, v1));
-        }
-        true
     }
 }
