@@ -222,6 +222,32 @@ row_loops!(
     back_tail16
 );
 
+/// 0, 1, …, 15.
+#[target_feature(enable = "avx512f,avx2,fma")]
+#[inline]
+fn lanes16() -> __m512 {
+    _mm512_setr_ps(
+        0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
+    )
+}
+
+/// [`position`] of the 16 rows `rows` (as f32) with the operations of the row loops: the value
+/// index and the weight of the next value, clamped into `[0, hi]`.
+#[target_feature(enable = "avx512f,avx2,fma")]
+#[inline]
+fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
+    let q = _mm512_add_ps(
+        _mm512_add_ps(
+            _mm512_set1_ps(step.e0),
+            _mm512_mul_ps(rows, _mm512_set1_ps(step.de)),
+        ),
+        _mm512_set1_ps(1.0),
+    );
+    let q = _mm512_min_ps(_mm512_max_ps(q, _mm512_setzero_ps()), _mm512_set1_ps(hi));
+    let i = _mm512_cvttps_epi32(q);
+    (i, _mm512_sub_ps(q, _mm512_cvtepi32_ps(i)))
+}
+
 /// [`back_tail_rows`] in one masked vector step of the rows of one parity (fewer than 16), added
 /// by one gather and scatter where their indices are distinct, else one by one.
 ///
@@ -246,26 +272,10 @@ unsafe fn back_tail16(
         return unsafe { back_tail_rows(first, second, step, start, j, data) };
     }
     debug_assert!(m < 16);
-    let len = first.len();
-    let hi = (len - 2) as f32;
-    let lane = _mm512_setr_ps(
-        0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
-    );
     let one = _mm512_set1_ps(1.0);
-    let rv = _mm512_add_ps(
-        _mm512_set1_ps((start + j) as f32),
-        _mm512_add_ps(lane, lane),
-    );
-    let q = _mm512_add_ps(
-        _mm512_add_ps(
-            _mm512_set1_ps(step.e0),
-            _mm512_mul_ps(rv, _mm512_set1_ps(step.de)),
-        ),
-        one,
-    );
-    let q = _mm512_min_ps(_mm512_max_ps(q, _mm512_setzero_ps()), _mm512_set1_ps(hi));
-    let i = _mm512_cvttps_epi32(q);
-    let f = _mm512_sub_ps(q, _mm512_cvtepi32_ps(i));
+    let lane2 = _mm512_add_ps(lanes16(), lanes16());
+    let rv = _mm512_add_ps(_mm512_set1_ps((start + j) as f32), lane2);
+    let (i, f) = positions16(step, rv, (first.len() - 2) as f32);
     let mask = ((1u32 << m) - 1) as __mmask16;
     // Active neighbours (lanes l and l + 1 both below m) must differ.
     let pairs = mask >> 1;
@@ -274,7 +284,7 @@ unsafe fn back_tail16(
         // SAFETY: as the caller's.
         return unsafe { back_tail_rows(first, second, step, start, j, data) };
     }
-    let every_other = _mm512_cvttps_epi32(_mm512_add_ps(lane, lane));
+    let every_other = _mm512_cvttps_epi32(lane2);
     // SAFETY: rows j + 2l for the active lanes lie in `data`; the clamp keeps every index in
     // [0, len − 2], inside both lines; the active lanes write distinct values.
     unsafe {
@@ -304,22 +314,9 @@ unsafe fn tail16(line: &[f32], step: &PlaneStep, r: usize, acc: &mut [f32]) {
         return;
     }
     debug_assert!(n < 16);
-    let hi = (line.len() - 2) as f32;
-    let lane = _mm512_setr_ps(
-        0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
-    );
     let one = _mm512_set1_ps(1.0);
-    let rv = _mm512_add_ps(_mm512_set1_ps(r as f32), lane);
-    let q = _mm512_add_ps(
-        _mm512_add_ps(
-            _mm512_set1_ps(step.e0),
-            _mm512_mul_ps(rv, _mm512_set1_ps(step.de)),
-        ),
-        one,
-    );
-    let q = _mm512_min_ps(_mm512_max_ps(q, _mm512_setzero_ps()), _mm512_set1_ps(hi));
-    let i = _mm512_cvttps_epi32(q);
-    let f = _mm512_sub_ps(q, _mm512_cvtepi32_ps(i));
+    let rv = _mm512_add_ps(_mm512_set1_ps(r as f32), lanes16());
+    let (i, f) = positions16(step, rv, (line.len() - 2) as f32);
     let mask = ((1u32 << n) - 1) as __mmask16;
     // SAFETY: the clamp keeps every lane's index in [0, len − 2], so `i` and `i + 1` read inside
     // `line`; the masked load and store touch rows r .. r + n = acc.len() only.
