@@ -80,6 +80,35 @@ fn setup() -> (Views2, ImageGrid, Vec<f32>) {
     (views, grid, b)
 }
 
+/// `n` passes of the fused sweep (on `op`) and of the whole-image sweep (on `op` without line plans)
+/// from `start`: the two images and each pass's two residuals.
+#[allow(clippy::too_many_arguments)]
+fn run_both(
+    op: &dyn Operator,
+    fused: &mut Sweep,
+    passes: &mut Sweep,
+    b: &[f32],
+    start: &[f32],
+    lambda: f32,
+    bounds: Bounds,
+    n: usize,
+) -> (Vec<f32>, Vec<f32>, Vec<(f64, f64)>) {
+    let cancel = Cancel::new();
+    let ctl = Control::new(&cancel, &NoProgress);
+    let plain = Passes(op);
+    let (mut x1, mut x2) = (start.to_vec(), start.to_vec());
+    let residuals = (0..n)
+        .map(|_| {
+            let r1 = fused.run(op, b, &mut x1, lambda, bounds, &ctl).unwrap();
+            let r2 = passes
+                .run(&plain, b, &mut x2, lambda, bounds, &ctl)
+                .unwrap();
+            (r1, r2)
+        })
+        .collect();
+    (x1, x2, residuals)
+}
+
 fn bits(v: &[f32]) -> Vec<u32> {
     v.iter().map(|x| x.to_bits()).collect()
 }
@@ -114,10 +143,9 @@ fn fused_updates_match_the_whole_image_passes_bit_for_bit() {
         let start: Vec<f32> = (0..grid.nx * grid.ny)
             .map(|_| rng.random_range(-0.05..0.05f32))
             .collect();
-        let (mut x1, mut x2) = (start.clone(), start);
-        for _ in 0..3 {
-            let r1 = fused.run(&op, &b, &mut x1, 0.9, bounds, &ctl).unwrap();
-            let r2 = passes.run(&plain, &b, &mut x2, 0.9, bounds, &ctl).unwrap();
+        let (x1, x2, residuals) =
+            run_both(&op, &mut fused, &mut passes, &b, &start, 0.9, bounds, 3);
+        for (r1, r2) in residuals {
             assert!((r1 - r2).abs() <= 1e-9 * r2, "residuals {r1} and {r2}");
         }
         assert_eq!(bits(&x1), bits(&x2), "bounds {bounds:?}");
@@ -139,15 +167,9 @@ fn fused_updates_on_the_avx2_kernels_match_the_whole_image_passes() {
     lines.narrow();
     let plain = Passes(&op);
     let mut passes = Sweep::new(&plain, 41, &ctl).unwrap();
+    let start = vec![0.0f32; grid.nx * grid.ny];
     let bounds = Bounds::new(true, None);
-    let (mut x1, mut x2) = (
-        vec![0.0f32; grid.nx * grid.ny],
-        vec![0.0f32; grid.nx * grid.ny],
-    );
-    for _ in 0..3 {
-        fused.run(&op, &b, &mut x1, 1.0, bounds, &ctl).unwrap();
-        passes.run(&plain, &b, &mut x2, 1.0, bounds, &ctl).unwrap();
-    }
+    let (x1, x2, _) = run_both(&op, &mut fused, &mut passes, &b, &start, 1.0, bounds, 3);
     // The 8- and 16-pixel back kernels sum a pixel's two rays in another order where it has two.
     let max = x2.iter().fold(0.0f32, |m, v| m.max(v.abs()));
     assert!(max > 0.0);
@@ -203,15 +225,9 @@ fn fused_updates_split_between_threads_match_the_whole_image_passes() {
         }
         let plain = Passes(&op);
         let mut passes = Sweep::new(&plain, 7, &ctl).unwrap();
+        let start = vec![0.0f32; grid.nx * grid.ny];
         let bounds = Bounds::new(true, None);
-        let (mut x1, mut x2) = (
-            vec![0.0f32; grid.nx * grid.ny],
-            vec![0.0f32; grid.nx * grid.ny],
-        );
-        for _ in 0..2 {
-            fused.run(&op, &b, &mut x1, 1.0, bounds, &ctl).unwrap();
-            passes.run(&plain, &b, &mut x2, 1.0, bounds, &ctl).unwrap();
-        }
+        let (x1, x2, _) = run_both(&op, &mut fused, &mut passes, &b, &start, 1.0, bounds, 2);
         assert_eq!(bits(&x1), bits(&x2));
         assert!(x1.iter().any(|&v| v > 0.0));
     });

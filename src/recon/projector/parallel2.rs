@@ -211,15 +211,25 @@ impl WideLines {
         PAD + i * self.stride()
     }
 
+    /// The lines of an `nx` × `ny` image of zeros: columns when `along_x`, else rows.
+    pub fn zeros(nx: usize, ny: usize, along_x: bool) -> Self {
+        let (count, len) = if along_x { (nx, ny) } else { (ny, nx) };
+        let data = vec![0.0f32; PAD + count * (len + PAD)];
+        Self { count, len, data }
+    }
+
     /// The lines of `image` (flat `[y][x]`, `nx·ny` values): columns when `along_x`, else rows.
     ///
     /// # Panics
     /// If `image.len() != nx·ny`.
     pub fn from_image(image: &[f32], nx: usize, ny: usize, along_x: bool) -> Self {
         assert_eq!(image.len(), nx * ny, "image must hold nx·ny values");
-        let (count, len) = if along_x { (nx, ny) } else { (ny, nx) };
+        let Self {
+            count,
+            len,
+            mut data,
+        } = Self::zeros(nx, ny, along_x);
         let stride = len + PAD;
-        let mut data = vec![0.0f32; PAD + count * stride];
         if count > 0 && len > 0 {
             let lines = data[PAD..].par_chunks_mut(stride);
             if along_x {
