@@ -153,7 +153,7 @@ pub fn execute(
             ctl.step("metrics", 0.9);
             let s = if vol.len_of(Axis(0)) == 1 { 4 } else { 2 };
             let t = truth(phantom, &req.grid, s, ctl)?;
-            Some(quality(vol.view(), t.view(), s)?)
+            Some(quality(vol.view(), t.view(), s, ctl)?)
         }
         _ => None,
     };
