@@ -9,7 +9,7 @@ use super::occupancy::Occupancy;
 use super::scene::Scene;
 use super::shading::Lighting;
 use super::transfer::Lut;
-use super::{Clip, RenderError, RgbImage, Sampler, Shading, TransferFunction, ViewRays};
+use super::{Clip, RenderError, RgbImage, Sampler, Shading, TransferFunction, V3, ViewRays};
 
 /// Accumulated opacity at which a ray stops.
 pub const EARLY_TERMINATION: f32 = 0.99;
@@ -138,84 +138,313 @@ struct VrShader<'a> {
     bg: [f32; 3],
 }
 
-impl Shade for VrShader<'_> {
-    type Scratch = Vec<Span>;
+/// One ray of a volume rendering part way along: where it is and what it has gathered.
+struct March {
+    /// Fractional index of the ray's origin and its change per millimetre.
+    io: V3,
+    id: V3,
+    dir: RayDir,
+    /// Towards the eye.
+    view: [f32; 3],
+    /// The span being sampled (an index into the ray's spans) and its ends.
+    span: usize,
+    t0: f64,
+    t1: f64,
+    /// The next sample is `t0 + k·step`.
+    k: u64,
+    /// Samples up to this `t` lie in a busy brick already checked.
+    busy_until: f64,
+    acc: [f32; 3],
+    alpha: f32,
+    depth: f32,
+}
 
-    fn scratch(&self) -> Vec<Span> {
-        Vec::new()
+impl VrShader<'_> {
+    /// The march of the ray of pixel (`r`, `c`), its kept spans left in `spans`; `None` when it samples nothing
+    /// (it misses the volume's box or the clip keeps none of it).
+    #[inline(always)]
+    fn start(&self, spans: &mut Vec<Span>, r: usize, c: usize) -> Option<March> {
+        let (o, d) = self.rays.ray(r as f64, c as f64);
+        let (b0, b1) = self.s.box_interval(o, d)?;
+        self.clip.spans(o, d, b0.max(0.0), b1, spans);
+        let first = spans.first()?;
+        let id = self.s.index_direction(d);
+        Some(March {
+            io: self.s.index(o),
+            id,
+            dir: RayDir::new(id),
+            view: d.map(|x| -x as f32),
+            span: 0,
+            t0: first.t0,
+            t1: first.t1,
+            k: 0,
+            busy_until: f64::NEG_INFINITY,
+            acc: [0.0; 3],
+            alpha: 0.0,
+            depth: f32::NAN,
+        })
+    }
+
+    /// One step of march `m` along its `spans`: a sample, a jump over empty space, or the move to the next span.
+    /// `false` once the ray is done (its last span ended or it became opaque).
+    #[inline(always)]
+    fn advance(&self, m: &mut March, spans: &[Span]) -> bool {
+        let t = m.t0 + self.samples.offset(m.k);
+        if t > m.t1 {
+            m.span += 1;
+            let Some(sp) = spans.get(m.span) else {
+                return false;
+            };
+            (m.t0, m.t1, m.k, m.busy_until) = (sp.t0, sp.t1, 0, f64::NEG_INFINITY);
+            return true;
+        }
+        let idx: [f32; 3] = std::array::from_fn(|a| (m.io[a] + t * m.id[a]) as f32);
+        if t > m.busy_until {
+            let (busy, exit) = self.mask.step(idx, &m.dir);
+            if !busy {
+                m.k = (m.k + 1).max(self.samples.first_beyond(t + exit, m.t0));
+                return true;
+            }
+            m.busy_until = t + exit;
+        }
+        m.k += 1;
+        let (cell, f) = self.s.cell(idx);
+        // A sample in a cell outside the visible window is transparent: not read; nor are the next samples
+        // in a block of such cells.
+        if let Some(o) = self.cells {
+            if !o.block_busy(cell) {
+                let exit = t + o.block_exit(idx, cell, &m.dir);
+                m.k = m.k.max(self.samples.first_beyond(exit, m.t0));
+                return true;
+            }
+            if !o.busy(cell) {
+                return true;
+            }
+        }
+        let v = self.s.at_cell(cell, f);
+        if !self.lut.visible(v) {
+            return true;
+        }
+        let [cr, cg, cb, a] = self.lut.get(v);
+        if a <= 0.0 {
+            return true;
+        }
+        let g = self.s.gradient(idx);
+        let (lit, spec) = self.lighting.light(g.map(|x| x as f32), m.view);
+        let w = (1.0 - m.alpha) * a;
+        m.acc[0] += w * (cr * lit + spec);
+        m.acc[1] += w * (cg * lit + spec);
+        m.acc[2] += w * (cb * lit + spec);
+        if m.depth.is_nan() {
+            m.depth = t as f32;
+        }
+        m.alpha += w;
+        m.alpha < EARLY_TERMINATION
+    }
+
+    /// The colour and depth of a finished march.
+    #[inline(always)]
+    fn finish(&self, m: &March) -> ([f32; 3], f32) {
+        (
+            std::array::from_fn(|ch| m.acc[ch] + (1.0 - m.alpha) * self.bg[ch]),
+            m.depth,
+        )
+    }
+
+    /// The next pixel of `pixels` whose ray samples something, with its march; the pixels before it (background)
+    /// go to `put` at once.
+    #[inline(always)]
+    fn next_march(
+        &self,
+        pixels: &mut impl Iterator<Item = (usize, usize)>,
+        spans: &mut Vec<Span>,
+        put: &mut impl FnMut(usize, usize, [f32; 3], f32),
+    ) -> Option<(usize, usize, March)> {
+        for (r, c) in pixels {
+            match self.start(spans, r, c) {
+                Some(m) => return Some((r, c, m)),
+                None => put(r, c, self.bg, f32::NAN),
+            }
+        }
+        None
+    }
+}
+
+impl Shade for VrShader<'_> {
+    type Scratch = [Vec<Span>; 2];
+
+    fn scratch(&self) -> Self::Scratch {
+        std::array::from_fn(|_| Vec::new())
     }
 
     #[inline(always)]
-    fn shade(&self, spans: &mut Vec<Span>, r: usize, c: usize) -> ([f32; 3], f32) {
-        let (o, d) = self.rays.ray(r as f64, c as f64);
-        let Some((b0, b1)) = self.s.box_interval(o, d) else {
+    fn shade(&self, scratch: &mut Self::Scratch, r: usize, c: usize) -> ([f32; 3], f32) {
+        let spans = &mut scratch[0];
+        let Some(mut m) = self.start(spans, r, c) else {
             return (self.bg, f32::NAN);
         };
-        self.clip.spans(o, d, b0.max(0.0), b1, spans);
-        let io = self.s.index(o);
-        let id = self.s.index_direction(d);
-        let ray_dir = RayDir::new(id);
-        let at = |t: f64| -> [f32; 3] { std::array::from_fn(|a| (io[a] + t * id[a]) as f32) };
-        let view = d.map(|x| -x as f32);
-        let (mut acc, mut alpha, mut depth) = ([0.0f32; 3], 0.0f32, f32::NAN);
-        'spans: for sp in spans.iter() {
-            let mut k = 0u64;
-            // Samples up to this `t` lie in a busy brick already checked.
-            let mut busy_until = f64::NEG_INFINITY;
-            loop {
-                let t = sp.t0 + self.samples.offset(k);
-                if t > sp.t1 {
-                    break;
-                }
-                let idx = at(t);
-                if t > busy_until {
-                    let (busy, exit) = self.mask.step(idx, &ray_dir);
-                    if !busy {
-                        k = (k + 1).max(self.samples.first_beyond(t + exit, sp.t0));
-                        continue;
+        while self.advance(&mut m, spans) {}
+        self.finish(&m)
+    }
+
+    /// Two rays in flight, one step of each in turn: a step is a short chain of dependent operations (position,
+    /// brick or cell, a table, the next sample), and the other ray's chain fills its waits. Each ray takes the
+    /// same steps as [`Shade::shade`], so the pictures are the same bit for bit. (Two rays written out beat
+    /// three or four in a loop over lanes: the loop's own bookkeeping costs more than the overlap gains.)
+    #[inline(always)]
+    fn shade_pixels(
+        &self,
+        scratch: &mut Self::Scratch,
+        mut pixels: impl Iterator<Item = (usize, usize)>,
+        mut put: impl FnMut(usize, usize, [f32; 3], f32),
+    ) {
+        #[cfg(test)]
+        if tests::ONE_RAY.load(std::sync::atomic::Ordering::Relaxed) {
+            for (r, c) in pixels {
+                let (px, d) = self.shade(scratch, r, c);
+                put(r, c, px, d);
+            }
+            return;
+        }
+        let [sa, sb] = scratch;
+        let mut a = self.next_march(&mut pixels, sa, &mut put);
+        let mut b = self.next_march(&mut pixels, sb, &mut put);
+        loop {
+            match (&mut a, &mut b) {
+                (Some((ra, ca, ma)), Some((rb, cb, mb))) => {
+                    let live_a = self.advance(ma, sa);
+                    let live_b = self.advance(mb, sb);
+                    if !live_a {
+                        let (px, d) = self.finish(ma);
+                        put(*ra, *ca, px, d);
+                        a = self.next_march(&mut pixels, sa, &mut put);
                     }
-                    busy_until = t + exit;
-                }
-                k += 1;
-                let (cell, f) = self.s.cell(idx);
-                // A sample in a cell outside the visible window is transparent: not read; nor are the
-                // next samples in a block of such cells.
-                if let Some(o) = self.cells {
-                    if !o.block_busy(cell) {
-                        let exit = t + o.block_exit(idx, cell, &ray_dir);
-                        k = k.max(self.samples.first_beyond(exit, sp.t0));
-                        continue;
-                    }
-                    if !o.busy(cell) {
-                        continue;
+                    if !live_b {
+                        let (px, d) = self.finish(mb);
+                        put(*rb, *cb, px, d);
+                        b = self.next_march(&mut pixels, sb, &mut put);
                     }
                 }
-                let v = self.s.at_cell(cell, f);
-                if !self.lut.visible(v) {
-                    continue;
+                // The pixels have run out: the last ray goes on alone.
+                (Some((r, c, m)), None) => {
+                    while self.advance(m, sa) {}
+                    let (px, d) = self.finish(m);
+                    put(*r, *c, px, d);
+                    a = None;
                 }
-                let [cr, cg, cb, a] = self.lut.get(v);
-                if a <= 0.0 {
-                    continue;
+                (None, Some((r, c, m))) => {
+                    while self.advance(m, sb) {}
+                    let (px, d) = self.finish(m);
+                    put(*r, *c, px, d);
+                    b = None;
                 }
-                let g = self.s.gradient(idx);
-                let (lit, spec) = self.lighting.light(g.map(|x| x as f32), view);
-                let w = (1.0 - alpha) * a;
-                acc[0] += w * (cr * lit + spec);
-                acc[1] += w * (cg * lit + spec);
-                acc[2] += w * (cb * lit + spec);
-                if depth.is_nan() {
-                    depth = t as f32;
+                (None, None) => return,
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::sync::atomic::{AtomicBool, Ordering};
+
+    use ndarray::Array3;
+
+    use super::*;
+    use crate::render::{Camera, ClipBox, ClipPlane, Keep, Preset};
+    use crate::volume::{Frame, Volume};
+
+    /// Tests set this to render one ray at a time ([`Shade::shade`]) instead of two in flight.
+    pub(super) static ONE_RAY: AtomicBool = AtomicBool::new(false);
+
+    #[test]
+    fn two_rays_in_flight_render_the_pictures_of_one_ray_at_a_time_bit_for_bit() {
+        // A noisy ball with a bony shell, so that rays cross busy and empty bricks, cells in and out of the
+        // window and the grid's faces, and end early or late.
+        let vol = Volume {
+            data: Array3::from_shape_fn((29, 41, 47), |(k, j, i)| {
+                let r = ((k as f32 - 14.0).powi(2) * 3.0
+                    + (j as f32 - 20.0).powi(2)
+                    + (i as f32 - 23.0).powi(2))
+                .sqrt();
+                let noise = ((k * 7919 + j * 104_729 + i * 1_299_709) % 997) as f32 - 498.0;
+                let body = if r < 19.0 { 40.0 } else { -1000.0 };
+                let bone = if (7.0..11.0).contains(&r) { 900.0 } else { 0.0 };
+                body + bone + 0.5 * noise
+            }),
+            frame: Frame {
+                spacing_mm: [0.9, 0.8, 1.7],
+                origin_mm: [-15.0, 4.0, 2.0],
+                direction: Frame::AXIS_ALIGNED,
+            },
+        };
+        let scene = Scene::new(&vol).unwrap();
+        let c = scene.centre;
+        let clips = [
+            Clip::default(),
+            Clip {
+                planes: vec![ClipPlane {
+                    point_mm: c,
+                    normal: [0.2, 1.0, -0.3],
+                }],
+                boxes: vec![],
+            },
+            // A box cut out of the middle: rays through it sample two spans.
+            Clip {
+                planes: vec![],
+                boxes: vec![ClipBox {
+                    centre_mm: c,
+                    half_size_mm: [6.0, 6.0, 6.0],
+                    axes: None,
+                    keep: Keep::Outside,
+                }],
+            },
+        ];
+        let mut spans_seen = 0;
+        for (k, preset) in Preset::ALL.into_iter().enumerate() {
+            for (m, clip) in clips.iter().enumerate() {
+                let rays = Camera {
+                    azimuth_deg: 41.0 * (k + 2 * m) as f64,
+                    elevation_deg: 30.0 - 12.0 * m as f64,
+                    ..Camera::default()
                 }
-                alpha += w;
-                if alpha >= EARLY_TERMINATION {
-                    break 'spans;
+                .rays(&vol.frame, vol.data.dim(), 53, 39, 4096)
+                .unwrap();
+                let vr = VrOptions {
+                    transfer_function: preset.transfer_function(),
+                    shading: Shading::default(),
+                    clip: clip.clone(),
+                    background: [0.1, 0.2, 0.3],
+                    step_mm: None,
+                };
+                let two = volume_render(&scene, &rays, &vr).unwrap();
+                ONE_RAY.store(true, Ordering::Relaxed);
+                let one = volume_render(&scene, &rays, &vr);
+                ONE_RAY.store(false, Ordering::Relaxed);
+                let one = one.unwrap();
+                assert_eq!(two.rgb, one.rgb, "{preset:?}, clip {m}");
+                let bits =
+                    |img: &RgbImage| img.depth_mm.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&two), bits(&one), "{preset:?}, clip {m}");
+                let shown = two.depth_mm.iter().filter(|d| !d.is_nan()).count();
+                assert!(
+                    (50..53 * 39 - 50).contains(&shown),
+                    "{preset:?}, clip {m}: {shown} pixels show something"
+                );
+                if m == 2 {
+                    let mut spans = Vec::new();
+                    for r in 0..39 {
+                        for col in 0..53 {
+                            let (o, d) = rays.ray(r as f64, col as f64);
+                            if let Some((b0, b1)) = scene.sampler.box_interval(o, d) {
+                                clip.spans(o, d, b0.max(0.0), b1, &mut spans);
+                                spans_seen += usize::from(spans.len() == 2);
+                            }
+                        }
+                    }
                 }
             }
         }
-        (
-            std::array::from_fn(|ch| acc[ch] + (1.0 - alpha) * self.bg[ch]),
-            depth,
-        )
+        assert!(spans_seen > 100, "{spans_seen} rays of two spans");
     }
 }

@@ -37,6 +37,22 @@ pub(crate) trait Shade: Sync {
     /// Linear RGB (0–1) and depth (mm, NaN for background) of the pixel at (`row`, `col`). Mark it
     /// `#[inline(always)]`: it is compiled into each form of the tile loop ([`render_tiles`]).
     fn shade(&self, scratch: &mut Self::Scratch, row: usize, col: usize) -> ([f32; 3], f32);
+
+    /// Shade `pixels` (row, col), handing each one's colour and depth to `put`, in any order. The default
+    /// shades them one by one; a shader may keep several rays in flight, each computed as [`Shade::shade`]
+    /// computes it. Mark it `#[inline(always)]` as well.
+    #[inline(always)]
+    fn shade_pixels(
+        &self,
+        scratch: &mut Self::Scratch,
+        pixels: impl Iterator<Item = (usize, usize)>,
+        mut put: impl FnMut(usize, usize, [f32; 3], f32),
+    ) {
+        for (r, c) in pixels {
+            let (px, d) = self.shade(scratch, r, c);
+            put(r, c, px, d);
+        }
+    }
 }
 
 /// Render one `width × height` picture for each of `shaders`, in parallel over the bands of rows of all the
@@ -94,16 +110,14 @@ fn fill_band(shader: &impl Shade, r0: usize, width: usize, rgb: &mut [u8], depth
     let rows = depth.len() / width.max(1);
     for c0 in (0..width).step_by(TILE) {
         let cols = c0..(c0 + TILE).min(width);
-        for dr in 0..rows {
-            for c in cols.clone() {
-                let (px, d) = shader.shade(&mut scratch, r0 + dr, c);
-                let o = dr * width + c;
-                depth[o] = d;
-                for (b, v) in rgb[3 * o..3 * o + 3].iter_mut().zip(px) {
-                    *b = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
-                }
+        let pixels = (r0..r0 + rows).flat_map(|r| cols.clone().map(move |c| (r, c)));
+        shader.shade_pixels(&mut scratch, pixels, |r, c, px, d| {
+            let o = (r - r0) * width + c;
+            depth[o] = d;
+            for (b, v) in rgb[3 * o..3 * o + 3].iter_mut().zip(px) {
+                *b = (v.clamp(0.0, 1.0) * 255.0).round() as u8;
             }
-        }
+        });
     }
 }
 
