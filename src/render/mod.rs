@@ -20,9 +20,9 @@
 //!   their own colours and opacities are composited front to back (a transparent skin over bone); a clip that
 //!   cuts into the solid shows the cut face as a flat cap.
 //!
-//! Rays run in parallel over 32 × 32 pixel tiles (rayon). The volume's min/max bricks are built once per volume,
-//! the cell occupancy once per transfer function or set of iso-values, and both are shared by every frame of a
-//! rotating sequence.
+//! Rays run in parallel over 32 × 32 pixel tiles (rayon); volume rendering keeps two rays in flight per
+//! thread, one step of each in turn. The volume's min/max bricks are built once per volume, the cell occupancy
+//! once per transfer function or set of iso-values, and both are shared by every frame of a rotating sequence.
 
 mod bricks;
 mod camera;
