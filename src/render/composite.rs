@@ -348,36 +348,15 @@ impl Shade for VrShader<'_> {
 mod tests {
     use std::sync::atomic::{AtomicBool, Ordering};
 
-    use ndarray::Array3;
-
     use super::*;
     use crate::render::{Camera, ClipBox, ClipPlane, Keep, Preset};
-    use crate::volume::{Frame, Volume};
 
     /// Tests set this to render one ray at a time ([`Shade::shade`]) instead of two in flight.
     pub(super) static ONE_RAY: AtomicBool = AtomicBool::new(false);
 
     #[test]
     fn two_rays_in_flight_render_the_pictures_of_one_ray_at_a_time_bit_for_bit() {
-        // A noisy ball with a bony shell, so that rays cross busy and empty bricks, cells in and out of the
-        // window and the grid's faces, and end early or late.
-        let vol = Volume {
-            data: Array3::from_shape_fn((29, 41, 47), |(k, j, i)| {
-                let r = ((k as f32 - 14.0).powi(2) * 3.0
-                    + (j as f32 - 20.0).powi(2)
-                    + (i as f32 - 23.0).powi(2))
-                .sqrt();
-                let noise = ((k * 7919 + j * 104_729 + i * 1_299_709) % 997) as f32 - 498.0;
-                let body = if r < 19.0 { 40.0 } else { -1000.0 };
-                let bone = if (7.0..11.0).contains(&r) { 900.0 } else { 0.0 };
-                body + bone + 0.5 * noise
-            }),
-            frame: Frame {
-                spacing_mm: [0.9, 0.8, 1.7],
-                origin_mm: [-15.0, 4.0, 2.0],
-                direction: Frame::AXIS_ALIGNED,
-            },
-        };
+        let vol = super::super::image::tests::noisy_ball();
         let scene = Scene::new(&vol).unwrap();
         let c = scene.centre;
         let clips = [

@@ -225,7 +225,7 @@ pub fn encode_rgb_apng(
 }
 
 #[cfg(test)]
-mod tests {
+pub(super) mod tests {
     use super::*;
     use crate::render::{
         Camera, Clip, ClipPlane, Preset, RenderError, Scene, Shading, SsdOptions, Surface,
@@ -276,12 +276,11 @@ mod tests {
         assert!(render_frames::<Places>(8, 8, &[]).is_empty());
     }
 
-    #[test]
-    fn the_tile_loop_for_wider_cpus_renders_the_same_pictures_bit_for_bit() {
-        // A noisy ball in a box, so that rays cross busy and empty bricks, cells in and out of the windows and
-        // the grid's faces.
+    /// A noisy ball with a bony shell in a box, so that rays cross busy and empty bricks, cells in and out of
+    /// the windows and the grid's faces, and end early or late.
+    pub(crate) fn noisy_ball() -> Volume {
         let (nz, ny, nx) = (37, 45, 52);
-        let vol = Volume {
+        Volume {
             data: Array3::from_shape_fn((nz, ny, nx), |(k, j, i)| {
                 let r = ((k as f32 - 18.0).powi(2) * 4.0
                     + (j as f32 - 22.0).powi(2)
@@ -297,7 +296,12 @@ mod tests {
                 origin_mm: [-20.0, 10.0, 5.0],
                 direction: Frame::AXIS_ALIGNED,
             },
-        };
+        }
+    }
+
+    #[test]
+    fn the_tile_loop_for_wider_cpus_renders_the_same_pictures_bit_for_bit() {
+        let vol = noisy_ball();
         let scene = Scene::new(&vol).unwrap();
         let half = Clip {
             planes: vec![ClipPlane {
