@@ -349,6 +349,7 @@ mod tests {
     use std::sync::atomic::{AtomicBool, Ordering};
 
     use super::*;
+    use crate::render::image::tests::{assert_same_picture, noisy_ball};
     use crate::render::{Camera, ClipBox, ClipPlane, Keep, Preset};
 
     /// Tests set this to render one ray at a time ([`Shade::shade`]) instead of two in flight.
@@ -356,7 +357,7 @@ mod tests {
 
     #[test]
     fn two_rays_in_flight_render_the_pictures_of_one_ray_at_a_time_bit_for_bit() {
-        let vol = super::super::image::tests::noisy_ball();
+        let vol = noisy_ball();
         let scene = Scene::new(&vol).unwrap();
         let c = scene.centre;
         let clips = [
@@ -401,10 +402,7 @@ mod tests {
                 let one = volume_render(&scene, &rays, &vr);
                 ONE_RAY.store(false, Ordering::Relaxed);
                 let one = one.unwrap();
-                assert_eq!(two.rgb, one.rgb, "{preset:?}, clip {m}");
-                let bits =
-                    |img: &RgbImage| img.depth_mm.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
-                assert_eq!(bits(&two), bits(&one), "{preset:?}, clip {m}");
+                assert_same_picture(&two, &one, &format!("{preset:?}, clip {m}"));
                 let shown = two.depth_mm.iter().filter(|d| !d.is_nan()).count();
                 assert!(
                     (50..53 * 39 - 50).contains(&shown),

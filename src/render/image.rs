@@ -299,6 +299,13 @@ pub(super) mod tests {
         }
     }
 
+    /// `a` and `b` have the same bytes and the same depths bit for bit.
+    pub(crate) fn assert_same_picture(a: &RgbImage, b: &RgbImage, what: &str) {
+        assert_eq!(a.rgb, b.rgb, "{what}");
+        let bits = |img: &RgbImage| img.depth_mm.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(a), bits(b), "{what}");
+    }
+
     #[test]
     fn the_tile_loop_for_wider_cpus_renders_the_same_pictures_bit_for_bit() {
         let vol = noisy_ball();
@@ -362,10 +369,7 @@ pub(super) mod tests {
         PORTABLE_ONLY.store(false, Ordering::Relaxed);
         for (k, (a, b)) in wide.iter().zip(&portable).enumerate() {
             for (x, y) in [(&a.0, &b.0), (&a.1, &b.1)] {
-                assert_eq!(x.rgb, y.rgb, "camera {k}");
-                let bits =
-                    |img: &RgbImage| img.depth_mm.iter().map(|d| d.to_bits()).collect::<Vec<_>>();
-                assert_eq!(bits(x), bits(y), "camera {k}");
+                assert_same_picture(x, y, &format!("camera {k}"));
                 // Each picture shows the ball and some background.
                 let shown = x.depth_mm.iter().filter(|d| !d.is_nan()).count();
                 assert!((100..61 * 47 - 100).contains(&shown), "camera {k}: {shown}");
