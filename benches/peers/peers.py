@@ -313,6 +313,41 @@ def mesh_case(n, work):
           % (name, backend, s, peer_tris, peak / 1e6, s / secs, load), flush=True)
 
 
+def case_files(case, algorithm, work):
+    """Write the case's geometry, grid, projections (with the case's noise) and phantom into `work` where
+    missing: (data path, phantom path, geometry path, grid path, ctrecon's output path, data, phantom)."""
+    tag = "%s_%s_%d" % (algorithm, case["geometry"]["type"], case["n"])
+    geo, clean_path = os.path.join(work, tag + ".json"), os.path.join(work, tag + ".npy")
+    noise = case.get("noise", 0.0)
+    data_path = clean_path
+    if noise:
+        tag += "_noise%g" % noise
+        data_path = os.path.join(work, tag + ".npy")
+    ref_path = os.path.join(work, "phantom%d_%d.npy" % (case["dims"], case["n"]))
+    with open(geo, "w") as f:
+        json.dump(case["geometry"], f)
+    n = case["n"]
+    if not os.path.exists(clean_path):
+        run_ctrecon(["phantom", "--geometry", geo, "--fov-mm", str(n), "--out", clean_path])
+    if not os.path.exists(data_path):
+        clean = np.load(clean_path)
+        rng = np.random.default_rng(1)
+        noisy = clean + rng.normal(0.0, noise * float(clean.max()), clean.shape)
+        np.save(data_path, noisy.astype(np.float32))
+    if not os.path.exists(ref_path):
+        run_ctrecon(["phantom", "--dims", str(case["dims"]), "--size", str(n), "--fov-mm", str(n),
+                     "--supersample", "4" if case["dims"] == 2 else "2", "--out", ref_path])
+    data, ref = np.load(data_path), np.load(ref_path)
+    out = os.path.join(work, tag + "_ctrecon.npy")
+    grid = os.path.join(work, tag + "_grid.json")
+    with open(grid, "w") as f:
+        if case["dims"] == 2:
+            json.dump({"nx": n, "ny": n, "dx_mm": 1.0, "dy_mm": 1.0}, f)
+        else:
+            json.dump({"nx": n, "ny": n, "nz": n, "spacing_mm": [1.0, 1.0, 1.0]}, f)
+    return data_path, ref_path, geo, grid, out, data, ref
+
+
 def rmse(img, ref):
     """RMSE over the inscribed disk (2D) or cylinder (3D) of the last two axes."""
     n = ref.shape[-1]
@@ -339,35 +374,7 @@ def main():
     chosen = [c for c in cases(args.quick) if not args.only or args.only in c[0]]
     load_peer_libraries({p for c in chosen for p in c[4]})
     for name, case, algorithm, params, names in chosen:
-        tag = "%s_%s_%d" % (algorithm, case["geometry"]["type"], case["n"])
-        geo, clean_path = os.path.join(args.work, tag + ".json"), os.path.join(args.work, tag + ".npy")
-        noise = case.get("noise", 0.0)
-        data_path = clean_path
-        if noise:
-            tag += "_noise%g" % noise
-            data_path = os.path.join(args.work, tag + ".npy")
-        ref_path = os.path.join(args.work, "phantom%d_%d.npy" % (case["dims"], case["n"]))
-        with open(geo, "w") as f:
-            json.dump(case["geometry"], f)
-        n = case["n"]
-        if not os.path.exists(clean_path):
-            run_ctrecon(["phantom", "--geometry", geo, "--fov-mm", str(n), "--out", clean_path])
-        if not os.path.exists(data_path):
-            clean = np.load(clean_path)
-            rng = np.random.default_rng(1)
-            noisy = clean + rng.normal(0.0, noise * float(clean.max()), clean.shape)
-            np.save(data_path, noisy.astype(np.float32))
-        if not os.path.exists(ref_path):
-            run_ctrecon(["phantom", "--dims", str(case["dims"]), "--size", str(n), "--fov-mm", str(n),
-                         "--supersample", "4" if case["dims"] == 2 else "2", "--out", ref_path])
-        data, ref = np.load(data_path), np.load(ref_path)
-        out = os.path.join(args.work, tag + "_ctrecon.npy")
-        grid = os.path.join(args.work, tag + "_grid.json")
-        with open(grid, "w") as f:
-            if case["dims"] == 2:
-                json.dump({"nx": n, "ny": n, "dx_mm": 1.0, "dy_mm": 1.0}, f)
-            else:
-                json.dump({"nx": n, "ny": n, "nz": n, "spacing_mm": [1.0, 1.0, 1.0]}, f)
+        data_path, _, geo, grid, out, data, ref = case_files(case, algorithm, args.work)
         load = loadavg()
         secs, rss = run_ctrecon_rss(["recon", "--input", data_path, "--geometry", geo, "--algorithm", algorithm,
                                      "--params", json.dumps(params), "--grid", grid, "--output", out])
