@@ -430,6 +430,11 @@ pub fn pairs(lv: &LineView, i: usize, k: usize) -> [(i64, f32); 2] {
 #[path = "parallel2_simd.rs"]
 mod simd;
 
+#[cfg(target_arch = "x86_64")]
+#[allow(unsafe_code)]
+#[path = "parallel2_step.rs"]
+mod step;
+
 #[path = "parallel2_sweep.rs"]
 mod sweep;
 pub use sweep::LineSweep;

@@ -274,6 +274,32 @@ pub(super) unsafe fn back_lines16<const TWO: bool, const N: usize>(
     lv: &LineView,
     b: f32,
 ) {
+    let aps = accs.map(|a| a.as_mut_ptr());
+    // SAFETY: the caller's; every accumulator holds 16 + n16 values and `at` ≤ n16.
+    unsafe {
+        back_rows16::<TWO, N>(n16, rs, lv, b, |at, sums| {
+            for (&ap, v) in aps.iter().zip(sums) {
+                let p = ap.add(at);
+                _mm512_storeu_ps(p, _mm512_add_ps(_mm512_loadu_ps(p), v));
+            }
+        })
+    }
+}
+
+/// The loop of [`back_lines16`]: for `at` = 0, 16, … n16 in turn, `put(at, v)` with `v[n]` what
+/// row `n` adds to pixels `at − 16 … at − 1`, each vector computed once.
+///
+/// # Safety
+/// As [`back_line16`] for every row of `rs`; `put` is called with `at ≤ n16`.
+#[target_feature(enable = "avx2,fma,avx512f")]
+#[inline]
+pub(super) unsafe fn back_rows16<const TWO: bool, const N: usize>(
+    n16: usize,
+    rs: [&[f32]; N],
+    lv: &LineView,
+    b: f32,
+    mut put: impl FnMut(usize, [__m512; N]),
+) {
     let count = lv.count as i32;
     let (vb, vs, vw) = (
         _mm512_set1_ps(b),
@@ -284,7 +310,6 @@ pub(super) unsafe fn back_lines16<const TWO: bool, const N: usize>(
     let (one, onef) = (_mm512_set1_epi32(1), _mm512_set1_ps(1.0));
     let sixteen = _mm512_set1_ps(16.0);
     let rps = rs.map(|r| r.as_ptr());
-    let aps = accs.map(|a| a.as_mut_ptr());
     let lanes16 = _mm512_setr_ps(
         0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
     );
@@ -315,6 +340,7 @@ pub(super) unsafe fn back_lines16<const TWO: bool, const N: usize>(
         } else {
             (0, rel, w1, w0)
         };
+        let mut out = [_mm512_setzero_ps(); N];
         for n in 0..N {
             // SAFETY: base + 1 ∈ [0, count + 1] and every row holds count + 40 values.
             let (lo, hi) = unsafe {
@@ -331,16 +357,10 @@ pub(super) unsafe fn back_lines16<const TWO: bool, const N: usize>(
             }
             let c = _mm512_castps_si512(c);
             let c_before = _mm512_castsi512_ps(_mm512_alignr_epi32::<15>(c, c_prev[n]));
-            // SAFETY: at ≤ n16 and every accumulator holds 16 + n16 values.
-            unsafe {
-                let p = aps[n].add(at);
-                _mm512_storeu_ps(
-                    p,
-                    _mm512_add_ps(_mm512_loadu_ps(p), _mm512_add_ps(a, c_before)),
-                );
-            }
+            out[n] = _mm512_add_ps(a, c_before);
             c_prev[n] = c;
         }
+        put(at, out);
         q = _mm512_add_ps(q, sixteen);
     }
 }
@@ -388,57 +408,5 @@ pub(super) unsafe fn transpose8(
         for (j, v) in out.into_iter().enumerate() {
             _mm256_storeu_ps(dst.add(j * dst_stride), v);
         }
-    }
-}
-
-/// `x ← clamp(x + (λ·c)·g)` value by value with `c = 1/s` where the column sum `s` exceeds `floor`,
-/// else 0 (a division, a multiply, a multiply and an add, as the scalar form), clamped below by
-/// `lower` and above by `upper` where given (`max` then `min`, which pick the bound for a NaN as
-/// `f32::max` and `f32::min` do).
-///
-/// # Safety
-/// AVX must be available; `sums` and `g` hold at least `x.len()` values.
-#[target_feature(enable = "avx2")]
-pub(super) unsafe fn step_line(
-    x: &mut [f32],
-    sums: &[f32],
-    floor: f32,
-    g: &[f32],
-    lambda: f32,
-    lower: Option<f32>,
-    upper: Option<f32>,
-) {
-    let n = x.len();
-    debug_assert!(sums.len() >= n && g.len() >= n);
-    let vl = _mm256_set1_ps(lambda);
-    let vf = _mm256_set1_ps(floor);
-    let one = _mm256_set1_ps(1.0);
-    let lo = _mm256_set1_ps(lower.unwrap_or(0.0));
-    let hi = _mm256_set1_ps(upper.unwrap_or(0.0));
-    let (xp, sp, gp) = (x.as_mut_ptr(), sums.as_ptr(), g.as_ptr());
-    let mut i = 0;
-    while i + 8 <= n {
-        // SAFETY: i + 8 ≤ n ≤ every length.
-        unsafe {
-            let s = _mm256_loadu_ps(sp.add(i));
-            let above = _mm256_cmp_ps::<_CMP_GT_OQ>(s, vf);
-            let c = _mm256_and_ps(_mm256_div_ps(one, s), above);
-            let d = _mm256_mul_ps(_mm256_mul_ps(vl, c), _mm256_loadu_ps(gp.add(i)));
-            let mut v = _mm256_add_ps(_mm256_loadu_ps(xp.add(i)), d);
-            if lower.is_some() {
-                v = _mm256_max_ps(v, lo);
-            }
-            if upper.is_some() {
-                v = _mm256_min_ps(v, hi);
-            }
-            _mm256_storeu_ps(xp.add(i), v);
-        }
-        i += 8;
-    }
-    for ((x, &s), &g) in x[i..].iter_mut().zip(&sums[i..n]).zip(&g[i..n]) {
-        let c = if s > floor { 1.0 / s } else { 0.0 };
-        let v = *x + lambda * c * g;
-        let v = lower.map_or(v, |l| v.max(l));
-        *x = upper.map_or(v, |u| v.min(u));
     }
 }
