@@ -29,6 +29,7 @@ pub mod metrics;
 mod pairs;
 pub mod phantom;
 pub mod projector;
+pub(crate) mod team;
 
 pub use control::{Cancel, Control, NoProgress, Progress};
 pub use error::{GeometryError, ReconError};

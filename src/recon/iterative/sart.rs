@@ -15,6 +15,7 @@ use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::projector::Operator;
 use crate::recon::projector::parallel2::LineSweep;
+use crate::recon::team::with_team;
 
 /// Most f32 values of per-subset column sums kept in memory; beyond this they are recomputed on each
 /// use (one extra back projection per subset).
@@ -89,13 +90,19 @@ impl Sweep {
         let m = op.view_len();
         if let Some(lines) = &mut self.lines {
             lines.load(x);
-            let mut sum2 = 0.0f64;
-            for s in &self.subsets {
-                ctl.check()?;
-                let v = s[0];
-                let (b, w) = (&b[v * m..(v + 1) * m], &self.r_weight[v * m..(v + 1) * m]);
-                sum2 += lines.update(v, b, w, lambda, bounds.lower, bounds.upper);
-            }
+            let (subsets, r_weight) = (&self.subsets, &self.r_weight);
+            // The updates' chunks run on a team of pool threads that stay awake between updates;
+            // nothing in this loop calls into the pool itself.
+            let sum2 = with_team(lines.partners(), |team| {
+                let mut sum2 = 0.0f64;
+                for s in subsets {
+                    ctl.check()?;
+                    let v = s[0];
+                    let (b, w) = (&b[v * m..(v + 1) * m], &r_weight[v * m..(v + 1) * m]);
+                    sum2 += lines.update(team, v, b, w, lambda, bounds.lower, bounds.upper);
+                }
+                Ok::<f64, ReconError>(sum2)
+            })?;
             lines.store(x);
             return Ok(sum2.sqrt());
         }

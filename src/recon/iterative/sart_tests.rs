@@ -188,8 +188,70 @@ fn subsets_of_several_views_keep_the_whole_image_passes() {
 }
 
 #[test]
+fn a_team_of_threads_gives_the_updates_of_one_thread_bit_for_bit() {
+    // Enough pixels for the updates to run on a team; views along both axes (transposes), rays in
+    // both orders, sides that are not multiples of the chunks.
+    let grid = ImageGrid {
+        nx: 173,
+        ny: 141,
+        dx_mm: 1.0,
+        dy_mm: 0.9,
+        centre_mm: [0.3, -0.2],
+    };
+    let views = ParallelBeam {
+        angles: Angles::uniform(23, 360.0),
+        det_count: 251,
+        det_spacing_mm: 0.8,
+        det_offset_mm: 0.35,
+    }
+    .to_views()
+    .unwrap();
+    let mut rng = StdRng::seed_from_u64(29);
+    let b: Vec<f32> = (0..23 * 251)
+        .map(|_| rng.random_range(0.0..40.0f32))
+        .collect();
+    let run = |threads: usize, narrow: bool| {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(threads)
+            .build()
+            .unwrap();
+        pool.install(|| {
+            let op = Projector2::with_walk_table(&views, &grid);
+            let cancel = Cancel::new();
+            let ctl = Control::new(&cancel, &NoProgress);
+            let mut sweep = Sweep::new(&op, 23, &ctl).unwrap();
+            let lines = sweep.lines.as_mut()?;
+            assert_eq!(lines.partners(), threads - 1);
+            if narrow {
+                lines.narrow();
+            }
+            let mut x = vec![0.0f32; grid.nx * grid.ny];
+            let bounds = Bounds::new(true, Some(1.5));
+            let res: Vec<f64> = (0..3)
+                .map(|_| sweep.run(&op, &b, &mut x, 1.0, bounds, &ctl).unwrap())
+                .collect();
+            Some((bits(&x), res))
+        })
+    };
+    for narrow in [false, true] {
+        let Some(one) = run(1, narrow) else {
+            println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
+            return;
+        };
+        assert!(one.0.iter().any(|&v| f32::from_bits(v) > 0.0));
+        for threads in [2, 3] {
+            assert_eq!(
+                run(threads, narrow),
+                Some(one.clone()),
+                "{threads} threads, narrow {narrow}"
+            );
+        }
+    }
+}
+
+#[test]
 fn fused_updates_split_between_threads_match_the_whole_image_passes() {
-    // Enough pixels per view for the lines of an update to be split between threads.
+    // A large image, its updates on a team of three threads.
     let grid = ImageGrid {
         nx: 411,
         ny: 333,

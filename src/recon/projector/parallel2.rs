@@ -158,6 +158,15 @@ impl LineView {
         if self.reversed { self.count - 1 - k } else { k }
     }
 
+    /// The lowest detector element of sorted rays `rays` (they hold a contiguous run of elements).
+    fn lowest_element(&self, rays: &std::ops::Range<usize>) -> usize {
+        if self.reversed {
+            self.count - rays.end
+        } else {
+            rays.start
+        }
+    }
+
     /// The lines `[lo, hi)` on which one of the sorted rays `first .. first + width` may touch a
     /// pixel (a superset: the positions of the vector's first and last lanes, with a margin for
     /// rounding).
@@ -259,11 +268,28 @@ pub fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
 
 /// [`forward_view`] with the 16-ray AVX-512F kernel when `wide` (which must then be available), else
 /// the 8-ray AVX2 one. Both compute the same values bit for bit.
-#[allow(unsafe_code)]
 fn forward_view_with(lines: &WideLines, lv: &LineView, out: &mut [f32], wide: bool) {
+    forward_rays(lines, lv, 0..lv.count, out, wide);
+}
+
+/// [`forward_view_with`] for sorted rays `rays` only (`rays.start` a multiple of 16): `out` holds
+/// their detector elements, the lowest first.
+#[allow(unsafe_code)]
+fn forward_rays(
+    lines: &WideLines,
+    lv: &LineView,
+    rays: std::ops::Range<usize>,
+    out: &mut [f32],
+    wide: bool,
+) {
     assert!(
-        lines.count == lv.lines() && lines.len == lv.len && out.len() == lv.count,
-        "line layout, view plan and data row disagree"
+        lines.count == lv.lines()
+            && lines.len == lv.len
+            && rays.start.is_multiple_of(16)
+            && rays.start <= rays.end
+            && rays.end <= lv.count
+            && out.len() == rays.len(),
+        "line layout, view plan, rays and data row disagree"
     );
     assert!(available(), "the line kernels need AVX2 and FMA");
     assert!(!wide || wide_available(), "the wide kernel needs AVX-512F");
@@ -271,11 +297,13 @@ fn forward_view_with(lines: &WideLines, lv: &LineView, out: &mut [f32], wide: bo
     // SAFETY: AVX2 and FMA are present, and AVX-512F where `wide`; the sizes agree (checked above).
     unsafe {
         if wide {
-            simd::forward_view16(lines, lv, out)
+            simd::forward_view16(lines, lv, rays, out)
         } else {
-            simd::forward_view(lines, lv, out)
+            simd::forward_view(lines, lv, rays, out)
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (rays, out);
 }
 
 /// The back projection of views planned along one axis: `out` (`count` lines of `len` values, the

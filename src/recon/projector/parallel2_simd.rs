@@ -1,22 +1,32 @@
 //! The AVX2/FMA and AVX-512F line kernels of [`super`] (the parallel-beam views of the 2D Joseph pair).
 
 use std::arch::x86_64::*;
+use std::ops::Range;
 
 use super::{LineView, PAD, WideLines};
 use crate::recon::pairs::{lanes, select16};
 
+/// The forward projection of sorted rays `rays` of view `lv` (8 per step): `out` holds their
+/// detector elements, the lowest first.
+///
 /// # Safety
-/// AVX2 and FMA must be available; `lines` and `lv` must agree and `out.len() == lv.count`.
+/// AVX2 and FMA must be available; `lines` and `lv` must agree, `rays.start` must be a multiple of
+/// 8, `rays.end ≤ lv.count`, and `out.len() == rays.len()`.
 #[target_feature(enable = "avx2,fma")]
-pub(super) unsafe fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
-    let m = lv.count;
+pub(super) unsafe fn forward_view(
+    lines: &WideLines,
+    lv: &LineView,
+    rays: Range<usize>,
+    out: &mut [f32],
+) {
+    let (m, low) = (rays.end, lv.lowest_element(&rays));
     let vs = _mm256_set1_ps(lv.s);
     let vw = _mm256_set1_ps(lv.weight);
     let data = lines.data.as_ptr();
     // The window [base, base + 17) stays inside the data for base ∈ [−PAD, len + PAD − 17].
     let (lowest, highest) = (-(PAD as isize), (lines.len + PAD - 17) as isize);
     let mut sums = [0.0f32; 8];
-    for first in (0..m).step_by(8) {
+    for first in rays.step_by(8) {
         let ks = _mm256_mul_ps(lanes(first as f32), vs);
         let (lo, hi) = lv.group_lines(first, 8);
         let mut acc0 = _mm256_setzero_ps();
@@ -46,7 +56,7 @@ pub(super) unsafe fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f
         // SAFETY: `sums` holds 8 values.
         unsafe { _mm256_storeu_ps(sums.as_mut_ptr(), _mm256_add_ps(acc0, acc1)) };
         for (l, &v) in sums.iter().enumerate().take(m - first) {
-            out[lv.element(first + l)] = v;
+            out[lv.element(first + l) - low] = v;
         }
     }
 }
@@ -56,10 +66,15 @@ pub(super) unsafe fn forward_view(lines: &WideLines, lv: &LineView, out: &mut [f
 /// two-register permute each. The same operations per ray as the 8-ray kernel, so the same values.
 ///
 /// # Safety
-/// AVX2, FMA and AVX-512F must be available; `lines` and `lv` must agree and `out.len() == lv.count`.
+/// AVX2, FMA and AVX-512F must be available; as [`forward_view`], with `rays.start` a multiple of 16.
 #[target_feature(enable = "avx2,fma,avx512f")]
-pub(super) unsafe fn forward_view16(lines: &WideLines, lv: &LineView, out: &mut [f32]) {
-    let m = lv.count;
+pub(super) unsafe fn forward_view16(
+    lines: &WideLines,
+    lv: &LineView,
+    rays: Range<usize>,
+    out: &mut [f32],
+) {
+    let (m, low) = (rays.end, lv.lowest_element(&rays));
     let vs = _mm512_set1_ps(lv.s);
     let vw = _mm512_set1_ps(lv.weight);
     let one = _mm512_set1_epi32(1);
@@ -70,7 +85,7 @@ pub(super) unsafe fn forward_view16(lines: &WideLines, lv: &LineView, out: &mut 
         0.0, 1.0, 2.0, 3.0, 4.0, 5.0, 6.0, 7.0, 8.0, 9.0, 10.0, 11.0, 12.0, 13.0, 14.0, 15.0,
     );
     let mut sums = [0.0f32; 16];
-    for first in (0..m).step_by(16) {
+    for first in rays.step_by(16) {
         let ks = _mm512_mul_ps(_mm512_add_ps(_mm512_set1_ps(first as f32), steps), vs);
         let (lo, hi) = lv.group_lines(first, 16);
         let mut acc0 = _mm512_setzero_ps();
@@ -100,7 +115,7 @@ pub(super) unsafe fn forward_view16(lines: &WideLines, lv: &LineView, out: &mut 
         // SAFETY: `sums` holds 16 values.
         unsafe { _mm512_storeu_ps(sums.as_mut_ptr(), _mm512_add_ps(acc0, acc1)) };
         for (l, &v) in sums.iter().enumerate().take(m - first) {
-            out[lv.element(first + l)] = v;
+            out[lv.element(first + l) - low] = v;
         }
     }
 }

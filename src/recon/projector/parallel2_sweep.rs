@@ -13,6 +13,13 @@
 //! two scratch lines. Computing the sums again costs about what reading them back from memory did, and no
 //! image-sized array per view is kept. The (pixel, weight) pairs, the data weights and the order of
 //! every sum are those of the whole-image passes, so the updates are the same bit for bit.
+//!
+//! Updates last tens of microseconds, too short to wake sleeping pool threads for: the transposes,
+//! the forward projection (by rays) and the back projection with its step (by lines) run in chunks
+//! on a [`Team`] of pool threads that spin between updates. Each chunk computes what the whole loop
+//! computes for its lines or rays, so an update is the same on any number of threads.
+
+use std::sync::Mutex;
 
 use rayon::prelude::*;
 
@@ -20,16 +27,23 @@ use rayon::prelude::*;
 use super::step::{sart_line16, step_line};
 use super::{
     LineView, ONE_RAY, PAD, WideLines, available, back_line_into, back_line_pair_into,
-    forward_view_with, wide_available,
+    forward_rays, wide_available,
 };
 use crate::recon::control::Cancel;
 use crate::recon::error::ReconError;
+use crate::recon::team::Team;
 
-/// Fewest pixels of a view for which its back projection and step run on several threads.
-const PARALLEL_PIXELS: usize = 1 << 17;
+/// Fewest pixels of an image for which the updates run on a team of threads.
+const TEAM_PIXELS: usize = 1 << 14;
 
-/// Fewest lines per task of a parallel back projection and step.
-const PARALLEL_LINES: usize = 16;
+/// Most threads besides the caller's on such a team.
+const MAX_PARTNERS: usize = 7;
+
+/// Lines per chunk of a transpose and of a back projection with its step (a multiple of 8).
+const CHUNK_LINES: usize = 32;
+
+/// Rays per chunk of a forward projection (a multiple of 16).
+const CHUNK_RAYS: usize = 64;
 
 /// The constants of one view's step (see [`LineSweep::update`]).
 #[derive(Clone, Copy)]
@@ -60,7 +74,6 @@ pub struct LineSweep {
     projection: Vec<f32>,
     data: Vec<f32>,
     ones: Vec<f32>,
-    scratch: [Vec<f32>; 2],
 }
 
 impl LineSweep {
@@ -127,8 +140,20 @@ impl LineSweep {
             projection: vec![0.0; count],
             data: vec![0.0; count + 40],
             ones,
-            scratch: [vec![0.0; step + longest], vec![0.0; step + longest]],
         }))
+    }
+
+    /// How many pool threads besides the caller's should run [`Self::update`]'s chunks (see
+    /// [`crate::recon::team`]): every other thread of the pool, at most [`MAX_PARTNERS`], for images
+    /// of [`TEAM_PIXELS`] or more.
+    pub fn partners(&self) -> usize {
+        if self.nx * self.ny >= TEAM_PIXELS {
+            rayon::current_num_threads()
+                .saturating_sub(1)
+                .min(MAX_PARTNERS)
+        } else {
+            0
+        }
     }
 
     /// Use the 8-lane AVX2 kernels even where the CPU has AVX-512F.
@@ -166,9 +191,10 @@ impl LineSweep {
         }
     }
 
-    /// Hold the image in the layout of lines along x (columns) when `along_x`, else rows.
+    /// Hold the image in the layout of lines along x (columns) when `along_x`, else rows: line `i`
+    /// of the other layout, value `j` → line `j`, value `i`, in chunks of destination lines.
     #[allow(unsafe_code)]
-    fn hold(&mut self, along_x: bool) {
+    fn hold(&mut self, team: &Team<'_>, along_x: bool) {
         if self.along_x == along_x {
             return;
         }
@@ -177,49 +203,58 @@ impl LineSweep {
         } else {
             (&self.cols, &mut self.rows)
         };
-        // Line `i` of `from`, value `j` → line `j` of `to`, value `i`: blocks of 8 × 8 by AVX
-        // transposes, the edges value by value.
-        let (count, len) = (from.count, from.len);
-        let (full_i, full_j) = (count / 8 * 8, len / 8 * 8);
-        #[cfg(target_arch = "x86_64")]
-        for i0 in (0..full_i).step_by(8) {
-            for j0 in (0..full_j).step_by(8) {
-                let (src, dst) = (from.offset(i0) + j0, to.offset(j0) + i0);
-                // SAFETY: the CPU has AVX2 (checked in `new`); rows i0 .. i0 + 8 of `from` hold
-                // values j0 .. j0 + 8 ≤ len, rows j0 .. j0 + 8 of `to` values i0 .. i0 + 8 ≤ count.
-                unsafe {
-                    super::simd::transpose8(
-                        from.data[src..].as_ptr(),
-                        from.stride(),
-                        to.data[dst..].as_mut_ptr(),
-                        to.stride(),
-                    )
-                };
-            }
-        }
-        // Without the AVX blocks every value is an edge value.
+        let (count, len, stride) = (from.count, from.len, to.stride());
+        // Blocks of 8 × 8 by AVX transposes (`full_i` × `full_j` values), the edges value by value.
         let (full_i, full_j) = if cfg!(target_arch = "x86_64") {
-            (full_i, full_j)
+            (count / 8 * 8, len / 8 * 8)
         } else {
             (0, 0)
         };
-        for i in 0..count {
-            let src = from.offset(i);
-            let first = if i < full_i { full_j } else { 0 };
-            for j in first..len {
-                let dst = to.offset(j) + i;
-                to.data[dst] = from.data[src + j];
+        let chunks: Vec<Mutex<&mut [f32]>> = to.data[PAD..]
+            .chunks_mut(stride * CHUNK_LINES)
+            .map(Mutex::new)
+            .collect();
+        team.run(chunks.len(), &|c| {
+            let Ok(mut dst) = chunks[c].lock() else {
+                return;
+            };
+            let j0 = c * CHUNK_LINES;
+            let j1 = (j0 + CHUNK_LINES).min(len);
+            #[cfg(target_arch = "x86_64")]
+            for jb in (j0..j1.min(full_j)).step_by(8) {
+                for i0 in (0..full_i).step_by(8) {
+                    // SAFETY: the CPU has AVX2 (checked in `new`); lines i0 .. i0 + 8 of `from`
+                    // hold values jb .. jb + 8 ≤ len, and this chunk's lines jb − j0 .. + 8 hold
+                    // values i0 .. i0 + 8 ≤ count.
+                    unsafe {
+                        super::simd::transpose8(
+                            from.data[from.offset(i0) + jb..].as_ptr(),
+                            from.stride(),
+                            dst[(jb - j0) * stride + i0..].as_mut_ptr(),
+                            stride,
+                        )
+                    };
+                }
             }
-        }
+            for j in j0..j1 {
+                let first = if j < full_j { full_i } else { 0 };
+                for i in first..count {
+                    dst[(j - j0) * stride + i] = from.data[from.offset(i) + j];
+                }
+            }
+        });
         self.along_x = along_x;
     }
 
     /// One update with view `view`: `x ← clamp(x + λ·c ∘ Aᵀ(w ∘ (b − A x)))`, where `b` is the view's
     /// data, `w` its ray weights and `c` its step weights, clamped to `lower` and `upper` where
-    /// given. Returns ‖b − A x‖² before the update.
-    #[allow(unsafe_code)]
+    /// given. Returns ‖b − A x‖² before the update. The transposes, the forward projection and the
+    /// back projection with the step run in chunks on `team` (of lines or of rays; each chunk's
+    /// values are those of the whole loop, so the update is the same on any team).
+    #[allow(unsafe_code, clippy::too_many_arguments)]
     pub fn update(
         &mut self,
+        team: &Team<'_>,
         view: usize,
         b: &[f32],
         w: &[f32],
@@ -228,14 +263,36 @@ impl LineSweep {
         upper: Option<f32>,
     ) -> f64 {
         let along_x = self.plans[view].along_x;
-        self.hold(along_x);
+        self.hold(team, along_x);
         let lv = &self.plans[view];
         let lines = if along_x {
             &mut self.cols
         } else {
             &mut self.rows
         };
-        forward_view_with(lines, lv, &mut self.projection, self.wide);
+        let wide = self.wide;
+        {
+            let count = lv.count;
+            let parts: Vec<Mutex<&mut [f32]>> = if lv.reversed {
+                self.projection
+                    .rchunks_mut(CHUNK_RAYS)
+                    .map(Mutex::new)
+                    .collect()
+            } else {
+                self.projection
+                    .chunks_mut(CHUNK_RAYS)
+                    .map(Mutex::new)
+                    .collect()
+            };
+            let lines = &*lines;
+            team.run(parts.len(), &|c| {
+                let Ok(mut out) = parts[c].lock() else {
+                    return;
+                };
+                let rays = c * CHUNK_RAYS..((c + 1) * CHUNK_RAYS).min(count);
+                forward_rays(lines, lv, rays, &mut out, wide);
+            });
+        }
         for (k, d) in self.data[1..=lv.count].iter_mut().enumerate() {
             let e = lv.element(k);
             *d = (b[e] - self.projection[e]) * w[e];
@@ -249,7 +306,7 @@ impl LineSweep {
                 r * r
             })
             .sum::<f64>();
-        let (step, wide) = (self.step, self.wide);
+        let step = self.step;
         let (len, stride) = (lv.len, lines.stride());
         let padded = len.div_ceil(step) * step;
         let (data, ones, floor) = (&self.data, &self.ones, self.floors[view]);
@@ -306,26 +363,26 @@ impl LineSweep {
             #[cfg(not(target_arch = "x86_64"))]
             let _ = (line, constants);
         };
-        // Each line is one chunk of the layout after the leading margin: its values, then the
+        // Each line is one stride of the layout after the leading margin: its values, then the
         // margin before the next line.
-        if rayon::current_num_threads() > 1 && lv.lines() * len >= PARALLEL_PIXELS {
-            let empty = || {
-                if wide {
-                    [Vec::new(), Vec::new()]
-                } else {
-                    [vec![0.0f32; step + padded], vec![0.0f32; step + padded]]
-                }
+        let chunks: Vec<Mutex<&mut [f32]>> = lines.data[PAD..]
+            .chunks_mut(stride * CHUNK_LINES)
+            .map(Mutex::new)
+            .collect();
+        team.run(chunks.len(), &|c| {
+            let Ok(mut chunk) = chunks[c].lock() else {
+                return;
             };
-            lines.data[PAD..]
-                .par_chunks_mut(stride)
-                .zip(lv.b.par_iter())
-                .with_min_len(PARALLEL_LINES)
-                .for_each_init(empty, |scratch, (line, &b)| line_step(scratch, b, line));
-        } else {
-            for (line, &b) in lines.data[PAD..].chunks_mut(stride).zip(&lv.b) {
-                line_step(&mut self.scratch, b, line);
+            let mut scratch = if wide {
+                [Vec::new(), Vec::new()]
+            } else {
+                [vec![0.0f32; step + padded], vec![0.0f32; step + padded]]
+            };
+            let first = c * CHUNK_LINES;
+            for (line, &b) in chunk.chunks_mut(stride).zip(&lv.b[first..]) {
+                line_step(&mut scratch, b, line);
             }
-        }
+        });
         sum2
     }
 }
