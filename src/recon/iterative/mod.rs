@@ -67,14 +67,21 @@ fn sizes(views: &Views, grid: &OutputGrid) -> (u64, u64, u64) {
     (n, m, shape[0] as u64)
 }
 
-/// True when SART with one view per subset runs the fused updates of
-/// [`crate::recon::projector::parallel2::LineSweep`] on this geometry and CPU, which keep no per-view
-/// weights.
-fn fused_sart(views: &Views, grid: &OutputGrid) -> bool {
+/// True when every view of this 2D geometry runs on the line kernels on this CPU: SART with one view
+/// per subset then runs the fused updates of [`crate::recon::projector::parallel2::LineSweep`], which
+/// keep no per-view weights, and no whole-view pass walks a ray.
+fn all_line_kernels(views: &Views, grid: &OutputGrid) -> bool {
     match (views, grid) {
         (Views::D2(v), OutputGrid::Image(g)) => operator2::every_line_plan(v, g).is_some(),
         _ => false,
     }
+}
+
+/// Whether a 2D run keeps the table of every ray's walk: where some view lacks a line-kernel plan
+/// (its whole-view passes then walk the rays) or the method updates ray by ray (ART). With every
+/// view on the line kernels, the other methods never walk a ray.
+fn keeps_walk_table(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> bool {
+    matches!(spec, AlgorithmSpec::Art(_)) || !all_line_kernels(views, grid)
 }
 
 /// Bytes an iterative run allocates besides its input: image-sized and data-sized work arrays, one
@@ -94,20 +101,26 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
     let (images, weights, data): (u64, u64, u64) = match spec {
         AlgorithmSpec::Sirt(_) | AlgorithmSpec::Cgls(_) => (3, 0, 2),
         AlgorithmSpec::Art(_) => (1, 0, 3),
-        AlgorithmSpec::Sart(_) if fused_sart(views, grid) => (2, 0, 2),
+        AlgorithmSpec::Sart(_) if all_line_kernels(views, grid) => (2, 0, 2),
         AlgorithmSpec::Sart(_) => (2, stored(nv), 2),
-        AlgorithmSpec::OsSart(p) if p.subsets as u64 >= nv && fused_sart(views, grid) => (2, 0, 2),
+        AlgorithmSpec::OsSart(p) if p.subsets as u64 >= nv && all_line_kernels(views, grid) => {
+            (2, 0, 2)
+        }
         AlgorithmSpec::OsSart(p) => (2, stored(p.subsets as u64), 2),
         AlgorithmSpec::Mlem(p) => (3, stored(p.subsets as u64), 3),
         AlgorithmSpec::Tv(p) => (11, stored((p.subsets as u64).min(nv)), 2),
         AlgorithmSpec::Fbp(_) | AlgorithmSpec::Fdk(_) => (0, 0, 0),
     };
     let buffers = back_buffers() as u64 + 2;
-    // 2D operators keep the walk of every ray, and their line kernels (parallel views) copy the data
-    // of a back projection in ray order (one more data-sized array, plus a few values per view); the
-    // cone-beam pair keeps two padded copies of the volume and a weighted copy of the data.
+    // 2D operators keep the walk of every ray where they walk rays, and their line kernels (parallel
+    // views) copy the data of a back projection in ray order (one more data-sized array, plus a few
+    // values per view); the cone-beam pair keeps two padded copies of the volume and a weighted copy
+    // of the data.
     let (table, data) = match (views, grid) {
-        (Views::D2(v), _) => (Projector2::table_bytes(v), data + 1),
+        (Views::D2(v), _) if keeps_walk_table(spec, views, grid) => {
+            (Projector2::table_bytes(v), data + 1)
+        }
+        (Views::D2(_), _) => (0, data + 1),
         (Views::D3(v), OutputGrid::Volume(g)) => (cone_columns::work_bytes(v, g), data),
         (Views::D3(_), _) => (0, data),
     };
@@ -149,7 +162,11 @@ pub fn solve(
         (Views::D2(v), OutputGrid::Image(g)) => {
             g.validate()?;
             (
-                Box::new(Projector2::with_walk_table(v, g)),
+                Box::new(if keeps_walk_table(spec, views, grid) {
+                    Projector2::with_walk_table(v, g)
+                } else {
+                    Projector2::new(v, g)
+                }),
                 g.shape().to_vec(),
                 Shape3 {
                     nz: 1,

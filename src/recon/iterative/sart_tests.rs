@@ -296,7 +296,7 @@ fn fused_updates_split_between_threads_match_the_whole_image_passes() {
 }
 
 #[test]
-fn the_memory_estimate_counts_per_view_weights_only_where_they_are_kept() {
+fn the_memory_estimate_counts_per_view_weights_and_walks_only_where_they_are_kept() {
     let grid = OutputGrid::Image(ImageGrid::square(64, 1.0));
     let parallel = Views::D2(
         ParallelBeam {
@@ -341,5 +341,22 @@ fn the_memory_estimate_counts_per_view_weights_only_where_they_are_kept() {
         assert_eq!(e(&os(90), &parallel), e(&sart, &parallel));
     } else {
         assert_eq!(e(&sart, &parallel), e(&os(45), &parallel) + weights(45));
+    }
+    // The table of every ray's walk is kept, and counted, only where a ray is walked: by ART, and
+    // by every method on fan views; with every view on the line kernels the other methods never walk.
+    let art = AlgorithmSpec::Art(serde_json::from_str("{}").unwrap());
+    let all_lines = crate::recon::cpu::avx2_fma();
+    for (spec, views, keeps) in [
+        (&art, &parallel, true),
+        (&art, &fan, true),
+        (&sart, &fan, true),
+        (&os(45), &fan, true),
+        (&sart, &parallel, !all_lines),
+        (&os(45), &parallel, !all_lines),
+    ] {
+        assert_eq!(
+            crate::recon::iterative::keeps_walk_table(spec, views, &grid),
+            keeps
+        );
     }
 }
