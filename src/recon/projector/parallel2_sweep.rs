@@ -19,7 +19,7 @@
 //! on a [`Team`] of pool threads that spin between updates. Each chunk computes what the whole loop
 //! computes for its lines or rays, so an update is the same on any number of threads.
 
-use std::sync::Mutex;
+use std::sync::{Mutex, MutexGuard, PoisonError};
 
 use rayon::prelude::*;
 
@@ -210,14 +210,9 @@ impl LineSweep {
         } else {
             (0, 0)
         };
-        let chunks: Vec<Mutex<&mut [f32]>> = to.data[PAD..]
-            .chunks_mut(stride * CHUNK_LINES)
-            .map(Mutex::new)
-            .collect();
+        let chunks = pieces(&mut to.data[PAD..], stride * CHUNK_LINES, false);
         team.run(chunks.len(), &|c| {
-            let Ok(mut dst) = chunks[c].lock() else {
-                return;
-            };
+            let mut dst = piece(&chunks, c);
             let j0 = c * CHUNK_LINES;
             let j1 = (j0 + CHUNK_LINES).min(len);
             #[cfg(target_arch = "x86_64")]
@@ -273,22 +268,10 @@ impl LineSweep {
         let wide = self.wide;
         {
             let count = lv.count;
-            let parts: Vec<Mutex<&mut [f32]>> = if lv.reversed {
-                self.projection
-                    .rchunks_mut(CHUNK_RAYS)
-                    .map(Mutex::new)
-                    .collect()
-            } else {
-                self.projection
-                    .chunks_mut(CHUNK_RAYS)
-                    .map(Mutex::new)
-                    .collect()
-            };
+            let parts = pieces(&mut self.projection, CHUNK_RAYS, lv.reversed);
             let lines = &*lines;
             team.run(parts.len(), &|c| {
-                let Ok(mut out) = parts[c].lock() else {
-                    return;
-                };
+                let mut out = piece(&parts, c);
                 let rays = c * CHUNK_RAYS..((c + 1) * CHUNK_RAYS).min(count);
                 forward_rays(lines, lv, rays, &mut out, wide);
             });
@@ -365,14 +348,9 @@ impl LineSweep {
         };
         // Each line is one stride of the layout after the leading margin: its values, then the
         // margin before the next line.
-        let chunks: Vec<Mutex<&mut [f32]>> = lines.data[PAD..]
-            .chunks_mut(stride * CHUNK_LINES)
-            .map(Mutex::new)
-            .collect();
+        let chunks = pieces(&mut lines.data[PAD..], stride * CHUNK_LINES, false);
         team.run(chunks.len(), &|c| {
-            let Ok(mut chunk) = chunks[c].lock() else {
-                return;
-            };
+            let mut chunk = piece(&chunks, c);
             let mut scratch = if wide {
                 [Vec::new(), Vec::new()]
             } else {
@@ -385,4 +363,20 @@ impl LineSweep {
         });
         sum2
     }
+}
+
+/// `data` cut into pieces of `size` values (the first piece at the end where `from_end`), each
+/// behind a lock of its own, so that the chunks of a team step can take them from any thread.
+fn pieces(data: &mut [f32], size: usize, from_end: bool) -> Vec<Mutex<&mut [f32]>> {
+    if from_end {
+        data.rchunks_mut(size).map(Mutex::new).collect()
+    } else {
+        data.chunks_mut(size).map(Mutex::new).collect()
+    }
+}
+
+/// Piece `c` of [`pieces`] (each is taken once per step, so the lock is never contended; after a
+/// panic elsewhere the piece is still handed out, and the panic reaches the caller).
+fn piece<'a, 'b>(pieces: &'a [Mutex<&'b mut [f32]>], c: usize) -> MutexGuard<'a, &'b mut [f32]> {
+    pieces[c].lock().unwrap_or_else(PoisonError::into_inner)
 }
