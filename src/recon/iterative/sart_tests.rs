@@ -56,6 +56,15 @@ impl Operator for Passes<'_> {
     }
 }
 
+/// Parallel views and random data (uniform in `0 .. max`, from `seed`) for a test of the sweeps.
+fn parallel_data(beam: ParallelBeam, seed: u64, max: f32) -> (Views2, Vec<f32>) {
+    let views = beam.to_views().unwrap();
+    let len = views.views.len() * views.detector.count;
+    let mut rng = StdRng::seed_from_u64(seed);
+    let b = (0..len).map(|_| rng.random_range(0.0..max)).collect();
+    (views, b)
+}
+
 fn setup() -> (Views2, ImageGrid, Vec<f32>) {
     let grid = ImageGrid {
         nx: 45,
@@ -65,18 +74,13 @@ fn setup() -> (Views2, ImageGrid, Vec<f32>) {
         centre_mm: [0.6, -0.3],
     };
     // 41 views over a full turn: dominant axes x and y, rays in both orders.
-    let views = ParallelBeam {
+    let beam = ParallelBeam {
         angles: Angles::uniform(41, 360.0),
         det_count: 61,
         det_spacing_mm: 0.9,
         det_offset_mm: -1.3,
-    }
-    .to_views()
-    .unwrap();
-    let mut rng = StdRng::seed_from_u64(21);
-    let b = (0..41 * 61)
-        .map(|_| rng.random_range(0.0..20.0f32))
-        .collect();
+    };
+    let (views, b) = parallel_data(beam, 21, 20.0);
     (views, grid, b)
 }
 
@@ -198,18 +202,13 @@ fn a_team_of_threads_gives_the_updates_of_one_thread_bit_for_bit() {
         dy_mm: 0.9,
         centre_mm: [0.3, -0.2],
     };
-    let views = ParallelBeam {
+    let beam = ParallelBeam {
         angles: Angles::uniform(23, 360.0),
         det_count: 251,
         det_spacing_mm: 0.8,
         det_offset_mm: 0.35,
-    }
-    .to_views()
-    .unwrap();
-    let mut rng = StdRng::seed_from_u64(29);
-    let b: Vec<f32> = (0..23 * 251)
-        .map(|_| rng.random_range(0.0..40.0f32))
-        .collect();
+    };
+    let (views, b) = parallel_data(beam, 29, 40.0);
     let run = |threads: usize, narrow: bool| {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(threads)
@@ -260,18 +259,13 @@ fn fused_updates_split_between_threads_match_the_whole_image_passes() {
         centre_mm: [0.0, 0.4],
     };
     assert!(grid.nx * grid.ny >= 1 << 17);
-    let views = ParallelBeam {
+    let beam = ParallelBeam {
         angles: Angles::uniform(7, 180.0),
         det_count: 530,
         det_spacing_mm: 1.0,
         det_offset_mm: 0.7,
-    }
-    .to_views()
-    .unwrap();
-    let mut rng = StdRng::seed_from_u64(23);
-    let b: Vec<f32> = (0..7 * 530)
-        .map(|_| rng.random_range(0.0..50.0f32))
-        .collect();
+    };
+    let (views, b) = parallel_data(beam, 23, 50.0);
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(3)
         .build()
