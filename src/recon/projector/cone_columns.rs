@@ -23,7 +23,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use super::cone_lines::{Form, PlaneStep};
+use super::cone_lines::{Form, PlaneStep, SCRATCH_PAD};
 pub use super::cone_stacks::work_bytes;
 use super::cone_stacks::{Axis, Stack};
 use super::footprint3::footprint;
@@ -264,7 +264,7 @@ pub fn forward_with(
             row.fill(0.0);
             let nu = views.detector.nu;
             let mut acc = vec![0.0f32; views.detector.nv];
-            let mut line = vec![0.0f32; grid.nz + 3];
+            let mut line = vec![0.0f32; grid.nz + 3 + SCRATCH_PAD];
             for c in &plan.columns {
                 let stack = match c.axis {
                     Axis::X => stack_x.as_ref(),
@@ -358,7 +358,7 @@ pub fn back_with(
             .try_for_each(|(band, values)| {
                 let first = band * BAND;
                 let last = first + values.len() / pl;
-                let mut line = vec![0.0f32; 2 * len];
+                let mut line = vec![0.0f32; 2 * (len + SCRATCH_PAD)];
                 for (plan, w) in plans.iter().zip(&weighted) {
                     cancel.check()?;
                     let Some(plan) = plan else { continue };

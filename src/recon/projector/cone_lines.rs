@@ -45,19 +45,43 @@ fn forward_body(
     rows: Range<usize>,
     acc: &mut [f32],
 ) {
-    let len = line.len();
-    let (a, b) = (&a[..len], &b[..len]);
-    for ((l, x), y) in line.iter_mut().zip(a).zip(b) {
+    let len = a.len();
+    let b = &b[..len];
+    for ((l, x), y) in line[..len].iter_mut().zip(a).zip(b) {
         *l = step.w0 * *x + step.w1 * *y;
     }
     let hi = (len - 2) as f32;
-    let line = &*line;
+    let line = &line[..len];
     let start = rows.start;
     for (i, out) in acc[rows].iter_mut().enumerate() {
         let (k, f) = position(step, start + i, hi);
         // `k ≤ len − 2` by the clamp, so both reads are in bounds.
         *out += (1.0 - f) * line[k.min(len - 2)] + f * line[(k + 1).min(len - 1)];
     }
+}
+
+/// Extra scratch values after each line of the loops' scratch (the forward's line, each of the
+/// back's two), which let the AVX-512F form read or add a window of 32 values starting at any value
+/// of the line.
+pub const SCRATCH_PAD: usize = 32;
+
+/// The stride of the back loops' row order: rows a value or more apart go in order (stride 1);
+/// closer rows go even rows first, then odd rows (stride 2), so that neighbouring rows of one pass
+/// are a value apart when rows are at least half a voxel apart, which the vector forms use. Where
+/// rows are half a voxel apart or more, a voxel's value receives at most two rows, whose sum does
+/// not depend on their order; every form follows this order, so all give the same bits.
+#[inline(always)]
+fn stride(step: &PlaneStep) -> usize {
+    if step.de.abs() >= 1.0 { 1 } else { 2 }
+}
+
+/// The back loops' scratch `lines` as its two lines, each at least as long as the volume line.
+#[inline(always)]
+fn split_scratch(lines: &mut [f32], len: usize) -> (&mut [f32], &mut [f32]) {
+    lines.fill(0.0);
+    let half = lines.len() / 2;
+    assert!(half >= len, "back scratch shorter than two lines");
+    lines.split_at_mut(half)
 }
 
 #[inline(always)]
@@ -69,15 +93,13 @@ fn back_body(
     rows: Range<usize>,
     data: &[f32],
 ) {
-    let len = lines.len() / 2;
-    lines.fill(0.0);
+    let len = a.len();
     let hi = (len - 2) as f32;
-    let (first, second) = lines.split_at_mut(len);
-    // Even rows first, then odd rows: neighbouring rows of one parity are at least a value
-    // apart when rows are at least half a voxel apart, which the vector forms use.
+    let (first, second) = split_scratch(lines, len);
     let data = &data[..rows.len()];
-    for parity in 0..2 {
-        for i in (parity..data.len()).step_by(2) {
+    let stride = stride(step);
+    for parity in 0..stride {
+        for i in (parity..data.len()).step_by(stride) {
             let (k, f) = position(step, rows.start + i, hi);
             let k = k.min(len - 2);
             first[k] += (1.0 - f) * data[i];
@@ -87,11 +109,11 @@ fn back_body(
     merge_and_spread(a, b, first, second, step);
 }
 
-/// `line[e] = first[e] + second[e − 1]`, then `a += w0·line`, `b += w1·line`.
+/// `line[e] = first[e] + second[e − 1]`, then `a += w0·line`, `b += w1·line` (over `a.len()` values).
 #[inline(always)]
 fn merge_and_spread(a: &mut [f32], b: &mut [f32], first: &[f32], second: &[f32], step: &PlaneStep) {
-    let len = first.len();
-    let (a, b) = (&mut a[..len], &mut b[..len]);
+    let len = a.len();
+    let (first, second, b) = (&first[..len], &second[..len], &mut b[..len]);
     let l = first[0];
     a[0] += step.w0 * l;
     b[0] += step.w1 * l;
@@ -136,9 +158,10 @@ impl Form {
         forms
     }
 
-    /// Forward: `line = w0·a + w1·b` (over `line.len()` values), then `acc[r] += ` the line sampled at
-    /// row `r`'s position, for `r` in `rows`. `a` and `b` hold at least `line.len()` values, `line`
-    /// at least 3; positions are clamped into the padding.
+    /// Forward: `line = w0·a + w1·b` (over `a.len()` values, at least 3), then `acc[r] += ` the line
+    /// sampled at row `r`'s position, for `r` in `rows`. `b` and the scratch `line` hold at least
+    /// `a.len()` values; with [`SCRATCH_PAD`] more in `line` the AVX-512F form reads the rows' values
+    /// from windows of 32 instead of gathering them. Positions are clamped into the padding.
     #[inline]
     #[allow(unsafe_code)]
     pub fn forward(
@@ -162,9 +185,11 @@ impl Form {
     }
 
     /// Back, the transpose of [`Form::forward`]: the line = the rows' `data` spread at their
-    /// positions (`data[i]` belongs to row `rows.start + i`), then `a += w0·line`, `b += w1·line`.
-    /// `lines` is scratch of twice the line length: the weights of each row's first and second value
-    /// are summed apart (so neighbouring rows do not wait on each other's sums), then merged.
+    /// positions (`data[i]` belongs to row `rows.start + i`), then `a += w0·line`, `b += w1·line`,
+    /// over `a.len()` values (`b` as long). `lines` is scratch of at least twice that: the weights
+    /// of each row's first and second value are summed apart (so neighbouring rows do not wait on
+    /// each other's sums), then merged; with [`SCRATCH_PAD`] more values per line the AVX-512F
+    /// form adds whole windows of rows at once.
     #[inline]
     #[allow(unsafe_code)]
     pub fn back(
@@ -222,6 +247,9 @@ mod tests {
             (44.0, -0.61),
             (50.0, -1.4),
             (2.0, 3.1),
+            (1.3, 1.96),
+            (47.5, -1.0),
+            (-3.0, 2.2),
         ] {
             let step = PlaneStep {
                 w0: 0.37,
@@ -232,24 +260,31 @@ mod tests {
             for start in [0usize, 3] {
                 for end in start..start + 40 {
                     let rows = start..end;
-                    let mut line = vec![0.0f32; n + 3];
                     let mut want = values(end, 4);
+                    let mut line = vec![0.0f32; n + 3];
                     Form::Portable.forward(&a, &b, &mut line, &step, rows.clone(), &mut want);
                     let (mut wa, mut wb) = (a.clone(), b.clone());
                     let mut lines = vec![0.0f32; 2 * (n + 3)];
                     let d = &data[..rows.len()];
                     Form::Portable.back(&mut wa, &mut wb, &mut lines, &step, rows.clone(), d);
                     for form in Form::available() {
-                        let mut got = values(end, 4);
-                        form.forward(&a, &b, &mut line, &step, rows.clone(), &mut got);
-                        assert_eq!(got, want, "{form:?} forward, {step:?}, rows {rows:?}");
-                        let (mut ga, mut gb) = (a.clone(), b.clone());
-                        form.back(&mut ga, &mut gb, &mut lines, &step, rows.clone(), d);
-                        assert_eq!(
-                            (ga, gb),
-                            (wa.clone(), wb.clone()),
-                            "{form:?} back, {step:?}, rows {rows:?}"
-                        );
+                        for pad in [0, SCRATCH_PAD] {
+                            let mut line = vec![7.0f32; n + 3 + pad];
+                            let mut got = values(end, 4);
+                            form.forward(&a, &b, &mut line, &step, rows.clone(), &mut got);
+                            assert_eq!(got, want, "{form:?} forward, {step:?}, rows {rows:?}");
+                        }
+                        // Scratch of two bare lines, and with room for whole windows.
+                        for pad in [0, SCRATCH_PAD] {
+                            let mut lines = vec![7.0f32; 2 * (n + 3 + pad)];
+                            let (mut ga, mut gb) = (a.clone(), b.clone());
+                            form.back(&mut ga, &mut gb, &mut lines, &step, rows.clone(), d);
+                            assert_eq!(
+                                (ga, gb),
+                                (wa.clone(), wb.clone()),
+                                "{form:?} back, {step:?}, rows {rows:?}, pad {pad}"
+                            );
+                        }
                     }
                 }
             }

@@ -5,11 +5,11 @@ use std::arch::x86_64::*;
 
 use super::*;
 
-/// `line = w0·a + w1·b`.
+/// `line = w0·a + w1·b` over `a.len()` values.
 #[inline(always)]
 fn blend(a: &[f32], b: &[f32], line: &mut [f32], step: &PlaneStep) {
-    let len = line.len();
-    for ((l, x), y) in line.iter_mut().zip(&a[..len]).zip(&b[..len]) {
+    let len = a.len();
+    for ((l, x), y) in line[..len].iter_mut().zip(a).zip(&b[..len]) {
         *l = step.w0 * *x + step.w1 * *y;
     }
 }
@@ -17,7 +17,7 @@ fn blend(a: &[f32], b: &[f32], line: &mut [f32], step: &PlaneStep) {
 macro_rules! row_loops {
     ($forward:ident, $back:ident, $feature:literal, $lanes:literal, $v:ty, $set1:ident, $setr:expr,
      $add:ident, $sub:ident, $mul:ident, $max:ident, $min:ident, $cvtt:ident, $cvt:ident,
-     $loadu:ident, $storeu:ident, $storei:ident, $gather:expr, $inc:expr, $scatter:expr,
+     $loadu:ident, $storeu:ident, $storei:ident, $every_other:expr, $pick:expr, $scatter:expr,
      $tail:ident, $back_tail:ident) => {
         #[target_feature(enable = $feature)]
         pub unsafe fn $forward(
@@ -29,7 +29,7 @@ macro_rules! row_loops {
             acc: &mut [f32],
         ) {
             blend(a, b, line, step);
-            let len = line.len();
+            let len = a.len();
             let hi = (len - 2) as f32;
             let acc = &mut acc[..rows.end];
             let mut r = rows.start;
@@ -49,8 +49,7 @@ macro_rules! row_loops {
                 let f = $sub(q, $cvt(i));
                 // SAFETY: the clamp keeps every index in [0, len − 2], so `i` and `i + 1` read
                 // inside `line`; `r + lanes ≤ rows.end ≤ acc.len()`.
-                let (g0, g1) =
-                    unsafe { ($gather(line.as_ptr(), i), $gather(line.as_ptr(), $inc(i))) };
+                let (g0, g1) = unsafe { $pick(line, i) };
                 let t = $add($mul($sub(one, f), g0), $mul(f, g1));
                 unsafe {
                     let p = acc.as_mut_ptr().add(r);
@@ -59,7 +58,7 @@ macro_rules! row_loops {
                 r += $lanes;
             }
             // SAFETY: the CPU has the form's features; `acc` holds `rows.end` values.
-            unsafe { $tail(line, step, r, acc) };
+            unsafe { $tail(&line[..len], step, r, acc) };
         }
 
         #[target_feature(enable = $feature)]
@@ -71,10 +70,9 @@ macro_rules! row_loops {
             rows: Range<usize>,
             data: &[f32],
         ) {
-            let len = lines.len() / 2;
-            lines.fill(0.0);
+            let len = a.len();
             let hi = (len - 2) as f32;
-            let (first, second) = lines.split_at_mut(len);
+            let (first, second) = split_scratch(lines, len);
             let n = rows.len();
             let data = &data[..n];
             let (e0, de, one, zero, top) = (
@@ -84,20 +82,26 @@ macro_rules! row_loops {
                 $set1(0.0),
                 $set1(hi),
             );
-            let lane = $setr;
-            let lane2 = $add(lane, lane);
-            let every_other = $cvtt(lane2);
+            let stride = stride(step);
+            let lane = $mul($setr, $set1(stride as f32));
+            let spaced = $cvtt(lane);
             let (mut idx, mut p0, mut p1) = ([0i32; $lanes], [0.0f32; $lanes], [0.0f32; $lanes]);
-            for parity in 0..2 {
+            for parity in 0..stride {
                 let mut j = parity;
-                while j + 2 * ($lanes - 1) < n {
-                    let rv = $add($set1((rows.start + j) as f32), lane2);
+                while j + stride * ($lanes - 1) < n {
+                    let rv = $add($set1((rows.start + j) as f32), lane);
                     let q = $add($add(e0, $mul(rv, de)), one);
                     let q = $min($max(q, zero), top);
                     let i = $cvtt(q);
                     let f = $sub(q, $cvt(i));
-                    // SAFETY: rows j, j + 2, …, j + 2·(lanes − 1) < n lie in `data`.
-                    let d = unsafe { $gather(data.as_ptr().add(j), every_other) };
+                    // SAFETY: rows j, j + stride, …, j + stride·(lanes − 1) < n lie in `data`.
+                    let d = unsafe {
+                        if stride == 1 {
+                            $loadu(data.as_ptr().add(j))
+                        } else {
+                            $every_other(&data[j..], spaced)
+                        }
+                    };
                     let (v0, v1) = ($mul($sub(one, f), d), $mul(f, d));
                     // SAFETY: the clamp keeps every index in [0, len − 2], inside both lines.
                     if !unsafe { $scatter(first, second, i, v0, v1) } {
@@ -113,11 +117,11 @@ macro_rules! row_loops {
                             second[k] += p1[l];
                         }
                     }
-                    j += 2 * $lanes;
+                    j += stride * $lanes;
                 }
-                // SAFETY: the CPU has the form's features; rows j, j + 2, … < n lie in
-                // `data`.
-                unsafe { $back_tail(first, second, step, rows.start, j, data) };
+                let (f, s) = (&mut first[..len], &mut second[..len]);
+                // SAFETY: the CPU has the form's features; rows j, j + stride, … < n lie in `data`.
+                unsafe { $back_tail(f, s, step, rows.start, j, stride, data) };
             }
             merge_and_spread(a, b, first, second, step);
         }
@@ -142,14 +146,14 @@ row_loops!(
     _mm256_loadu_ps,
     _mm256_storeu_ps,
     _mm256_storeu_si256,
-    |p: *const f32, i: __m256i| _mm256_i32gather_ps::<4>(p, i),
-    |i: __m256i| _mm256_add_epi32(i, _mm256_set1_epi32(1)),
+    |d: &[f32], i: __m256i| _mm256_i32gather_ps::<4>(d.as_ptr(), i),
+    pick8,
     no_scatter,
     tail_rows,
     back_tail_rows
 );
 
-/// The back loop's rows `j, j + 2, … < data.len()` one by one.
+/// The back loop's rows `j, j + stride, … < data.len()` one by one, on lines of `len` values.
 ///
 /// # Safety
 /// None beyond the CPU having AVX2 (the signature matches [`back_tail16`]).
@@ -160,11 +164,12 @@ unsafe fn back_tail_rows(
     step: &PlaneStep,
     start: usize,
     j: usize,
+    stride: usize,
     data: &[f32],
 ) {
     let len = first.len();
     let hi = (len - 2) as f32;
-    for j in (j..data.len()).step_by(2) {
+    for j in (j..data.len()).step_by(stride) {
         let (k, f) = position(step, start + j, hi);
         let k = k.min(len - 2);
         first[k] += (1.0 - f) * data[j];
@@ -183,6 +188,22 @@ unsafe fn tail_rows(line: &[f32], step: &PlaneStep, r: usize, acc: &mut [f32]) {
     for (j, out) in acc[r..].iter_mut().enumerate() {
         let (k, f) = position(step, r + j, hi);
         *out += (1.0 - f) * line[k.min(len - 2)] + f * line[(k + 1).min(len - 1)];
+    }
+}
+
+/// `(line[i], line[i + 1])` of 8 lanes, by two gathers.
+///
+/// # Safety
+/// Every `i + 1` must lie inside `line`, and the CPU must have AVX2.
+#[target_feature(enable = "avx2,fma")]
+unsafe fn pick8(line: &[f32], i: __m256i) -> (__m256, __m256) {
+    let (p, next) = (line.as_ptr(), _mm256_add_epi32(i, _mm256_set1_epi32(1)));
+    // SAFETY: as the caller's.
+    unsafe {
+        (
+            _mm256_i32gather_ps::<4>(p, i),
+            _mm256_i32gather_ps::<4>(p, next),
+        )
     }
 }
 
@@ -215,9 +236,9 @@ row_loops!(
     _mm512_loadu_ps,
     _mm512_storeu_ps,
     _mm512_storeu_si512,
-    |p: *const f32, i: __m512i| _mm512_i32gather_ps::<4>(i, p),
-    |i: __m512i| _mm512_add_epi32(i, _mm512_set1_epi32(1)),
-    scatter_distinct,
+    every_other16,
+    pick16,
+    window_add,
     tail16,
     back_tail16
 );
@@ -248,7 +269,7 @@ fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
     (i, _mm512_sub_ps(q, _mm512_cvtepi32_ps(i)))
 }
 
-/// [`back_tail_rows`] in one masked vector step of the rows of one parity (fewer than 16), added
+/// [`back_tail_rows`] in one masked vector step of the rows of one pass (fewer than 16), added
 /// by one gather and scatter where their indices are distinct, else one by one.
 ///
 /// # Safety
@@ -261,20 +282,21 @@ unsafe fn back_tail16(
     step: &PlaneStep,
     start: usize,
     j: usize,
+    stride: usize,
     data: &[f32],
 ) {
-    let m = data.len().saturating_sub(j).div_ceil(2);
+    let m = data.len().saturating_sub(j).div_ceil(stride);
     if m == 0 {
         return;
     }
     if m == 1 {
         // SAFETY: as the caller's.
-        return unsafe { back_tail_rows(first, second, step, start, j, data) };
+        return unsafe { back_tail_rows(first, second, step, start, j, stride, data) };
     }
     debug_assert!(m < 16);
     let one = _mm512_set1_ps(1.0);
-    let lane2 = _mm512_add_ps(lanes16(), lanes16());
-    let rv = _mm512_add_ps(_mm512_set1_ps((start + j) as f32), lane2);
+    let lane = _mm512_mul_ps(lanes16(), _mm512_set1_ps(stride as f32));
+    let rv = _mm512_add_ps(_mm512_set1_ps((start + j) as f32), lane);
     let (i, f) = positions16(step, rv, (first.len() - 2) as f32);
     let mask = ((1u32 << m) - 1) as __mmask16;
     // Active neighbours (lanes l and l + 1 both below m) must differ.
@@ -282,18 +304,14 @@ unsafe fn back_tail16(
     let next = _mm512_alignr_epi32::<1>(i, i);
     if _mm512_mask_cmpneq_epi32_mask(pairs, i, next) != pairs {
         // SAFETY: as the caller's.
-        return unsafe { back_tail_rows(first, second, step, start, j, data) };
+        return unsafe { back_tail_rows(first, second, step, start, j, stride, data) };
     }
-    let every_other = _mm512_cvttps_epi32(lane2);
-    // SAFETY: rows j + 2l for the active lanes lie in `data`; the clamp keeps every index in
+    let spaced = _mm512_cvttps_epi32(lane);
+    // SAFETY: rows j + stride·l for the active lanes lie in `data`; the clamp keeps every index in
     // [0, len − 2], inside both lines; the active lanes write distinct values.
     unsafe {
-        let d = _mm512_mask_i32gather_ps::<4>(
-            _mm512_setzero_ps(),
-            mask,
-            every_other,
-            data.as_ptr().add(j),
-        );
+        let d =
+            _mm512_mask_i32gather_ps::<4>(_mm512_setzero_ps(), mask, spaced, data.as_ptr().add(j));
         let (v0, v1) = (_mm512_mul_ps(_mm512_sub_ps(one, f), d), _mm512_mul_ps(f, d));
         let g = _mm512_mask_i32gather_ps::<4>(_mm512_setzero_ps(), mask, i, first.as_ptr());
         _mm512_mask_i32scatter_ps::<4>(first.as_mut_ptr(), mask, i, _mm512_add_ps(g, v0));
@@ -358,4 +376,116 @@ unsafe fn scatter_distinct(
         _mm512_i32scatter_ps::<4>(second.as_mut_ptr(), i, _mm512_add_ps(g, v1));
     }
     true
+}
+
+/// `first[i] += v0`, `second[i] += v1` for 16 distinct indices that increase or decrease from lane
+/// to lane, without a scatter where the indices lie in a window of 32 values that both slices hold:
+/// the values are expanded into the window's slots in index order and the window is added with
+/// plain loads and stores (slots no row reaches add zero, which leaves their sums unchanged: a sum
+/// that starts at +0 is never −0). Else [`scatter_distinct`]; false where indices repeat.
+///
+/// # Safety
+/// Every index must lie inside both slices, and the CPU must have AVX-512F.
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn window_add(
+    first: &mut [f32],
+    second: &mut [f32],
+    i: __m512i,
+    v0: __m512,
+    v1: __m512,
+) -> bool {
+    let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
+    let tail = _mm_extract_epi32::<3>(_mm512_extracti32x4_epi32::<3>(i));
+    let (low, high) = (head.min(tail), head.max(tail));
+    let base = low.max(0) as usize;
+    if high - low > 31 || base + 32 > first.len() || base + 32 > second.len() {
+        // SAFETY: as the caller's.
+        return unsafe { scatter_distinct(first, second, i, v0, v1) };
+    }
+    let slots = _mm512_sllv_epi32(
+        _mm512_set1_epi32(1),
+        _mm512_sub_epi32(i, _mm512_set1_epi32(low)),
+    );
+    let hit = _mm512_reduce_or_epi32(slots) as u32;
+    if hit.count_ones() != 16 {
+        return false;
+    }
+    // Lanes in increasing index order.
+    let (v0, v1) = if head > tail {
+        let reverse = _mm512_setr_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
+        (
+            _mm512_permutexvar_ps(reverse, v0),
+            _mm512_permutexvar_ps(reverse, v1),
+        )
+    } else {
+        (v0, v1)
+    };
+    let (lower, upper) = ((hit & 0xffff) as __mmask16, (hit >> 16) as __mmask16);
+    // The lanes after those of the lower 16 slots.
+    let rest = !((1u32 << lower.count_ones()) - 1) as __mmask16;
+    for (line, v) in [(first, v0), (second, v1)] {
+        let low_slots = _mm512_maskz_expand_ps(lower, v);
+        let high_slots = _mm512_maskz_expand_ps(upper, _mm512_maskz_compress_ps(rest, v));
+        // SAFETY: base + 32 ≤ line.len(), checked above.
+        unsafe {
+            let p = line.as_mut_ptr().add(base);
+            _mm512_storeu_ps(p, _mm512_add_ps(_mm512_loadu_ps(p), low_slots));
+            let p = p.add(16);
+            _mm512_storeu_ps(p, _mm512_add_ps(_mm512_loadu_ps(p), high_slots));
+        }
+    }
+    true
+}
+
+/// `(line[i], line[i + 1])` of 16 lanes whose indices increase or decrease from lane to lane: two
+/// permutes of a window of 32 values of `line` where the indices span at most 31 and the window lies
+/// inside `line`, else two gathers.
+///
+/// # Safety
+/// Every `i + 1` must lie inside `line`, and the CPU must have AVX-512F.
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
+    let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
+    let tail = _mm_extract_epi32::<3>(_mm512_extracti32x4_epi32::<3>(i));
+    let (low, high) = (head.min(tail), head.max(tail));
+    let base = low.max(0) as usize;
+    let next = _mm512_add_epi32(i, _mm512_set1_epi32(1));
+    if high - low > 30 || base + 32 > line.len() {
+        let p = line.as_ptr();
+        // SAFETY: as the caller's.
+        return unsafe {
+            (
+                _mm512_i32gather_ps::<4>(i, p),
+                _mm512_i32gather_ps::<4>(next, p),
+            )
+        };
+    }
+    // SAFETY: base + 32 ≤ line.len(), checked above.
+    let (w0, w1) = unsafe {
+        let p = line.as_ptr().add(base);
+        (_mm512_loadu_ps(p), _mm512_loadu_ps(p.add(16)))
+    };
+    let low = _mm512_set1_epi32(low);
+    (
+        _mm512_permutex2var_ps(w0, _mm512_sub_epi32(i, low), w1),
+        _mm512_permutex2var_ps(w0, _mm512_sub_epi32(next, low), w1),
+    )
+}
+
+/// `d[0], d[2], …, d[30]`: two loads and a permute where `d` holds 32 values, else a gather by the
+/// indices `spaced` (0, 2, …, 30).
+///
+/// # Safety
+/// `d` holds at least 31 values, and the CPU must have AVX-512F.
+#[target_feature(enable = "avx512f,avx2,fma")]
+unsafe fn every_other16(d: &[f32], spaced: __m512i) -> __m512 {
+    // SAFETY: as the caller's; the loads read d[0 .. 32] only where d holds them.
+    unsafe {
+        if d.len() >= 32 {
+            let p = d.as_ptr();
+            _mm512_permutex2var_ps(_mm512_loadu_ps(p), spaced, _mm512_loadu_ps(p.add(16)))
+        } else {
+            _mm512_i32gather_ps::<4>(spaced, d.as_ptr())
+        }
+    }
 }
