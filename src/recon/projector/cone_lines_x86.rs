@@ -378,6 +378,16 @@ unsafe fn scatter_distinct(
     true
 }
 
+/// The smallest and largest of 16 indices that increase or decrease from lane to lane (those of the
+/// first and the last lane), and whether they decrease.
+#[target_feature(enable = "avx512f,avx2,fma")]
+#[inline]
+fn span16(i: __m512i) -> (i32, i32, bool) {
+    let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
+    let tail = _mm_extract_epi32::<3>(_mm512_extracti32x4_epi32::<3>(i));
+    (head.min(tail), head.max(tail), head > tail)
+}
+
 /// `first[i] += v0`, `second[i] += v1` for 16 distinct indices that increase or decrease from lane
 /// to lane, without a scatter where the indices lie in a window of 32 values that both slices hold:
 /// the values are expanded into the window's slots in index order and the window is added with
@@ -394,9 +404,7 @@ unsafe fn window_add(
     v0: __m512,
     v1: __m512,
 ) -> bool {
-    let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
-    let tail = _mm_extract_epi32::<3>(_mm512_extracti32x4_epi32::<3>(i));
-    let (low, high) = (head.min(tail), head.max(tail));
+    let (low, high, descending) = span16(i);
     let base = low.max(0) as usize;
     if high - low > 31 || base + 32 > first.len() || base + 32 > second.len() {
         // SAFETY: as the caller's.
@@ -411,7 +419,7 @@ unsafe fn window_add(
         return false;
     }
     // Lanes in increasing index order.
-    let (v0, v1) = if head > tail {
+    let (v0, v1) = if descending {
         let reverse = _mm512_setr_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
         (
             _mm512_permutexvar_ps(reverse, v0),
@@ -445,9 +453,7 @@ unsafe fn window_add(
 /// Every `i + 1` must lie inside `line`, and the CPU must have AVX-512F.
 #[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
-    let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
-    let tail = _mm_extract_epi32::<3>(_mm512_extracti32x4_epi32::<3>(i));
-    let (low, high) = (head.min(tail), head.max(tail));
+    let (low, high, _) = span16(i);
     let base = low.max(0) as usize;
     let next = _mm512_add_epi32(i, _mm512_set1_epi32(1));
     if high - low > 30 || base + 32 > line.len() {
