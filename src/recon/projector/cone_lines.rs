@@ -75,13 +75,16 @@ fn stride(step: &PlaneStep) -> usize {
     if step.de.abs() >= 1.0 { 1 } else { 2 }
 }
 
-/// The back loops' scratch `lines` as its two lines, each at least as long as the volume line.
+/// The back loops' scratch `lines` as its two lines, each at least as long as the volume line, with
+/// their first `len` values cleared (values past those are only ever added zeros and never read).
 #[inline(always)]
 fn split_scratch(lines: &mut [f32], len: usize) -> (&mut [f32], &mut [f32]) {
-    lines.fill(0.0);
     let half = lines.len() / 2;
     assert!(half >= len, "back scratch shorter than two lines");
-    lines.split_at_mut(half)
+    let (first, second) = lines.split_at_mut(half);
+    first[..len].fill(0.0);
+    second[..len].fill(0.0);
+    (first, second)
 }
 
 #[inline(always)]
