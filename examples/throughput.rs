@@ -1,8 +1,8 @@
 //! Throughput of 1, 2 and 4 workers on CPU-bound jobs, on one PostgreSQL job database.
 //!
-//! `cargo run --example throughput -- [--jobs 12] [--rounds 2] [--iterations 30]`
+//! `cargo run --example throughput -- [--jobs 12] [--rounds 2] [--iterations 30] [--workers 1,2,4]`
 //!
-//! For each worker count N in 1, 2, 4 (repeated `--rounds` times, interleaved, so that a change of the
+//! For each worker count N of `--workers` (1, 2 and 4 unless given; repeated `--rounds` times, interleaved, so that a change of the
 //! machine's load touches every count alike): a fresh database on a throwaway cluster (as the tests make it,
 //! `tests/common/postgres.rs`), an API that runs no jobs and N
 //! workers as `ctrecon worker --workers 1 --threads 1` runs them (`Role::Worker`, one job at a time on a
@@ -87,30 +87,55 @@ fn flag(name: &str, default: usize) -> usize {
         .unwrap_or(default)
 }
 
+/// The worker counts of `--workers` (a comma-separated list), 1, 2 and 4 unless given.
+fn worker_counts() -> Vec<usize> {
+    let args: Vec<String> = std::env::args().collect();
+    let counts: Vec<usize> = args
+        .iter()
+        .position(|a| a == "--workers")
+        .and_then(|i| args.get(i + 1))
+        .map(|v| {
+            v.split(',')
+                .filter_map(|n| n.trim().parse().ok())
+                .filter(|&n| n > 0)
+                .collect()
+        })
+        .unwrap_or_default();
+    if counts.is_empty() {
+        vec![1, 2, 4]
+    } else {
+        counts
+    }
+}
+
 #[tokio::main]
 async fn main() {
     let jobs = flag("--jobs", 12).max(1);
     let rounds = flag("--rounds", 2).max(1);
     let iterations = flag("--iterations", 30).max(1);
+    let counts = worker_counts();
     println!(
         "cores: {}, jobs per run: {jobs}, SIRT iterations: {iterations}",
         std::thread::available_parallelism().map_or(1, |n| n.get())
     );
     for round in 0..rounds {
         let (mut one, mut spin_one) = (0.0, 0.0);
-        for workers in [1usize, 2, 4] {
+        for &workers in &counts {
             let spin = tokio::task::spawn_blocking(move || spin_rate(workers))
                 .await
                 .expect("spin");
             let (rate, run_s) = measure(workers, jobs, iterations).await;
-            if workers == 1 {
+            if one == 0.0 {
+                // The ratios are against the first count (one worker unless `--workers` says otherwise).
                 (one, spin_one) = (rate, spin);
             }
             println!(
-                "round {round}: {workers} worker(s): {rate:6.3} jobs/s = {:.2} × one worker \
-                 (machine: {:.2} × one thread), median run {run_s:.2} s",
+                "round {round}: {workers} worker(s): {rate:6.3} jobs/s = {:.2} × {} worker(s) \
+                 (machine: {:.2} × {} thread(s)), median run {run_s:.2} s",
                 rate / one,
-                spin / spin_one
+                counts[0],
+                spin / spin_one,
+                counts[0]
             );
         }
     }
