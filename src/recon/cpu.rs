@@ -51,10 +51,12 @@ pub fn avx2_fma() -> bool {
     *FLAG.get_or_init(|| cap() >= Simd::Avx2 && has(Feature::Avx2) && has(Feature::Fma))
 }
 
-/// True when the CPU has AVX2, FMA and AVX-512F (and the cap allows AVX-512F).
+/// True when the CPU has AVX2, FMA, AVX-512F and BMI2 (and the cap allows AVX-512F).
 pub fn avx512f() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
-    *FLAG.get_or_init(|| cap() >= Simd::Any && avx2_fma() && has(Feature::Avx512f))
+    *FLAG.get_or_init(|| {
+        cap() >= Simd::Any && avx2_fma() && has(Feature::Avx512f) && has(Feature::Bmi2)
+    })
 }
 
 /// The x86-64 features the kernels use.
@@ -63,6 +65,9 @@ enum Feature {
     Avx2,
     Fma,
     Avx512f,
+    /// Bit deposit and extract (`pdep`, `pext`), which the AVX-512F loops use beside the vectors;
+    /// every CPU with AVX-512F has them.
+    Bmi2,
 }
 
 /// Whether the CPU has `feature` (never off x86-64).
@@ -73,6 +78,7 @@ fn has(feature: Feature) -> bool {
             Feature::Avx2 => std::arch::is_x86_feature_detected!("avx2"),
             Feature::Fma => std::arch::is_x86_feature_detected!("fma"),
             Feature::Avx512f => std::arch::is_x86_feature_detected!("avx512f"),
+            Feature::Bmi2 => std::arch::is_x86_feature_detected!("bmi2"),
         }
     }
     #[cfg(not(target_arch = "x86_64"))]

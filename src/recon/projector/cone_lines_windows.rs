@@ -50,7 +50,7 @@ pub(super) unsafe fn pick8(line: &[f32], i: __m256i) -> (__m256, __m256) {
 ///
 /// # Safety
 /// Every index must lie inside both slices, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 unsafe fn scatter_distinct(
     first: &mut [f32],
     second: &mut [f32],
@@ -74,7 +74,7 @@ unsafe fn scatter_distinct(
 
 /// The smallest and largest of 16 indices that increase or decrease from lane to lane (those of the
 /// first and the last lane), and whether they decrease.
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 #[inline]
 fn span16(i: __m512i) -> (i32, i32, bool) {
     let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
@@ -83,14 +83,19 @@ fn span16(i: __m512i) -> (i32, i32, bool) {
 }
 
 /// `first[i] += v0`, `second[i] += v1` for 16 distinct indices that increase or decrease from lane
-/// to lane, without a scatter where the indices lie in a window of 32 values that both slices hold:
-/// the values are expanded into the window's slots in index order and the window is added with
-/// plain loads and stores (slots no row reaches add zero, which leaves their sums unchanged: a sum
-/// that starts at +0 is never −0). Else [`scatter_distinct`]; false where indices repeat.
+/// to lane, without a scatter where neighbouring lanes' indices lie one or two values apart (so
+/// all 16 lie in a window of 32 values) and both slices hold the window: the values are expanded
+/// into the window's slots in index order and the window is added with plain loads and stores
+/// (slots no row reaches add zero, which leaves their sums unchanged: a sum that starts at +0 is
+/// never −0). Else [`scatter_distinct`], which returns false where indices repeat.
+///
+/// The slots the lanes reach follow from the steps between neighbours: in index order, each lane
+/// takes the next slot and a step of two leaves one empty after it, so the slot mask is the bit
+/// pattern `1` or `10` per lane, packed by a bit extract.
 ///
 /// # Safety
-/// Every index must lie inside both slices, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma")]
+/// Every index must lie inside both slices, and the CPU must have AVX-512F and BMI2.
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 pub(super) unsafe fn window_add(
     first: &mut [f32],
     second: &mut [f32],
@@ -98,20 +103,23 @@ pub(super) unsafe fn window_add(
     v0: __m512,
     v1: __m512,
 ) -> bool {
-    let (low, high, descending) = span16(i);
+    let (low, _, descending) = span16(i);
     let base = low.max(0) as usize;
-    if high - low > 31 || base + 32 > first.len() || base + 32 > second.len() {
+    let steps = _mm512_abs_epi32(_mm512_sub_epi32(_mm512_alignr_epi32::<1>(i, i), i));
+    let ones = _mm512_mask_cmpeq_epi32_mask(0x7fff, steps, _mm512_set1_epi32(1));
+    let twos = _mm512_mask_cmpeq_epi32_mask(0x7fff, steps, _mm512_set1_epi32(2));
+    if ones | twos != 0x7fff || base + 32 > first.len() || base + 32 > second.len() {
         // SAFETY: as the caller's.
         return unsafe { scatter_distinct(first, second, i, v0, v1) };
     }
-    let slots = _mm512_sllv_epi32(
-        _mm512_set1_epi32(1),
-        _mm512_sub_epi32(i, _mm512_set1_epi32(low)),
-    );
-    let hit = _mm512_reduce_or_epi32(slots) as u32;
-    if hit.count_ones() != 16 {
-        return false;
-    }
+    // The steps of two in index order: lane order, or reversed where the indices decrease.
+    let gaps = if descending {
+        (twos.reverse_bits() >> 1) as u32
+    } else {
+        twos as u32
+    };
+    const EVEN: u32 = 0x5555_5555;
+    let hit = _pext_u32(EVEN, EVEN | (_pdep_u32(gaps, EVEN) << 1));
     // Lanes in increasing index order.
     let (v0, v1) = if descending {
         let reverse = _mm512_setr_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
@@ -145,7 +153,7 @@ pub(super) unsafe fn window_add(
 ///
 /// # Safety
 /// Every `i + 1` must lie inside `line`, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 pub(super) unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
     let (low, high, _) = span16(i);
     let base = low.max(0) as usize;
@@ -177,7 +185,7 @@ pub(super) unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
 ///
 /// # Safety
 /// `d` holds at least 31 values, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma")]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 pub(super) unsafe fn every_other16(d: &[f32], spaced: __m512i) -> __m512 {
     // SAFETY: as the caller's; the loads read d[0 .. 32] only where d holds them.
     unsafe {
