@@ -1,6 +1,6 @@
 //! CGLS: conjugate gradients on the normal equations AᵀA x = Aᵀ b, without forming AᵀA.
 
-use super::ops::{axpy, converged, dot, norm, report, residual_in_place};
+use super::ops::{axpy, converged, dot, forward_from, norm, report, residual_in_place};
 use super::params::CglsParams;
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
@@ -18,7 +18,7 @@ pub fn cgls(
     let all: Vec<usize> = (0..op.view_count()).collect();
     let b_norm = norm(b);
     let mut r = vec![0.0f32; b.len()];
-    op.forward(x, &all, &mut r, ctl.cancel)?;
+    forward_from(op, x, &all, &mut r, ctl)?;
     residual_in_place(&mut r, b);
     let mut s = vec![0.0f32; x.len()];
     op.back(&r, &all, &mut s, ctl.cancel)?;

@@ -1,8 +1,8 @@
 //! SIRT: x ← x + λ C Aᵀ R (b − A x), R = diag(1/row sums), C = diag(1/column sums).
 
 use super::ops::{
-    axpy_scaled, column_sums, constrain, converged, norm, report, residual_in_place, row_sums,
-    safe_reciprocal,
+    axpy_scaled, column_sums, constrain, converged, forward_from, norm, report, residual_in_place,
+    row_sums, safe_reciprocal,
 };
 use super::params::SirtParams;
 use crate::recon::control::Control;
@@ -27,7 +27,7 @@ pub fn sirt(
     let mut r = vec![0.0f32; b.len()];
     let mut bp = vec![0.0f32; x.len()];
     constrain(x, p.bounds());
-    op.forward(x, &all, &mut r, ctl.cancel)?;
+    forward_from(op, x, &all, &mut r, ctl)?;
     residual_in_place(&mut r, b);
     let lambda = p.relaxation as f32;
     for k in 1..=p.iterations {
