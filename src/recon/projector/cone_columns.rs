@@ -110,8 +110,8 @@ impl Column {
         } else {
             let r1 = (-1.0 - e0) / de;
             let r2 = (n_e as f64 - e0) / de;
-            let lo = (r1.min(r2).floor() - 1.0).max(rows.start as f64);
-            let hi = (r1.max(r2).ceil() + 2.0).min(rows.end as f64);
+            let lo = (floor(r1.min(r2)) - 1.0).max(rows.start as f64);
+            let hi = (ceil(r1.max(r2)) + 2.0).min(rows.end as f64);
             if hi > lo {
                 lo as usize..hi as usize
             } else {
@@ -119,6 +119,29 @@ impl Column {
             }
         };
         (step, j, span)
+    }
+}
+
+/// `x.floor()` without the library call that baseline x86-64 makes of it (no SSE4.1 rounding):
+/// through an integer where that is exact, else the library's; +0 where the library gives −0.
+#[inline(always)]
+fn floor(x: f64) -> f64 {
+    if x.abs() < 4.0e15 {
+        let t = x as i64 as f64;
+        if t > x { t - 1.0 } else { t }
+    } else {
+        x.floor()
+    }
+}
+
+/// `x.ceil()` as [`floor`] does `x.floor()`.
+#[inline(always)]
+fn ceil(x: f64) -> f64 {
+    if x.abs() < 4.0e15 {
+        let t = x as i64 as f64;
+        if t < x { t + 1.0 } else { t }
+    } else {
+        x.ceil()
     }
 }
 
