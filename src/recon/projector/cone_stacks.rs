@@ -29,6 +29,9 @@ pub fn work_bytes(views: &Views3, grid: &VolumeGrid) -> u64 {
     stacks.saturating_add(data).saturating_mul(4)
 }
 
+/// Planes (or z slabs) copied together between a stack and the volume.
+const BLOCK: usize = 16;
+
 /// Padded plane stack of one axis: `planes` planes of `lines + 3` lines of `nz + 3` values.
 pub struct Stack {
     pub lines: usize,
@@ -57,37 +60,53 @@ impl Stack {
         };
         let mut s = Self::zeros(planes, lines, nz);
         let (pl, len) = (s.plane_len(), s.len);
+        // Blocks of BLOCK planes, line by line along z: the volume's values of a block's planes
+        // lie side by side (x planes) or in a few lines that the next stack lines read again (y
+        // planes), so each cache line of the volume is read about once.
         s.values
-            .par_chunks_mut(pl)
+            .par_chunks_mut(pl * BLOCK)
             .enumerate()
-            .for_each(|(k, plane)| {
-                for z in 0..nz {
-                    for l in 0..lines {
-                        let (x, y) = match axis {
-                            Axis::X => (k, l),
-                            Axis::Y => (l, k),
-                        };
-                        plane[(l + 1) * len + z + 1] = volume[(z * ny + y) * nx + x];
+            .for_each(|(b, block)| {
+                let k0 = b * BLOCK;
+                let count = block.len() / pl;
+                for l in 0..lines {
+                    for z in 0..nz {
+                        let at = (l + 1) * len + z + 1;
+                        for (dk, plane) in block.chunks_exact_mut(pl).take(count).enumerate() {
+                            let (x, y) = match axis {
+                                Axis::X => (k0 + dk, l),
+                                Axis::Y => (l, k0 + dk),
+                            };
+                            plane[at] = volume[(z * ny + y) * nx + x];
+                        }
                     }
                 }
             });
         s
     }
-    /// `volume` (`[z][y][x]`) += the unpadded values of `self`.
+    /// `volume` (`[z][y][x]`) += the unpadded values of `self`, in blocks of [`BLOCK`] slabs of z:
+    /// each stack line's values for a block are contiguous, and the block's slabs are written
+    /// along x together.
     pub fn add_into(&self, volume: &mut [f32], grid: &VolumeGrid, axis: Axis) {
         let (nx, ny) = (grid.nx, grid.ny);
+        let slab = nx * ny;
         let (pl, len) = (self.plane_len(), self.len);
         volume
-            .par_chunks_mut(nx * ny)
+            .par_chunks_mut(slab * BLOCK)
             .enumerate()
-            .for_each(|(z, slab)| {
+            .for_each(|(b, slabs)| {
+                let z0 = b * BLOCK;
+                let count = slabs.len() / slab;
                 for y in 0..ny {
                     for x in 0..nx {
                         let (k, l) = match axis {
                             Axis::X => (x, y),
                             Axis::Y => (y, x),
                         };
-                        slab[y * nx + x] += self.values[k * pl + (l + 1) * len + z + 1];
+                        let start = k * pl + (l + 1) * len + z0 + 1;
+                        for (dz, v) in self.values[start..start + count].iter().enumerate() {
+                            slabs[dz * slab + y * nx + x] += v;
+                        }
                     }
                 }
             });
