@@ -50,7 +50,7 @@ pub(super) unsafe fn pick8(line: &[f32], i: __m256i) -> (__m256, __m256) {
 ///
 /// # Safety
 /// Every index must lie inside both slices, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn scatter_distinct(
     first: &mut [f32],
     second: &mut [f32],
@@ -74,7 +74,7 @@ unsafe fn scatter_distinct(
 
 /// The smallest and largest of 16 indices that increase or decrease from lane to lane (those of the
 /// first and the last lane), and whether they decrease.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 #[inline]
 fn span16(i: __m512i) -> (i32, i32, bool) {
     let head = _mm_cvtsi128_si32(_mm512_castsi512_si128(i));
@@ -153,7 +153,7 @@ pub(super) unsafe fn window_add(
 ///
 /// # Safety
 /// Every `i + 1` must lie inside `line`, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 pub(super) unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
     let (low, high, _) = span16(i);
     let base = low.max(0) as usize;
@@ -185,7 +185,7 @@ pub(super) unsafe fn pick16(line: &[f32], i: __m512i) -> (__m512, __m512) {
 ///
 /// # Safety
 /// `d` holds at least 31 values, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 pub(super) unsafe fn every_other16(d: &[f32], spaced: __m512i) -> __m512 {
     // SAFETY: as the caller's; the loads read d[0 .. 32] only where d holds them.
     unsafe {

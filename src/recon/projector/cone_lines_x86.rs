@@ -232,7 +232,7 @@ row_loops!(
 );
 
 /// 0, 1, …, 15.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 #[inline]
 fn lanes16() -> __m512 {
     _mm512_setr_ps(
@@ -242,7 +242,7 @@ fn lanes16() -> __m512 {
 
 /// [`position`] of the 16 rows `rows` (as f32) with the operations of the row loops: the value
 /// index and the weight of the next value, clamped into `[0, hi]`.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 #[inline]
 fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
     let q = _mm512_add_ps(
@@ -263,7 +263,7 @@ fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
 /// # Safety
 /// `first` and `second` hold the same number (at least 3) of values, the rows left are fewer than
 /// 16, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn back_tail16(
     first: &mut [f32],
     second: &mut [f32],
@@ -313,7 +313,7 @@ unsafe fn back_tail16(
 ///
 /// # Safety
 /// `line` holds at least 3 values, `acc.len() − r < 16`, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma")]
 unsafe fn tail16(line: &[f32], step: &PlaneStep, r: usize, acc: &mut [f32]) {
     let n = acc.len().saturating_sub(r);
     if n == 0 {
