@@ -156,34 +156,13 @@ pub fn axpy_scaled(x: &mut [f32], lambda: f32, c: &[f32], g: &[f32]) {
 mod tests {
     use super::*;
     use crate::recon::control::{Cancel, NoProgress};
-    use crate::recon::geometry::{Angles, ConeBeam, Panel};
-    use crate::recon::grid::VolumeGrid;
     use crate::recon::projector::Projector3;
+    use crate::recon::projector::cone_columns::tests::{cone, grid};
 
     #[test]
     fn forward_from_zeros_is_the_projection_of_zeros_bit_for_bit() {
-        let views = ConeBeam {
-            angles: Angles::uniform(9, 360.0),
-            dso_mm: 60.0,
-            dsd_mm: 110.0,
-            detector: Panel {
-                nu: 30,
-                nv: 24,
-                du_mm: 1.2,
-                dv_mm: 1.6,
-                offset_u_mm: 0.7,
-                offset_v_mm: -1.3,
-            },
-        }
-        .to_views()
-        .unwrap();
-        let grid = VolumeGrid {
-            nx: 17,
-            ny: 14,
-            nz: 20,
-            spacing_mm: [1.0, 1.1, 1.3],
-            centre_mm: [0.5, -0.5, 1.0],
-        };
+        // The small cone beam and grid of the column pair's tests.
+        let (views, grid) = (cone(false), grid());
         let op = Projector3 {
             views: &views,
             grid: &grid,

@@ -424,4 +424,4 @@ pub fn back_with(
 
 #[cfg(test)]
 #[path = "cone_columns_tests.rs"]
-mod tests;
+pub(crate) mod tests;

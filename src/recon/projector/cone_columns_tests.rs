@@ -7,7 +7,7 @@ use rand::{Rng, SeedableRng};
 use super::*;
 use crate::recon::geometry::{Angles, ConeBeam, Panel};
 
-fn grid() -> VolumeGrid {
+pub(crate) fn grid() -> VolumeGrid {
     VolumeGrid {
         nx: 21,
         ny: 18,
@@ -18,7 +18,7 @@ fn grid() -> VolumeGrid {
 }
 
 /// A cone beam over 360° whose tallest rays are steeper than 45° when `steep`.
-fn cone(steep: bool) -> Views3 {
+pub(crate) fn cone(steep: bool) -> Views3 {
     let (dso, dsd, nv, dv) = if steep {
         (14.0, 30.0, 48, 1.5)
     } else {
