@@ -120,12 +120,12 @@ async fn main() {
     );
     for round in 0..rounds {
         let (mut one, mut spin_one) = (0.0, 0.0);
-        for &workers in &counts {
+        for (k, &workers) in counts.iter().enumerate() {
             let spin = tokio::task::spawn_blocking(move || spin_rate(workers))
                 .await
                 .expect("spin");
             let (rate, run_s) = measure(workers, jobs, iterations).await;
-            if one == 0.0 {
+            if k == 0 {
                 // The ratios are against the first count (one worker unless `--workers` says otherwise).
                 (one, spin_one) = (rate, spin);
             }
