@@ -1,11 +1,12 @@
 //! Joseph projector pair: one forward and one back projection of 512² / 720 views / 725 detectors
-//! (parallel beam), and of 256² / 360 views / 363 detectors.
+//! (parallel beam), of 256² / 360 views / 363 detectors, and of 128³ from 360 cone-beam views of
+//! 256² (the cone iterative case of `benches/peers/`: the column-ordered pair of `cone_columns`).
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use ctrecon::recon::geometry::{Angles, ParallelBeam, Views2};
-use ctrecon::recon::grid::ImageGrid;
-use ctrecon::recon::phantom::{Phantom2, Table2};
-use ctrecon::recon::projector::{back_2d, forward_2d};
+use ctrecon::recon::geometry::{Angles, ConeBeam, Panel, ParallelBeam, Views2};
+use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
+use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
+use ctrecon::recon::projector::{back_2d, back_3d, forward_2d, forward_3d};
 use std::hint::black_box;
 
 fn setup(n: usize, views: usize, det: usize) -> (Views2, ImageGrid) {
@@ -39,5 +40,37 @@ fn bench(c: &mut Criterion) {
     g.finish();
 }
 
-criterion_group!(benches, bench);
+fn bench_cone(c: &mut Criterion) {
+    ctrecon::config::limit_simd_from_env();
+    let grid = VolumeGrid::cube(128, 1.0);
+    let views = ConeBeam {
+        angles: Angles::uniform(360, 360.0),
+        dso_mm: 500.0,
+        dsd_mm: 750.0,
+        detector: Panel {
+            nu: 256,
+            nv: 256,
+            du_mm: 1.5,
+            dv_mm: 1.5,
+            offset_u_mm: 0.0,
+            offset_v_mm: 0.0,
+        },
+    }
+    .to_views()
+    .unwrap();
+    let phantom = Phantom3::from_table(Table3::ModifiedSheppLogan, 64.0);
+    let volume = phantom.rasterize(&grid, 1);
+    let projections = phantom.project(&views);
+    let mut g = c.benchmark_group("cone");
+    g.sample_size(10);
+    g.bench_function("forward 128³ 360×256²", |b| {
+        b.iter(|| black_box(forward_3d(&views, volume.view(), &grid)))
+    });
+    g.bench_function("back 128³ 360×256²", |b| {
+        b.iter(|| black_box(back_3d(&views, projections.view(), &grid)))
+    });
+    g.finish();
+}
+
+criterion_group!(benches, bench, bench_cone);
 criterion_main!(benches);
