@@ -23,7 +23,7 @@ use std::ops::Range;
 
 use rayon::prelude::*;
 
-use super::cone_lines::{Form, PlaneStep, SCRATCH_PAD};
+use super::cone_lines::{Form, PlaneStep, SCRATCH_PAD, reaching};
 pub use super::cone_stacks::work_bytes;
 use super::cone_stacks::{Axis, Stack};
 use super::footprint3::footprint;
@@ -100,24 +100,17 @@ impl Column {
             e0: e0 as f32,
             de: de as f32,
         };
-        // Rows whose position lies in (−1, n_e), widened by one row for rounding.
-        let span = if de.abs() < 1e-12 {
-            if e0 > -2.0 && e0 < n_e as f64 + 1.0 {
-                rows.clone()
-            } else {
-                0..0
-            }
+        // Rows whose position lies in (−1, n_e) in f64, then in f32 as the loops compute it.
+        let guess = if de.abs() < 1e-12 {
+            rows.clone()
         } else {
             let r1 = (-1.0 - e0) / de;
             let r2 = (n_e as f64 - e0) / de;
-            let lo = (floor(r1.min(r2)) - 1.0).max(rows.start as f64);
-            let hi = (ceil(r1.max(r2)) + 2.0).min(rows.end as f64);
-            if hi > lo {
-                lo as usize..hi as usize
-            } else {
-                0..0
-            }
+            let lo = (floor(r1.min(r2)) + 1.0).clamp(rows.start as f64, rows.end as f64);
+            let hi = ceil(r1.max(r2)).clamp(lo, rows.end as f64);
+            lo as usize..hi as usize
         };
+        let span = reaching(&step, guess, rows.clone(), n_e + 3);
         (step, j, span)
     }
 }

@@ -36,6 +36,54 @@ fn position(step: &PlaneStep, r: usize, hi: f32) -> (usize, f32) {
     (i, q - i as f32)
 }
 
+/// The rows of `rows` whose padded position on a line of `len` values is not clamped (lies in
+/// `(0, len − 2)`), found from `guess` (a sub-range of `rows` computed in f64 that differs from them
+/// by at most a row of rounding at either end). A clamped row reads only zeros and weight-zero
+/// values (forward) and writes only padding values and zeros (back), so leaving it out changes no
+/// voxel and no row's sum. Positions are monotone in the row, so the rows kept are contiguous.
+pub fn reaching(
+    step: &PlaneStep,
+    guess: Range<usize>,
+    rows: Range<usize>,
+    len: usize,
+) -> Range<usize> {
+    let hi = (len - 2) as f32;
+    let inside = |r: usize| {
+        let q = step.e0 + r as f32 * step.de + 1.0;
+        q > 0.0 && q < hi
+    };
+    let mut lo = guess.start.clamp(rows.start, rows.end);
+    let mut end = guess.end.clamp(lo, rows.end);
+    // Each bound is moved by a first test and only then by a loop: the guess is almost always
+    // exact, and the compiler turns these loops into vector searches that cost far more than one
+    // test.
+    if lo > rows.start && inside(lo - 1) {
+        lo -= 1;
+        while lo > rows.start && inside(lo - 1) {
+            lo -= 1;
+        }
+    }
+    if lo < end && !inside(lo) {
+        lo += 1;
+        while lo < end && !inside(lo) {
+            lo += 1;
+        }
+    }
+    if end < rows.end && inside(end) {
+        end += 1;
+        while end < rows.end && inside(end) {
+            end += 1;
+        }
+    }
+    if end > lo && !inside(end - 1) {
+        end -= 1;
+        while end > lo && !inside(end - 1) {
+            end -= 1;
+        }
+    }
+    lo..end
+}
+
 #[inline(always)]
 fn forward_body(
     a: &[f32],
@@ -234,6 +282,52 @@ mod tests {
             .map(|i| ((i as u32).wrapping_mul(2_654_435_761) ^ seed) % 1000)
             .map(|v| v as f32 / 250.0 - 1.0)
             .collect()
+    }
+
+    #[test]
+    fn reaching_keeps_exactly_the_rows_whose_positions_are_not_clamped() {
+        let len = 48;
+        let hi = (len - 2) as f32;
+        for &(e0, de) in &[
+            (3.2f32, 0.26f32),
+            (-1.0, 0.5),
+            (-10.5, 0.93),
+            (44.0, -0.61),
+            (45.0, -1.0),
+            (-3.0, 2.2),
+            (-200.0, 0.3),
+            (20.0, 0.0),
+            (60.0, 0.0),
+        ] {
+            let step = PlaneStep {
+                w0: 0.5,
+                w1: 0.5,
+                e0,
+                de,
+            };
+            for rows in [0..80usize, 7..31] {
+                let want: Vec<usize> = rows
+                    .clone()
+                    .filter(|&r| {
+                        let q = e0 + r as f32 * de + 1.0;
+                        q > 0.0 && q < hi
+                    })
+                    .collect();
+                // Guesses off by up to two rows at either end, and empty ones.
+                let (lo, end) = match (want.first(), want.last()) {
+                    (Some(&lo), Some(&last)) => (lo, last + 1),
+                    _ => (rows.start + 3, rows.start + 3),
+                };
+                for dl in -2i64..=2 {
+                    for de_ in -2i64..=2 {
+                        let g0 = (lo as i64 + dl).max(0) as usize;
+                        let g1 = (end as i64 + de_).max(g0 as i64) as usize;
+                        let got: Vec<usize> = reaching(&step, g0..g1, rows.clone(), len).collect();
+                        assert_eq!(got, want, "{step:?}, rows {rows:?}, guess {g0}..{g1}");
+                    }
+                }
+            }
+        }
     }
 
     #[test]
