@@ -123,9 +123,9 @@ macro_rules! row_loops {
                     }
                     j += stride * $lanes;
                 }
-                let (f, s) = (&mut first[..len], &mut second[..len]);
-                // SAFETY: the CPU has the form's features; rows j, j + stride, … < n lie in `data`.
-                unsafe { $back_tail(f, s, step, rows.start, j, stride, data) };
+                // SAFETY: the CPU has the form's features; rows j, j + stride, … < n lie in `data`;
+                // both lines hold at least `len` values.
+                unsafe { $back_tail(first, second, len, step, rows.start, j, stride, data) };
             }
             merge_and_spread(a, b, first, second, step);
         }
@@ -157,21 +157,24 @@ row_loops!(
     back_tail_rows
 );
 
-/// The back loop's rows `j, j + stride, … < data.len()` one by one, on lines of `len` values.
+/// The back loop's rows `j, j + stride, … < data.len()` one by one, on lines of `len` values
+/// (the scratch lines may be longer).
 ///
 /// # Safety
 /// None beyond the CPU having AVX2 (the signature matches [`back_tail16`]).
+#[allow(clippy::too_many_arguments)]
 #[target_feature(enable = "avx2,fma")]
 unsafe fn back_tail_rows(
     first: &mut [f32],
     second: &mut [f32],
+    len: usize,
     step: &PlaneStep,
     start: usize,
     j: usize,
     stride: usize,
     data: &[f32],
 ) {
-    let len = first.len();
+    let (first, second) = (&mut first[..len], &mut second[..len]);
     let hi = (len - 2) as f32;
     for j in (j..data.len()).step_by(stride) {
         let (k, f) = position(step, start + j, hi);
@@ -257,16 +260,20 @@ fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
     (i, _mm512_sub_ps(q, _mm512_cvtepi32_ps(i)))
 }
 
-/// [`back_tail_rows`] in one masked vector step of the rows of one pass (fewer than 16), added
-/// by one gather and scatter where their indices are distinct, else one by one.
+/// [`back_tail_rows`] for the rows of one pass left after its whole vectors (fewer than 16). Where
+/// the pass has 16 rows or more, the last 16 of them go in one window step with the data of the
+/// rows already added taken as zero (adding zero leaves a sum unchanged). Else one masked vector
+/// step, added by one gather and scatter where the rows' indices are distinct, else one by one.
 ///
 /// # Safety
-/// `first` and `second` hold the same number (at least 3) of values, the rows left are fewer than
-/// 16, and the CPU must have AVX-512F.
-#[target_feature(enable = "avx512f,avx2,fma")]
+/// `first` and `second` hold at least `len ≥ 3` values each, the rows left are fewer than 16, and
+/// the CPU must have AVX-512F and BMI2.
+#[allow(clippy::too_many_arguments)]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
 unsafe fn back_tail16(
     first: &mut [f32],
     second: &mut [f32],
+    len: usize,
     step: &PlaneStep,
     start: usize,
     j: usize,
@@ -277,24 +284,47 @@ unsafe fn back_tail16(
     if m == 0 {
         return;
     }
-    if m == 1 {
-        // SAFETY: as the caller's.
-        return unsafe { back_tail_rows(first, second, step, start, j, stride, data) };
-    }
     debug_assert!(m < 16);
     let one = _mm512_set1_ps(1.0);
+    let hi = (len - 2) as f32;
     let lane = _mm512_mul_ps(lanes16(), _mm512_set1_ps(stride as f32));
+    let spaced = _mm512_cvttps_epi32(lane);
+    if j >= stride * (16 - m) {
+        let j0 = j - stride * (16 - m);
+        let rv = _mm512_add_ps(_mm512_set1_ps((start + j0) as f32), lane);
+        let (i, f) = positions16(step, rv, hi);
+        // The lanes of rows j, j + stride, …: the last m.
+        let fresh = (0xffff_u32 << (16 - m)) as __mmask16;
+        // SAFETY: rows j0, j0 + stride, …, j0 + 15·stride (the pass's last) lie in `data`; the
+        // clamp keeps every index in [0, len − 2], inside both lines.
+        unsafe {
+            let d = if stride == 1 {
+                _mm512_loadu_ps(data.as_ptr().add(j0))
+            } else {
+                every_other16(&data[j0..], spaced)
+            };
+            let d = _mm512_maskz_mov_ps(fresh, d);
+            let (v0, v1) = (_mm512_mul_ps(_mm512_sub_ps(one, f), d), _mm512_mul_ps(f, d));
+            if window_add(first, second, i, v0, v1) {
+                return;
+            }
+        }
+    }
+    let (first, second) = (&mut first[..len], &mut second[..len]);
+    if m == 1 {
+        // SAFETY: as the caller's.
+        return unsafe { back_tail_rows(first, second, len, step, start, j, stride, data) };
+    }
     let rv = _mm512_add_ps(_mm512_set1_ps((start + j) as f32), lane);
-    let (i, f) = positions16(step, rv, (first.len() - 2) as f32);
+    let (i, f) = positions16(step, rv, hi);
     let mask = ((1u32 << m) - 1) as __mmask16;
     // Active neighbours (lanes l and l + 1 both below m) must differ.
     let pairs = mask >> 1;
     let next = _mm512_alignr_epi32::<1>(i, i);
     if _mm512_mask_cmpneq_epi32_mask(pairs, i, next) != pairs {
         // SAFETY: as the caller's.
-        return unsafe { back_tail_rows(first, second, step, start, j, stride, data) };
+        return unsafe { back_tail_rows(first, second, len, step, start, j, stride, data) };
     }
-    let spaced = _mm512_cvttps_epi32(lane);
     // SAFETY: rows j + stride·l for the active lanes lie in `data`; the clamp keeps every index in
     // [0, len − 2], inside both lines; the active lanes write distinct values.
     unsafe {
