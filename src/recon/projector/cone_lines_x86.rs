@@ -61,8 +61,9 @@ macro_rules! row_loops {
                 }
                 r += $lanes;
             }
-            // SAFETY: the CPU has the form's features; `acc` holds `rows.end` values.
-            unsafe { $tail(&line[..len], step, r, acc) };
+            // SAFETY: the CPU has the form's features; `acc` holds `rows.end` values; `line`
+            // holds at least `len` values.
+            unsafe { $tail(line, len, step, rows.start, r, acc) };
         }
 
         #[target_feature(enable = $feature)]
@@ -189,8 +190,15 @@ unsafe fn back_tail_rows(
 /// # Safety
 /// None beyond the CPU having AVX2 (the signature matches [`tail16`]).
 #[target_feature(enable = "avx2,fma")]
-unsafe fn tail_rows(line: &[f32], step: &PlaneStep, r: usize, acc: &mut [f32]) {
-    let len = line.len();
+unsafe fn tail_rows(
+    line: &[f32],
+    len: usize,
+    step: &PlaneStep,
+    _start: usize,
+    r: usize,
+    acc: &mut [f32],
+) {
+    let line = &line[..len];
     let hi = (len - 2) as f32;
     for (j, out) in acc[r..].iter_mut().enumerate() {
         let (k, f) = position(step, r + j, hi);
@@ -338,21 +346,52 @@ unsafe fn back_tail16(
     }
 }
 
-/// The rows `r .. acc.len()` (fewer than 16) in one masked vector step, with the operations of
-/// the full steps: the lanes past the end compute clamped positions too but are not stored.
+/// The rows `r .. acc.len()` (fewer than 16) of a line of `len` values (`line` may be longer), with
+/// the operations of the full steps. Where the rows from `start` number 16 or more, the last 16
+/// are computed as one full step and only the rows from `r` are stored; else one masked step whose
+/// lanes past the end compute clamped positions too but are not stored.
 ///
 /// # Safety
-/// `line` holds at least 3 values, `acc.len() − r < 16`, and the CPU must have AVX-512F.
+/// `line` holds at least `len ≥ 3` values, `acc.len() − r < 16`, and the CPU must have AVX-512F.
 #[target_feature(enable = "avx512f,avx2,fma")]
-unsafe fn tail16(line: &[f32], step: &PlaneStep, r: usize, acc: &mut [f32]) {
+unsafe fn tail16(
+    line: &[f32],
+    len: usize,
+    step: &PlaneStep,
+    start: usize,
+    r: usize,
+    acc: &mut [f32],
+) {
     let n = acc.len().saturating_sub(r);
     if n == 0 {
         return;
     }
     debug_assert!(n < 16);
     let one = _mm512_set1_ps(1.0);
+    let hi = (len - 2) as f32;
+    if acc.len() >= start + 16 {
+        let r0 = acc.len() - 16;
+        let rv = _mm512_add_ps(_mm512_set1_ps(r0 as f32), lanes16());
+        let (i, f) = positions16(step, rv, hi);
+        // The lanes of rows r ..: the last n.
+        let fresh = (0xffff_u32 << (16 - n)) as __mmask16;
+        // SAFETY: the clamp keeps every index in [0, len − 2], so `i` and `i + 1` read inside
+        // `line`; the masked load and store touch rows r .. acc.len() only.
+        unsafe {
+            let (g0, g1) = pick16(line, i);
+            let t = _mm512_add_ps(
+                _mm512_mul_ps(_mm512_sub_ps(one, f), g0),
+                _mm512_mul_ps(f, g1),
+            );
+            let p = acc.as_mut_ptr().add(r0);
+            let old = _mm512_maskz_loadu_ps(fresh, p);
+            _mm512_mask_storeu_ps(p, fresh, _mm512_add_ps(old, t));
+        }
+        return;
+    }
+    let line = &line[..len];
     let rv = _mm512_add_ps(_mm512_set1_ps(r as f32), lanes16());
-    let (i, f) = positions16(step, rv, (line.len() - 2) as f32);
+    let (i, f) = positions16(step, rv, hi);
     let mask = ((1u32 << n) - 1) as __mmask16;
     // SAFETY: the clamp keeps every lane's index in [0, len − 2], so `i` and `i + 1` read inside
     // `line`; the masked load and store touch rows r .. r + n = acc.len() only.
