@@ -12,9 +12,12 @@
 //!
 //! Layouts: the volume is copied into two padded plane stacks, one per dominant axis (`[x][y][z]` and
 //! `[y][x][z]`, one zero value before and two after every line and every plane's line list), so that
-//! the z lines are contiguous and a sample half outside the grid reads zeros. The back projection
-//! accumulates into the same layouts, one band of planes per task (no two tasks write the same
-//! values), and adds them into the `[z][y][x]` volume at the end.
+//! the z lines are contiguous and a sample half outside the grid reads zeros. Both directions go one
+//! band of planes at a time, so that the band's lines stay in the core's cache while every view
+//! reads or adds to them: the forward projection keeps each view's sums per column in the view's
+//! part of the output and weights them into the panel's layout at the end; the back projection
+//! accumulates into the stack layouts, one band per task (no two tasks write the same values), and
+//! adds them into the `[z][y][x]` volume at the end.
 //!
 //! Rays whose walk steps along z (|d_z|/Δz larger than both others) and views whose panel is tilted
 //! keep the ray walks of [`super::joseph3`].
@@ -33,8 +36,8 @@ use crate::recon::error::ReconError;
 use crate::recon::geometry::Views3;
 use crate::recon::grid::VolumeGrid;
 
-/// Planes per back-projection task: a band of 16 planes of a 128² slab is about 1 MB, so the band
-/// stays in the core's cache while every view adds to it.
+/// Planes per band: a band of 16 planes of a 128² slab is about 1 MB, so the band stays in the
+/// core's cache while every view reads it (forward) or adds to it (back, one task per band).
 const BAND: usize = 16;
 
 /// One detector column's rays in the layout of their dominant axis.
@@ -260,15 +263,44 @@ pub fn forward_with(
     cancel: &Cancel,
 ) -> Result<(), ReconError> {
     let plans: Vec<Option<ViewPlan>> = subset.par_iter().map(|&v| plan(views, v, grid)).collect();
-    let uses = |axis| {
-        plans
-            .iter()
-            .flatten()
-            .any(|p| p.columns.iter().any(|c| c.axis == axis))
-    };
-    let stack_x = uses(Axis::X).then(|| Stack::of(volume, grid, Axis::X));
-    let stack_y = uses(Axis::Y).then(|| Stack::of(volume, grid, Axis::Y));
-    let view_len = views.detector.nu * views.detector.nv;
+    let (nu, nv) = (views.detector.nu, views.detector.nv);
+    let view_len = nu * nv;
+    // Each planned view's sums, column after column (`[u][v]`), in the view's own part of `out`,
+    // accumulated one band of planes at a time so that the band's stack lines stay in the core's
+    // cache while every view reads them.
+    out.par_chunks_mut(view_len).for_each(|o| o.fill(0.0));
+    for axis in [Axis::X, Axis::Y] {
+        if !uses_axis(&plans, axis) {
+            continue;
+        }
+        let stack = Stack::of(volume, grid, axis);
+        let (pl, len) = (stack.plane_len(), stack.len);
+        let planes = stack.values.len() / pl;
+        for first in (0..planes).step_by(BAND) {
+            let last = (first + BAND).min(planes);
+            out.par_chunks_mut(view_len).zip(&plans).try_for_each_init(
+                || vec![0.0f32; len + SCRATCH_PAD],
+                |line, (sums, plan)| {
+                    cancel.check()?;
+                    let Some(plan) = plan else { return Ok(()) };
+                    for c in plan.columns.iter().filter(|c| c.axis == axis) {
+                        let acc = &mut sums[c.col * nv..(c.col + 1) * nv];
+                        for k in c.planes.0.max(first)..c.planes.1.min(last) {
+                            let (step, j, rows) = c.step(k, stack.lines, grid.nz, &plan.rows);
+                            if rows.is_empty() {
+                                continue;
+                            }
+                            let base = k * pl + j * len;
+                            let (a, b) = stack.values[base..base + 2 * len].split_at(len);
+                            form.forward(a, b, line, &step, rows, acc);
+                        }
+                    }
+                    Ok::<(), ReconError>(())
+                },
+            )?;
+        }
+    }
+    // The sums weighted into `[v][u]`, the steep rays, and the views whose panel is tilted.
     out.par_chunks_mut(view_len)
         .zip(subset.par_iter().zip(&plans))
         .try_for_each(|(row, (&view, plan))| {
@@ -277,27 +309,10 @@ pub fn forward_with(
                 joseph3::forward_view(views, view, grid, volume, row);
                 return Ok(());
             };
+            let sums = row.to_vec();
             row.fill(0.0);
-            let nu = views.detector.nu;
-            let mut acc = vec![0.0f32; views.detector.nv];
-            let mut line = vec![0.0f32; grid.nz + 3 + SCRATCH_PAD];
             for c in &plan.columns {
-                let stack = match c.axis {
-                    Axis::X => stack_x.as_ref(),
-                    Axis::Y => stack_y.as_ref(),
-                }
-                .expect("stack of a used axis");
-                acc[plan.rows.clone()].fill(0.0);
-                let pl = stack.plane_len();
-                for k in c.planes.0..c.planes.1 {
-                    let (step, j, rows) = c.step(k, stack.lines, grid.nz, &plan.rows);
-                    if rows.is_empty() {
-                        continue;
-                    }
-                    let base = k * pl + j * stack.len;
-                    let (a, b) = stack.values[base..base + 2 * stack.len].split_at(stack.len);
-                    form.forward(a, b, &mut line, &step, rows, &mut acc);
-                }
+                let acc = &sums[c.col * nv..(c.col + 1) * nv];
                 for r in plan.rows.clone() {
                     row[r * nu + c.col] = acc[r] * c.weight(r, grid.spacing_mm[2]);
                 }
@@ -308,6 +323,14 @@ pub fn forward_with(
             }
             Ok(())
         })
+}
+
+/// Whether any planned view has a column whose rays walk along `axis`.
+fn uses_axis(plans: &[Option<ViewPlan>], axis: Axis) -> bool {
+    plans
+        .iter()
+        .flatten()
+        .any(|p| p.columns.iter().any(|c| c.axis == axis))
 }
 
 /// `image` = the back projection of `data` (`[view][v][u]`, one view per `subset` entry), overwriting it.
@@ -354,11 +377,7 @@ pub fn back_with(
         .collect();
     image.fill(0.0);
     for axis in [Axis::X, Axis::Y] {
-        if !plans
-            .iter()
-            .flatten()
-            .any(|p| p.columns.iter().any(|c| c.axis == axis))
-        {
+        if !uses_axis(&plans, axis) {
             continue;
         }
         let (planes, lines) = match axis {
