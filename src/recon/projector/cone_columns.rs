@@ -81,7 +81,10 @@ impl Column {
         let dz = self.d_z(row);
         ((self.dx * self.dx + self.dy * self.dy + dz * dz).sqrt() * self.scale) as f32
     }
-    /// The step of plane `k`, its two line indices (padded), and the rows that may reach the grid.
+    /// The step of plane `k`, its two line indices (padded), and the rows that reach the grid.
+    /// Counts and indices convert through `u32` (every grid and panel here is far smaller), which
+    /// gives the same values with cheaper conversions than `usize`.
+    #[inline(always)]
     fn step(
         &self,
         k: usize,
@@ -89,12 +92,13 @@ impl Column {
         n_e: usize,
         rows: &Range<usize>,
     ) -> (PlaneStep, usize, Range<usize>) {
-        let t = (self.c0 + k as f32 * self.dc + 1.0)
+        let t = (self.c0 + k as u32 as f32 * self.dc + 1.0)
             .max(0.0)
-            .min(n_c as f32 + 1.0);
-        let j = t as usize;
+            .min(n_c as u32 as f32 + 1.0);
+        let j = t as u32;
         let w1 = t - j as f32;
-        let rel = k as f64 - self.a_d;
+        let j = j as usize;
+        let rel = k as u32 as f64 - self.a_d;
         let e0 = self.a_e + rel * self.p;
         let de = rel * self.q;
         let step = PlaneStep {
@@ -107,11 +111,13 @@ impl Column {
         let guess = if de.abs() < 1e-12 {
             rows.clone()
         } else {
-            let r1 = (-1.0 - e0) / de;
-            let r2 = (n_e as f64 - e0) / de;
-            let lo = (floor(r1.min(r2)) + 1.0).clamp(rows.start as f64, rows.end as f64);
-            let hi = ceil(r1.max(r2)).clamp(lo, rows.end as f64);
-            lo as usize..hi as usize
+            let inv = 1.0 / de;
+            let r1 = (-1.0 - e0) * inv;
+            let r2 = (n_e as u32 as f64 - e0) * inv;
+            let (start, end) = (rows.start as u32 as f64, rows.end as u32 as f64);
+            let lo = (floor(r1.min(r2)) + 1.0).clamp(start, end);
+            let hi = ceil(r1.max(r2)).clamp(lo, end);
+            lo as u32 as usize..hi as u32 as usize
         };
         let span = reaching(&step, guess, rows.clone(), n_e + 3);
         (step, j, span)

@@ -41,15 +41,17 @@ fn position(step: &PlaneStep, r: usize, hi: f32) -> (usize, f32) {
 /// by at most a row of rounding at either end). A clamped row reads only zeros and weight-zero
 /// values (forward) and writes only padding values and zeros (back), so leaving it out changes no
 /// voxel and no row's sum. Positions are monotone in the row, so the rows kept are contiguous.
+#[inline(always)]
 pub fn reaching(
     step: &PlaneStep,
     guess: Range<usize>,
     rows: Range<usize>,
     len: usize,
 ) -> Range<usize> {
-    let hi = (len - 2) as f32;
+    let hi = (len - 2) as u32 as f32;
+    // `r as u32 as f32` is `r as f32` (rows number far fewer than 2³²), converted more cheaply.
     let inside = |r: usize| {
-        let q = step.e0 + r as f32 * step.de + 1.0;
+        let q = step.e0 + r as u32 as f32 * step.de + 1.0;
         q > 0.0 && q < hi
     };
     let mut lo = guess.start.clamp(rows.start, rows.end);
