@@ -120,22 +120,25 @@ pub(super) unsafe fn window_add(
     };
     const EVEN: u32 = 0x5555_5555;
     let hit = _pext_u32(EVEN, EVEN | (_pdep_u32(gaps, EVEN) << 1));
-    // Lanes in increasing index order.
-    let (v0, v1) = if descending {
-        let reverse = _mm512_setr_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0);
-        (
-            _mm512_permutexvar_ps(reverse, v0),
-            _mm512_permutexvar_ps(reverse, v1),
-        )
-    } else {
-        (v0, v1)
-    };
     let (lower, upper) = ((hit & 0xffff) as __mmask16, (hit >> 16) as __mmask16);
-    // The lanes after those of the lower 16 slots.
-    let rest = !((1u32 << lower.count_ones()) - 1) as __mmask16;
+    // The lane each slot takes: lanes in increasing index order (reversed where the indices
+    // decrease), the lower 16 slots' lanes first, the upper slots' lanes after them.
+    let taken = _mm512_set1_epi32(lower.count_ones() as i32);
+    let order = if descending {
+        _mm512_setr_epi32(15, 14, 13, 12, 11, 10, 9, 8, 7, 6, 5, 4, 3, 2, 1, 0)
+    } else {
+        _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15)
+    };
+    let after = if descending {
+        _mm512_sub_epi32(order, taken)
+    } else {
+        _mm512_add_epi32(order, taken)
+    };
+    let low_lanes = _mm512_maskz_expand_epi32(lower, order);
+    let high_lanes = _mm512_maskz_expand_epi32(upper, after);
     for (line, v) in [(first, v0), (second, v1)] {
-        let low_slots = _mm512_maskz_expand_ps(lower, v);
-        let high_slots = _mm512_maskz_expand_ps(upper, _mm512_maskz_compress_ps(rest, v));
+        let low_slots = _mm512_maskz_permutexvar_ps(lower, low_lanes, v);
+        let high_slots = _mm512_maskz_permutexvar_ps(upper, high_lanes, v);
         // SAFETY: base + 32 ≤ line.len(), checked above.
         unsafe {
             let p = line.as_mut_ptr().add(base);
