@@ -125,16 +125,14 @@ fn stride(step: &PlaneStep) -> usize {
     if step.de.abs() >= 1.0 { 1 } else { 2 }
 }
 
-/// The back loops' scratch `lines` as its two lines, each at least as long as the volume line, with
-/// their first `len` values cleared (values past those are only ever added zeros and never read).
+/// The back loops' scratch `lines` as its two lines, each at least as long as the volume line. The
+/// scratch is zero on entry and left zero ([`merge_and_spread`] clears what it reads; values past
+/// those are only ever added zeros).
 #[inline(always)]
 fn split_scratch(lines: &mut [f32], len: usize) -> (&mut [f32], &mut [f32]) {
     let half = lines.len() / 2;
     assert!(half >= len, "back scratch shorter than two lines");
-    let (first, second) = lines.split_at_mut(half);
-    first[..len].fill(0.0);
-    second[..len].fill(0.0);
-    (first, second)
+    lines.split_at_mut(half)
 }
 
 #[inline(always)]
@@ -162,16 +160,26 @@ fn back_body(
     merge_and_spread(a, b, first, second, step);
 }
 
-/// `line[e] = first[e] + second[e − 1]`, then `a += w0·line`, `b += w1·line` (over `a.len()` values).
+/// `line[e] = first[e] + second[e − 1]`, then `a += w0·line`, `b += w1·line` (over `a.len()` values),
+/// clearing the values of `first` and `second` it reads (the rows never reach `second[len − 1]`).
 #[inline(always)]
-fn merge_and_spread(a: &mut [f32], b: &mut [f32], first: &[f32], second: &[f32], step: &PlaneStep) {
+fn merge_and_spread(
+    a: &mut [f32],
+    b: &mut [f32],
+    first: &mut [f32],
+    second: &mut [f32],
+    step: &PlaneStep,
+) {
     let len = a.len();
-    let (first, second, b) = (&first[..len], &second[..len], &mut b[..len]);
+    let (first, second, b) = (&mut first[..len], &mut second[..len], &mut b[..len]);
     let l = first[0];
+    first[0] = 0.0;
     a[0] += step.w0 * l;
     b[0] += step.w1 * l;
     for e in 1..len {
         let l = first[e] + second[e - 1];
+        first[e] = 0.0;
+        second[e - 1] = 0.0;
         a[e] += step.w0 * l;
         b[e] += step.w1 * l;
     }
@@ -239,7 +247,8 @@ impl Form {
 
     /// Back, the transpose of [`Form::forward`]: the line = the rows' `data` spread at their
     /// positions (`data[i]` belongs to row `rows.start + i`), then `a += w0·line`, `b += w1·line`,
-    /// over `a.len()` values (`b` as long). `lines` is scratch of at least twice that: the weights
+    /// over `a.len()` values (`b` as long). `lines` is scratch of at least twice that, zero on entry
+    /// and left zero (callers keep one for every call): the weights
     /// of each row's first and second value are summed apart (so neighbouring rows do not wait on
     /// each other's sums), then merged; with [`SCRATCH_PAD`] more values per line the AVX-512F
     /// form adds whole windows of rows at once.
@@ -375,9 +384,10 @@ mod tests {
                         }
                         // Scratch of two bare lines, and with room for whole windows.
                         for pad in [0, SCRATCH_PAD] {
-                            let mut lines = vec![7.0f32; 2 * (n + 3 + pad)];
+                            let mut lines = vec![0.0f32; 2 * (n + 3 + pad)];
                             let (mut ga, mut gb) = (a.clone(), b.clone());
                             form.back(&mut ga, &mut gb, &mut lines, &step, rows.clone(), d);
+                            assert!(lines.iter().all(|&v| v == 0.0), "{form:?} left scratch");
                             assert_eq!(
                                 (ga, gb),
                                 (wa.clone(), wb.clone()),
