@@ -346,10 +346,11 @@ unsafe fn back_tail16(
     }
 }
 
-/// The rows `r .. acc.len()` (fewer than 16) of a line of `len` values (`line` may be longer), with
-/// the operations of the full steps. Where the rows from `start` number 16 or more, the last 16
-/// are computed as one full step and only the rows from `r` are stored; else one masked step whose
-/// lanes past the end compute clamped positions too but are not stored.
+/// The rows `r .. acc.len()` (fewer than 16) of a line of `len` values (`line` may be longer), in one
+/// vector step with the operations of the full steps, stored under a mask: where the rows from
+/// `start` number 16 or more, the step covers the last 16 rows and only the rows from `r` are
+/// stored; else it starts at `r` and its lanes past the end compute clamped positions too but are
+/// not stored.
 ///
 /// # Safety
 /// `line` holds at least `len ≥ 3` values, `acc.len() − r < 16`, and the CPU must have AVX-512F.
@@ -367,42 +368,24 @@ unsafe fn tail16(
         return;
     }
     debug_assert!(n < 16);
-    let one = _mm512_set1_ps(1.0);
-    let hi = (len - 2) as f32;
-    if acc.len() >= start + 16 {
-        let r0 = acc.len() - 16;
-        let rv = _mm512_add_ps(_mm512_set1_ps(r0 as f32), lanes16());
-        let (i, f) = positions16(step, rv, hi);
+    let (r0, mask) = if acc.len() >= start + 16 {
         // The lanes of rows r ..: the last n.
-        let fresh = (0xffff_u32 << (16 - n)) as __mmask16;
-        // SAFETY: the clamp keeps every index in [0, len − 2], so `i` and `i + 1` read inside
-        // `line`; the masked load and store touch rows r .. acc.len() only.
-        unsafe {
-            let (g0, g1) = pick16(line, i);
-            let t = _mm512_add_ps(
-                _mm512_mul_ps(_mm512_sub_ps(one, f), g0),
-                _mm512_mul_ps(f, g1),
-            );
-            let p = acc.as_mut_ptr().add(r0);
-            let old = _mm512_maskz_loadu_ps(fresh, p);
-            _mm512_mask_storeu_ps(p, fresh, _mm512_add_ps(old, t));
-        }
-        return;
-    }
-    let line = &line[..len];
-    let rv = _mm512_add_ps(_mm512_set1_ps(r as f32), lanes16());
-    let (i, f) = positions16(step, rv, hi);
-    let mask = ((1u32 << n) - 1) as __mmask16;
+        (acc.len() - 16, (0xffff_u32 << (16 - n)) as __mmask16)
+    } else {
+        (r, ((1u32 << n) - 1) as __mmask16)
+    };
+    let one = _mm512_set1_ps(1.0);
+    let rv = _mm512_add_ps(_mm512_set1_ps(r0 as f32), lanes16());
+    let (i, f) = positions16(step, rv, (len - 2) as f32);
     // SAFETY: the clamp keeps every lane's index in [0, len − 2], so `i` and `i + 1` read inside
-    // `line`; the masked load and store touch rows r .. r + n = acc.len() only.
+    // `line`; the masked load and store touch rows r .. acc.len() only.
     unsafe {
-        let g0 = _mm512_i32gather_ps::<4>(i, line.as_ptr());
-        let g1 = _mm512_i32gather_ps::<4>(_mm512_add_epi32(i, _mm512_set1_epi32(1)), line.as_ptr());
+        let (g0, g1) = pick16(line, i);
         let t = _mm512_add_ps(
             _mm512_mul_ps(_mm512_sub_ps(one, f), g0),
             _mm512_mul_ps(f, g1),
         );
-        let p = acc.as_mut_ptr().add(r);
+        let p = acc.as_mut_ptr().add(r0);
         let old = _mm512_maskz_loadu_ps(mask, p);
         _mm512_mask_storeu_ps(p, mask, _mm512_add_ps(old, t));
     }
