@@ -2,10 +2,12 @@
 //! 360 views / 363 detectors (parallel beam), and cone-beam SIRT×10 on 128³ from 180 projections of 192².
 //! The cone case is skipped unless `CTRECON_BENCH_CONE=1` (it takes minutes with 10 samples).
 
+mod common;
+
 use criterion::{Criterion, criterion_group, criterion_main};
 use ctrecon::recon::algorithm::{AlgorithmSpec, CglsParams, OutputGrid, SirtParams, reconstruct};
 use ctrecon::recon::control::unattended;
-use ctrecon::recon::geometry::{Angles, ConeBeam, Panel, ParallelBeam, Views};
+use ctrecon::recon::geometry::{Angles, ParallelBeam, Views};
 use ctrecon::recon::grid::{ImageGrid, Limits, VolumeGrid};
 use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
 use std::hint::black_box;
@@ -66,21 +68,7 @@ fn bench_cone(c: &mut Criterion) {
         return;
     }
     let grid = VolumeGrid::cube(128, 1.0);
-    let v3 = ConeBeam {
-        angles: Angles::uniform(180, 360.0),
-        dso_mm: 500.0,
-        dsd_mm: 750.0,
-        detector: Panel {
-            nu: 192,
-            nv: 192,
-            du_mm: 1.5,
-            dv_mm: 1.5,
-            offset_u_mm: 0.0,
-            offset_v_mm: 0.0,
-        },
-    }
-    .to_views()
-    .unwrap();
+    let v3 = common::peers_cone(180, 192);
     let proj = Phantom3::from_table(Table3::ModifiedSheppLogan, 64.0).project(&v3);
     let views = Views::D3(v3);
     let spec = AlgorithmSpec::Sirt(SirtParams {

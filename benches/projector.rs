@@ -2,8 +2,10 @@
 //! (parallel beam), of 256² / 360 views / 363 detectors, and of 128³ from 360 cone-beam views of
 //! 256² (the cone iterative case of `benches/peers/`: the column-ordered pair of `cone_columns`).
 
+mod common;
+
 use criterion::{Criterion, criterion_group, criterion_main};
-use ctrecon::recon::geometry::{Angles, ConeBeam, Panel, ParallelBeam, Views2};
+use ctrecon::recon::geometry::{Angles, ParallelBeam, Views2};
 use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
 use ctrecon::recon::phantom::{Phantom2, Phantom3, Table2, Table3};
 use ctrecon::recon::projector::{back_2d, back_3d, forward_2d, forward_3d};
@@ -43,21 +45,7 @@ fn bench(c: &mut Criterion) {
 fn bench_cone(c: &mut Criterion) {
     ctrecon::config::limit_simd_from_env();
     let grid = VolumeGrid::cube(128, 1.0);
-    let views = ConeBeam {
-        angles: Angles::uniform(360, 360.0),
-        dso_mm: 500.0,
-        dsd_mm: 750.0,
-        detector: Panel {
-            nu: 256,
-            nv: 256,
-            du_mm: 1.5,
-            dv_mm: 1.5,
-            offset_u_mm: 0.0,
-            offset_v_mm: 0.0,
-        },
-    }
-    .to_views()
-    .unwrap();
+    let views = common::peers_cone(360, 256);
     let phantom = Phantom3::from_table(Table3::ModifiedSheppLogan, 64.0);
     let volume = phantom.rasterize(&grid, 1);
     let projections = phantom.project(&views);

@@ -1,4 +1,6 @@
-//! Helpers shared by the benches that time a Python peer beside ctrecon.
+//! Helpers shared by the benches: finding a Python peer to time beside ctrecon, and the cone beam of
+//! the peers' cone-beam cases. Not every bench uses every helper.
+#![allow(dead_code)]
 
 use std::path::{Path, PathBuf};
 
@@ -16,4 +18,25 @@ pub fn vtk_python(what: &str) -> Option<PathBuf> {
         eprintln!("NOTE: no Python with VTK: {what} not timed");
     }
     found
+}
+
+/// The cone beam of `benches/peers/`' cone cases: `views` views over 360°, source 500 mm and panel
+/// 750 mm from the source, `det` × `det` pixels of 1.5 mm (1 mm at the centre of rotation).
+pub fn peers_cone(views: usize, det: usize) -> ctrecon::recon::geometry::Views3 {
+    use ctrecon::recon::geometry::{Angles, ConeBeam, Panel};
+    ConeBeam {
+        angles: Angles::uniform(views, 360.0),
+        dso_mm: 500.0,
+        dsd_mm: 750.0,
+        detector: Panel {
+            nu: det,
+            nv: det,
+            du_mm: 1.5,
+            dv_mm: 1.5,
+            offset_u_mm: 0.0,
+            offset_v_mm: 0.0,
+        },
+    }
+    .to_views()
+    .expect("a valid cone beam")
 }
