@@ -309,26 +309,29 @@ pub fn forward_with(
     // The sums weighted into `[v][u]`, the steep rays, and the views whose panel is tilted.
     out.par_chunks_mut(view_len)
         .zip(subset.par_iter().zip(&plans))
-        .try_for_each(|(row, (&view, plan))| {
-            cancel.check()?;
-            let Some(plan) = plan else {
-                joseph3::forward_view(views, view, grid, volume, row);
-                return Ok(());
-            };
-            let sums = row.to_vec();
-            row.fill(0.0);
-            for c in &plan.columns {
-                let acc = &sums[c.col * nv..(c.col + 1) * nv];
-                for r in plan.rows.clone() {
-                    row[r * nu + c.col] = acc[r] * c.weight(r, grid.spacing_mm[2]);
+        .try_for_each_init(
+            || vec![0.0f32; view_len],
+            |sums, (row, (&view, plan))| {
+                cancel.check()?;
+                let Some(plan) = plan else {
+                    joseph3::forward_view(views, view, grid, volume, row);
+                    return Ok(());
+                };
+                sums.copy_from_slice(row);
+                row.fill(0.0);
+                for c in &plan.columns {
+                    let acc = &sums[c.col * nv..(c.col + 1) * nv];
+                    for r in plan.rows.clone() {
+                        row[r * nu + c.col] = acc[r] * c.weight(r, grid.spacing_mm[2]);
+                    }
                 }
-            }
-            for &(r, col) in &plan.steep {
-                row[r * nu + col] = Walk3::new(&views.ray(&views.views[view], r, col), grid)
-                    .map_or(0.0, |w| w.dot(volume));
-            }
-            Ok(())
-        })
+                for &(r, col) in &plan.steep {
+                    row[r * nu + col] = Walk3::new(&views.ray(&views.views[view], r, col), grid)
+                        .map_or(0.0, |w| w.dot(volume));
+                }
+                Ok(())
+            },
+        )
 }
 
 /// Whether any planned view has a column whose rays walk along `axis`.
