@@ -27,11 +27,18 @@ pub struct PlaneStep {
     pub de: f32,
 }
 
+/// The padded position of row `r`, before clamping: `e0 + r·de + 1` in f32 (`r as u32 as f32` is
+/// `r as f32` for rows far fewer than 2³², converted more cheaply).
+#[inline(always)]
+fn padded(step: &PlaneStep, r: usize) -> f32 {
+    step.e0 + r as u32 as f32 * step.de + 1.0
+}
+
 /// The padded position of row `r` on a line of `n` voxels, clamped into `[0, n + 1]`: value index
 /// `⌊q⌋` and weight `q − ⌊q⌋` of value `⌊q⌋ + 1`.
 #[inline(always)]
 fn position(step: &PlaneStep, r: usize, hi: f32) -> (usize, f32) {
-    let q = (step.e0 + r as f32 * step.de + 1.0).max(0.0).min(hi);
+    let q = padded(step, r).max(0.0).min(hi);
     let i = q as usize;
     (i, q - i as f32)
 }
@@ -49,9 +56,8 @@ pub fn reaching(
     len: usize,
 ) -> Range<usize> {
     let hi = (len - 2) as u32 as f32;
-    // `r as u32 as f32` is `r as f32` (rows number far fewer than 2³²), converted more cheaply.
     let inside = |r: usize| {
-        let q = step.e0 + r as u32 as f32 * step.de + 1.0;
+        let q = padded(step, r);
         q > 0.0 && q < hi
     };
     let mut lo = guess.start.clamp(rows.start, rows.end);
