@@ -178,7 +178,7 @@ pub fn solve(
         (Views::D3(v), OutputGrid::Volume(g)) => {
             g.validate()?;
             (
-                Box::new(Projector3 { views: v, grid: g }),
+                Box::new(Projector3::new(v, g)),
                 g.shape().to_vec(),
                 Shape3 {
                     nz: g.nz,

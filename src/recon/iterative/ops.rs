@@ -163,10 +163,7 @@ mod tests {
     fn forward_from_zeros_is_the_projection_of_zeros_bit_for_bit() {
         // The small cone beam and grid of the column pair's tests.
         let (views, grid) = (cone(false), grid());
-        let op = Projector3 {
-            views: &views,
-            grid: &grid,
-        };
+        let op = Projector3::new(&views, &grid);
         let (cancel, all) = (Cancel::new(), (0..op.view_count()).collect::<Vec<_>>());
         let ctl = Control::new(&cancel, &NoProgress);
         let n = op.image_len();

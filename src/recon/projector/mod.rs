@@ -23,6 +23,7 @@
 
 pub mod cone_columns;
 pub mod cone_lines;
+pub mod cone_plans;
 pub mod cone_stacks;
 pub mod footprint3;
 pub mod joseph2;
@@ -265,14 +266,23 @@ impl Operator for Projector2<'_> {
     }
 }
 
-/// The Joseph projector pair of a cone-beam geometry on a volume grid.
-#[derive(Debug, Clone, Copy)]
+/// The Joseph projector pair of a cone-beam geometry on a volume grid, keeping the column plans of
+/// the subsets it projects ([`cone_plans::PlanCache`]).
+#[derive(Debug)]
 pub struct Projector3<'a> {
-    pub views: &'a Views3,
-    pub grid: &'a VolumeGrid,
+    views: &'a Views3,
+    grid: &'a VolumeGrid,
+    plans: cone_plans::PlanCache,
 }
 
-impl Projector3<'_> {
+impl<'a> Projector3<'a> {
+    pub fn new(views: &'a Views3, grid: &'a VolumeGrid) -> Self {
+        Projector3 {
+            views,
+            grid,
+            plans: cone_plans::PlanCache::default(),
+        }
+    }
     fn walk(&self, view: usize, element: usize) -> Option<joseph3::Walk3> {
         let nu = self.views.detector.nu;
         let ray = self
@@ -299,7 +309,9 @@ impl Operator for Projector3<'_> {
         out: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        cone_columns::forward(self.views, self.grid, image, subset, out, cancel)
+        let plans = self.plans.get(self.views, self.grid, subset);
+        let form = cone_lines::Form::detect();
+        cone_columns::forward_with(form, self.views, self.grid, &plans, image, out, cancel)
     }
     fn back(
         &self,
@@ -308,7 +320,9 @@ impl Operator for Projector3<'_> {
         image: &mut [f32],
         cancel: &Cancel,
     ) -> Result<(), ReconError> {
-        cone_columns::back(self.views, self.grid, data, subset, image, cancel)
+        let plans = self.plans.get(self.views, self.grid, subset);
+        let form = cone_lines::Form::detect();
+        cone_columns::back_with(form, self.views, self.grid, &plans, data, image, cancel)
     }
     fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
         self.walk(view, element).map_or(0.0, |w| w.dot(image))
@@ -409,7 +423,7 @@ pub fn back_2d(views: &Views2, sinogram: ArrayView2<'_, f32>, grid: &ImageGrid) 
 pub fn forward_3d(views: &Views3, volume: ArrayView3<'_, f32>, grid: &VolumeGrid) -> Array3<f32> {
     assert_eq!(volume.shape(), grid.shape(), "volume shape must match grid");
     apply_all(
-        &Projector3 { views, grid },
+        &Projector3::new(views, grid),
         Direction::Forward,
         &contiguous(&volume),
         Array3::<f32>::zeros(views.shape()),
@@ -427,7 +441,7 @@ pub fn back_3d(views: &Views3, projections: ArrayView3<'_, f32>, grid: &VolumeGr
         "projections shape must match views"
     );
     apply_all(
-        &Projector3 { views, grid },
+        &Projector3::new(views, grid),
         Direction::Back,
         &contiguous(&projections),
         Array3::<f32>::zeros(grid.shape()),
