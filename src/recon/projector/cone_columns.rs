@@ -173,28 +173,34 @@ pub fn back_with(
 ) -> Result<(), ReconError> {
     let nu = views.detector.nu;
     let view_len = nu * views.detector.nv;
+    // Each column's data, weighted, contiguous along v: `[view][column][row − rows.start]`, in the
+    // buffers `plans` keeps (or fresh ones while another pass holds them).
+    let (mut kept, mut fresh) = (plans.weighted.try_lock().ok(), Vec::new());
+    let weighted: &mut Vec<Vec<f32>> = kept.as_deref_mut().unwrap_or(&mut fresh);
     let (subset, plans) = (plans.subset(), &plans.views);
-    // Each column's data, weighted, contiguous along v: `[view][column][row − rows.start]`.
-    let weighted: Vec<Vec<f32>> = plans
-        .par_iter()
-        .zip(data.par_chunks_exact(view_len))
-        .map_init(
+    weighted.resize_with(plans.len(), Vec::new);
+    weighted
+        .par_iter_mut()
+        .zip(plans.par_iter().zip(data.par_chunks_exact(view_len)))
+        .for_each_init(
             || vec![0.0f32; views.detector.nv],
-            |weights, (plan, d)| {
-                let Some(plan) = plan else { return Vec::new() };
+            |weights, (w, (plan, d))| {
+                let Some(plan) = plan else { return };
                 let h = plan.rows.len();
-                let mut w = vec![0.0f32; plan.columns.len() * h];
-                for (i, c) in plan.columns.iter().enumerate() {
+                w.resize(plan.columns.len() * h, 0.0);
+                for (c, column) in plan.columns.iter().zip(w.chunks_exact_mut(h)) {
                     c.weights(form, weights);
-                    let column = &mut w[i * h + c.flat.0 - plan.rows.start..];
-                    for ((r, w), out) in (c.flat.0..c.flat.1).zip(weights.iter()).zip(column) {
+                    let (lo, hi) = (c.flat.0 - plan.rows.start, c.flat.1 - plan.rows.start);
+                    column[..lo].fill(0.0);
+                    column[hi..].fill(0.0);
+                    let rows = (c.flat.0..c.flat.1).zip(weights.iter());
+                    for ((r, w), out) in rows.zip(&mut column[lo..hi]) {
                         *out = d[r * nu + c.col] * w;
                     }
                 }
-                w
             },
-        )
-        .collect();
+        );
+    let weighted: &[Vec<f32>] = weighted;
     image.fill(0.0);
     for axis in [Axis::X, Axis::Y] {
         if !uses_axis(plans, axis) {
@@ -214,7 +220,7 @@ pub fn back_with(
                 let first = band * BAND;
                 let last = first + values.len() / pl;
                 let mut line = vec![0.0f32; 2 * (len + SCRATCH_PAD)];
-                for (plan, w) in plans.iter().zip(&weighted) {
+                for (plan, w) in plans.iter().zip(weighted) {
                     cancel.check()?;
                     let Some(plan) = plan else { continue };
                     let h = plan.rows.len();

@@ -286,6 +286,9 @@ fn planes(c0: f64, s: f64, n: usize, count: usize) -> (usize, usize) {
 pub struct Plans {
     subset: Vec<usize>,
     pub(super) views: Vec<Option<ViewPlan>>,
+    /// The back projection's weighted copy of the data, one buffer per view, kept between passes so
+    /// that each pass writes it in place instead of allocating (and faulting in) it afresh.
+    pub(super) weighted: Mutex<Vec<Vec<f32>>>,
 }
 
 impl Plans {
@@ -293,6 +296,7 @@ impl Plans {
         Plans {
             subset: subset.to_vec(),
             views: subset.par_iter().map(|&v| plan(views, v, grid)).collect(),
+            weighted: Mutex::new(Vec::new()),
         }
     }
     pub fn subset(&self) -> &[usize] {
