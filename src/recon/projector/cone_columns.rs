@@ -187,12 +187,12 @@ pub fn back_with(
             |weights, (w, (plan, d))| {
                 let Some(plan) = plan else { return };
                 let h = plan.rows.len();
+                // Zero where fresh; the rows outside a column's flat rows are never written, so
+                // they stay zero in a kept buffer (a plan's columns do not change).
                 w.resize(plan.columns.len() * h, 0.0);
                 for (c, column) in plan.columns.iter().zip(w.chunks_exact_mut(h)) {
                     c.weights(form, weights);
                     let (lo, hi) = (c.flat.0 - plan.rows.start, c.flat.1 - plan.rows.start);
-                    column[..lo].fill(0.0);
-                    column[hi..].fill(0.0);
                     let rows = (c.flat.0..c.flat.1).zip(weights.iter());
                     for ((r, w), out) in rows.zip(&mut column[lo..hi]) {
                         *out = d[r * nu + c.col] * w;

@@ -153,3 +153,29 @@ fn back_is_the_transpose_of_forward() {
     let e = (lhs - rhs).abs() / (norm(&ax) * norm(&y));
     assert!(e < 1e-6, "{e}");
 }
+
+#[test]
+fn plans_kept_across_passes_give_the_values_of_fresh_ones() {
+    // The steep cone: columns whose rows outside the flat ones must be zero in the kept buffers.
+    let grid = grid();
+    let views = cone(true);
+    let m = views.detector.nu * views.detector.nv * views.views.len();
+    let all: Vec<usize> = (0..views.views.len()).collect();
+    let (x, y1, y2) = (
+        random(grid.voxels() as usize, 7),
+        random(m, 8),
+        random(m, 9),
+    );
+    let (kept, never, form) = (
+        Plans::new(&views, &grid, &all),
+        Cancel::new(),
+        Form::detect(),
+    );
+    let mut images = [vec![0.0f32; x.len()], vec![0.0f32; x.len()]];
+    for (image, y) in images.iter_mut().zip([&y1, &y2]) {
+        back_with(form, &views, &grid, &kept, y, image, &never).unwrap();
+    }
+    let (_, fresh) = by_columns(form, &views, &grid, &x, &y2);
+    assert_eq!(images[1], fresh);
+    assert_ne!(images[0], images[1]);
+}
