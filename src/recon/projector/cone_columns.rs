@@ -30,15 +30,12 @@ use super::cone_plans::ViewPlan;
 use super::cone_plans::plan;
 pub use super::cone_plans::{PlanCache, Plans};
 use super::cone_stacks::{Axis, Stack};
+use super::cone_steps::{BAND, band_steps};
 use super::joseph3::{self, Walk3};
 use crate::recon::control::Cancel;
 use crate::recon::error::ReconError;
 use crate::recon::geometry::Views3;
 use crate::recon::grid::VolumeGrid;
-
-/// Planes per band: a band of 16 planes of a 128² slab is about 1 MB, so the band stays in the
-/// core's cache while every view reads it (forward) or adds to it (back, one task per band).
-const BAND: usize = 16;
 
 /// Bytes the pair allocates besides its input and output: the padded stacks and the weighted data of
 /// one pass ([`super::cone_stacks::work_bytes`]) and the plans a projector keeps
@@ -95,14 +92,12 @@ pub fn forward_with(
                     let Some(plan) = plan else { return Ok(()) };
                     for c in plan.columns.iter().filter(|c| c.axis == axis) {
                         let acc = &mut sums[c.col * nv..(c.col + 1) * nv];
-                        for k in c.planes.0.max(first)..c.planes.1.min(last) {
-                            let (step, j, rows) = c.step(k, stack.lines, grid.nz, &plan.rows);
-                            if rows.is_empty() {
-                                continue;
-                            }
-                            let base = k * pl + j * len;
+                        let ks = c.planes.0.max(first)..c.planes.1.min(last);
+                        let (steps, n) = band_steps(form, c, ks, stack.lines, grid.nz, &plan.rows);
+                        for s in &steps[..n] {
+                            let base = s.k * pl + s.j * len;
                             let (a, b) = stack.values[base..base + 2 * len].split_at(len);
-                            form.forward(a, b, line, &step, rows, acc);
+                            form.forward(a, b, line, &s.step, s.rows.0..s.rows.1, acc);
                         }
                     }
                     Ok::<(), ReconError>(())
@@ -229,15 +224,13 @@ pub fn back_with(
                             continue;
                         }
                         let column = &w[i * h..(i + 1) * h];
-                        for k in c.planes.0.max(first)..c.planes.1.min(last) {
-                            let (step, j, rows) = c.step(k, lines, grid.nz, &plan.rows);
-                            if rows.is_empty() {
-                                continue;
-                            }
-                            let base = (k - first) * pl + j * len;
+                        let ks = c.planes.0.max(first)..c.planes.1.min(last);
+                        let (steps, n) = band_steps(form, c, ks, lines, grid.nz, &plan.rows);
+                        for s in &steps[..n] {
+                            let base = (s.k - first) * pl + s.j * len;
                             let (a, b) = values[base..base + 2 * len].split_at_mut(len);
-                            let data = &column[rows.start - plan.rows.start..];
-                            form.back(a, b, &mut line, &step, rows, data);
+                            let data = &column[s.rows.0 - plan.rows.start..];
+                            form.back(a, b, &mut line, &s.step, s.rows.0..s.rows.1, data);
                         }
                     }
                 }

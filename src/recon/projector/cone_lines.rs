@@ -17,7 +17,7 @@
 use std::ops::Range;
 
 /// One plane of a column: the in-plane weights of the two volume lines and the affine row positions.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub struct PlaneStep {
     /// Weights of the first and second volume line.
     pub w0: f32,

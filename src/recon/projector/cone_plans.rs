@@ -119,10 +119,23 @@ impl Column {
         )
     }
     /// The step of plane `k`, its two line indices (padded), and the rows that reach the grid.
-    /// Counts and indices convert through `u32` (every grid and panel here is far smaller), which
-    /// gives the same values with cheaper conversions than `usize`.
     #[inline(always)]
     pub(super) fn step(
+        &self,
+        k: usize,
+        n_c: usize,
+        n_e: usize,
+        rows: &Range<usize>,
+    ) -> (PlaneStep, usize, Range<usize>) {
+        let (step, j, guess) = self.guess(k, n_c, n_e, rows);
+        (step, j, reaching(&step, guess, rows.clone(), n_e + 3))
+    }
+    /// [`Column::step`] before its rows are refined: the rows are those whose position lies in
+    /// (−1, n_e) in f64, which differ from the f32 ones by at most a row of rounding. Counts and
+    /// indices convert through `u32` (every grid and panel here is far smaller), which gives the
+    /// same values with cheaper conversions than `usize`.
+    #[inline(always)]
+    pub(super) fn guess(
         &self,
         k: usize,
         n_c: usize,
@@ -144,7 +157,6 @@ impl Column {
             e0: e0 as f32,
             de: de as f32,
         };
-        // Rows whose position lies in (−1, n_e) in f64, then in f32 as the loops compute it.
         let guess = if de.abs() < 1e-12 {
             rows.clone()
         } else {
@@ -156,8 +168,7 @@ impl Column {
             let hi = ceil(r1.max(r2)).clamp(lo, end);
             lo as u32 as usize..hi as u32 as usize
         };
-        let span = reaching(&step, guess, rows.clone(), n_e + 3);
-        (step, j, span)
+        (step, j, guess)
     }
 }
 

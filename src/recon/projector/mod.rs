@@ -25,6 +25,7 @@ pub mod cone_columns;
 pub mod cone_lines;
 pub mod cone_plans;
 pub mod cone_stacks;
+pub mod cone_steps;
 pub mod footprint3;
 pub mod joseph2;
 #[cfg(target_arch = "x86_64")]
