@@ -30,7 +30,7 @@ use super::cone_plans::ViewPlan;
 use super::cone_plans::plan;
 pub use super::cone_plans::{PlanCache, Plans};
 use super::cone_stacks::{Axis, Stack};
-use super::cone_steps::{BAND, band_steps};
+use super::cone_steps::{BAND, Planned, band_steps};
 use super::joseph3::{self, Walk3};
 use crate::recon::control::Cancel;
 use crate::recon::error::ReconError;
@@ -86,14 +86,14 @@ pub fn forward_with(
         for first in (0..planes).step_by(BAND) {
             let last = (first + BAND).min(planes);
             out.par_chunks_mut(view_len).zip(plans).try_for_each_init(
-                || vec![0.0f32; len + SCRATCH_PAD],
-                |line, (sums, plan)| {
+                || (vec![0.0f32; len + SCRATCH_PAD], [Planned::default(); BAND]),
+                |(line, steps), (sums, plan)| {
                     cancel.check()?;
                     let Some(plan) = plan else { return Ok(()) };
                     for c in plan.columns.iter().filter(|c| c.axis == axis) {
                         let acc = &mut sums[c.col * nv..(c.col + 1) * nv];
                         let ks = c.planes.0.max(first)..c.planes.1.min(last);
-                        let (steps, n) = band_steps(form, c, ks, stack.lines, grid.nz, &plan.rows);
+                        let n = band_steps(form, c, ks, stack.lines, grid.nz, &plan.rows, steps);
                         for s in &steps[..n] {
                             let base = s.k * pl + s.j * len;
                             let (a, b) = stack.values[base..base + 2 * len].split_at(len);
@@ -215,6 +215,7 @@ pub fn back_with(
                 let first = band * BAND;
                 let last = first + values.len() / pl;
                 let mut line = vec![0.0f32; 2 * (len + SCRATCH_PAD)];
+                let mut steps = [Planned::default(); BAND];
                 for (plan, w) in plans.iter().zip(weighted) {
                     cancel.check()?;
                     let Some(plan) = plan else { continue };
@@ -225,7 +226,7 @@ pub fn back_with(
                         }
                         let column = &w[i * h..(i + 1) * h];
                         let ks = c.planes.0.max(first)..c.planes.1.min(last);
-                        let (steps, n) = band_steps(form, c, ks, lines, grid.nz, &plan.rows);
+                        let n = band_steps(form, c, ks, lines, grid.nz, &plan.rows, &mut steps);
                         for s in &steps[..n] {
                             let base = (s.k - first) * pl + s.j * len;
                             let (a, b) = values[base..base + 2 * len].split_at_mut(len);

@@ -23,8 +23,7 @@ pub struct Planned {
 }
 
 /// The planes `ks` (at most [`BAND`]) of column `c` that some row of `rows` reaches, with their
-/// steps, into the first entries of the result (their count second), on `n_c` lines of `n_e`
-/// values.
+/// steps, into the first entries of `out`, on `n_c` lines of `n_e` values; returns their count.
 #[inline]
 #[allow(unsafe_code)]
 pub(super) fn band_steps(
@@ -34,15 +33,15 @@ pub(super) fn band_steps(
     n_c: usize,
     n_e: usize,
     rows: &Range<usize>,
-) -> ([Planned; BAND], usize) {
+    out: &mut [Planned; BAND],
+) -> usize {
     debug_assert!(ks.len() <= BAND);
     #[cfg(target_arch = "x86_64")]
     if form == Form::Avx512 && !ks.is_empty() {
         // SAFETY: `Form::Avx512` is only built where the CPU has AVX-512F.
-        return unsafe { x86::band_steps_avx512(c, ks, n_c, n_e, rows) };
+        return unsafe { x86::band_steps_avx512(c, ks, n_c, n_e, rows, out) };
     }
     let _ = form;
-    let mut out = [Planned::default(); BAND];
     let mut n = 0;
     for k in ks.take(BAND) {
         let (step, j, r) = c.step(k, n_c, n_e, rows);
@@ -54,7 +53,7 @@ pub(super) fn band_steps(
         };
         n += usize::from(!r.is_empty());
     }
-    (out, n)
+    n
 }
 
 #[cfg(target_arch = "x86_64")]
@@ -77,10 +76,10 @@ mod x86 {
         n_c: usize,
         n_e: usize,
         rows: &Range<usize>,
-    ) -> ([Planned; BAND], usize) {
+        out: &mut [Planned; BAND],
+    ) -> usize {
         // SAFETY: as the caller's.
         let (steps, js, guesses) = unsafe { guesses_avx512(c, ks.start, n_c, n_e, rows) };
-        let mut out = [Planned::default(); BAND];
         let mut n = 0;
         for (i, k) in ks.take(BAND).enumerate() {
             let (lo, hi) = guesses[i];
@@ -93,7 +92,7 @@ mod x86 {
             };
             n += usize::from(!r.is_empty());
         }
-        (out, n)
+        n
     }
 
     /// [`Column::guess`] of planes `first .. first + 16`: their steps, first lines and rows before
@@ -257,7 +256,8 @@ mod tests {
             let want = scalar(c, ks.clone(), n_c, n_e, rows);
             planes += want.len();
             for form in Form::available() {
-                let (got, n) = band_steps(form, c, ks.clone(), n_c, n_e, rows);
+                let mut got = [Planned::default(); BAND];
+                let n = band_steps(form, c, ks.clone(), n_c, n_e, rows, &mut got);
                 assert_eq!(&got[..n], want.as_slice(), "{form:?} {c:?} {ks:?} {rows:?}");
             }
         }
