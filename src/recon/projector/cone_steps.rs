@@ -65,7 +65,9 @@ mod x86 {
 
     /// [`band_steps`] with the arithmetic of 16 planes in vectors: f32 lanes for the in-plane
     /// weights, two f64 vectors of 8 for the row positions and the guess, in the order of
-    /// operations of [`Column::step`].
+    /// operations of [`Column::step`]. The refinement loop repeats the scalar path's on purpose:
+    /// compiled here, with the planes' guesses, it runs about 3 % of a SIRT run faster than one
+    /// loop shared with the scalar path in baseline code.
     ///
     /// # Safety
     /// The CPU must have AVX-512F.
