@@ -324,7 +324,7 @@ impl Plans {
 }
 
 /// The plans a [`PlanCache`] keeps at most, as a multiple of the columns of every view: every subset of
-/// a fixed partition fits (the columns of 360 views of 256 columns take about 13 MB). Steep rays
+/// a fixed partition fits (the columns of 360 views of 256 columns take at most 13 MB). Steep rays
 /// (steeper than 45° against the planes, rare) count against the same bound, so plans with many
 /// are planned afresh for each pass.
 const CACHED_VIEWS_PER_VIEW: usize = 2;
