@@ -63,6 +63,9 @@ mod x86 {
 
     use super::*;
 
+    // The vector steps fill arrays of BAND values from 16 lanes.
+    const _: () = assert!(BAND == 16, "the AVX-512F steps compute 16 planes at once");
+
     /// [`band_steps`] with the arithmetic of 16 planes in vectors: f32 lanes for the in-plane
     /// weights, two f64 vectors of 8 for the row positions and the guess, in the order of
     /// operations of [`Column::step`]. The refinement loop repeats the scalar path's on purpose:
