@@ -63,8 +63,9 @@ mod x86 {
 
     use super::*;
 
-    // The vector steps fill arrays of BAND values from 16 lanes.
-    const _: () = assert!(BAND == 16, "the AVX-512F steps compute 16 planes at once");
+    /// Planes the vector steps compute at once; a band holds at most that many.
+    pub(super) const LANES: usize = 16;
+    const _: () = assert!(BAND <= LANES, "a band is larger than the vector steps");
 
     /// [`band_steps`] with the arithmetic of 16 planes in vectors: f32 lanes for the in-plane
     /// weights, two f64 vectors of 8 for the row positions and the guess, in the order of
@@ -112,7 +113,7 @@ mod x86 {
         n_c: usize,
         n_e: usize,
         rows: &Range<usize>,
-    ) -> ([PlaneStep; BAND], [u32; BAND], [(u32, u32); BAND]) {
+    ) -> ([PlaneStep; LANES], [u32; LANES], [(u32, u32); LANES]) {
         let lanes = _mm512_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15);
         let k = _mm512_add_epi32(_mm512_set1_epi32(first as i32), lanes);
         // In-plane: t = clamp(c0 + k·dc + 1, 0, n_c + 1), j = ⌊t⌋, w1 = t − j.
@@ -131,7 +132,7 @@ mod x86 {
         let j = _mm512_cvttps_epu32(t);
         let w1 = _mm512_sub_ps(t, _mm512_cvtepu32_ps(j));
         let w0 = _mm512_sub_ps(_mm512_set1_ps(1.0), w1);
-        let (mut js, mut w0s, mut w1s) = ([0u32; BAND], [0.0f32; BAND], [0.0f32; BAND]);
+        let (mut js, mut w0s, mut w1s) = ([0u32; LANES], [0.0f32; LANES], [0.0f32; LANES]);
         // SAFETY: each store writes 16 values into an array of 16.
         unsafe {
             _mm512_storeu_si512(js.as_mut_ptr().cast(), j);
@@ -139,8 +140,8 @@ mod x86 {
             _mm512_storeu_ps(w1s.as_mut_ptr(), w1);
         }
         // Along the lines, eight planes at a time in f64.
-        let (mut e0s, mut des) = ([0.0f32; BAND], [0.0f32; BAND]);
-        let (mut los, mut his) = ([0u32; BAND], [0u32; BAND]);
+        let (mut e0s, mut des) = ([0.0f32; LANES], [0.0f32; LANES]);
+        let (mut los, mut his) = ([0u32; LANES], [0u32; LANES]);
         let (start, end) = (
             _mm512_set1_pd(rows.start as u32 as f64),
             _mm512_set1_pd(rows.end as u32 as f64),
@@ -275,7 +276,7 @@ mod tests {
                 // SAFETY: the CPU has AVX-512F (checked above).
                 #[allow(unsafe_code)]
                 let (steps, js, guesses) = unsafe { x86::guesses_avx512(c, first, n_c, n_e, rows) };
-                for l in 0..BAND {
+                for l in 0..x86::LANES {
                     let (step, j, guess) = c.guess(first + l, n_c, n_e, rows);
                     let got = (
                         steps[l],
