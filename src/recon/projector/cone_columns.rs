@@ -169,7 +169,8 @@ pub fn back_with(
     let nu = views.detector.nu;
     let view_len = nu * views.detector.nv;
     // Each column's data, weighted, contiguous along v: `[view][column][row − rows.start]`, in the
-    // buffers `plans` keeps (or fresh ones while another pass holds them).
+    // buffers `plans` shares with the other plans of its cache (or fresh ones while another pass
+    // holds them).
     let (mut kept, mut fresh) = (plans.weighted.try_lock().ok(), Vec::new());
     let weighted: &mut Vec<Vec<f32>> = kept.as_deref_mut().unwrap_or(&mut fresh);
     let (subset, plans) = (plans.subset(), &plans.views);
@@ -182,12 +183,13 @@ pub fn back_with(
             |weights, (w, (plan, d))| {
                 let Some(plan) = plan else { return };
                 let h = plan.rows.len();
-                // Zero where fresh; the rows outside a column's flat rows are never written, so
-                // they stay zero in a kept buffer (a plan's columns do not change).
+                // Every value is written: a kept buffer last held another subset's views.
                 w.resize(plan.columns.len() * h, 0.0);
                 for (c, column) in plan.columns.iter().zip(w.chunks_exact_mut(h)) {
                     c.weights(form, weights);
                     let (lo, hi) = (c.flat.0 - plan.rows.start, c.flat.1 - plan.rows.start);
+                    column[..lo].fill(0.0);
+                    column[hi..].fill(0.0);
                     let rows = (c.flat.0..c.flat.1).zip(weights.iter());
                     for ((r, w), out) in rows.zip(&mut column[lo..hi]) {
                         *out = d[r * nu + c.col] * w;

@@ -179,3 +179,26 @@ fn plans_kept_across_passes_give_the_values_of_fresh_ones() {
     assert_eq!(images[1], fresh);
     assert_ne!(images[0], images[1]);
 }
+
+#[test]
+fn subsets_sharing_the_kept_buffers_give_the_values_of_fresh_plans() {
+    // Two subsets of one cache take turns with its one weighted copy of the data: each pass must
+    // write every value, the steep rows' zeros included.
+    let grid = grid();
+    let views = cone(true);
+    let n = views.views.len();
+    let m = views.detector.nu * views.detector.nv;
+    let cache = PlanCache::default();
+    let (never, form) = (Cancel::new(), Form::detect());
+    let subsets: [Vec<usize>; 2] = [(0..n).rev().collect(), (0..n).step_by(3).collect()];
+    for (round, subset) in subsets.iter().chain(subsets.iter()).enumerate() {
+        let y = random(m * subset.len(), 20 + round as u64);
+        let mut kept = vec![0.0f32; grid.voxels() as usize];
+        let plans = cache.get(&views, &grid, subset);
+        back_with(form, &views, &grid, &plans, &y, &mut kept, &never).unwrap();
+        let mut fresh = vec![0.0f32; kept.len()];
+        let plans = Plans::new(&views, &grid, subset);
+        back_with(form, &views, &grid, &plans, &y, &mut fresh, &never).unwrap();
+        assert_eq!(kept, fresh, "round {round}");
+    }
+}

@@ -298,16 +298,23 @@ pub struct Plans {
     subset: Vec<usize>,
     pub(super) views: Vec<Option<ViewPlan>>,
     /// The back projection's weighted copy of the data, one buffer per view, kept between passes so
-    /// that each pass writes it in place instead of allocating (and faulting in) it afresh.
-    pub(super) weighted: Mutex<Vec<Vec<f32>>>,
+    /// that each pass writes it in place instead of allocating (and faulting in) it afresh; shared
+    /// by every set of plans of one [`PlanCache`], so that a projector holds one copy at most.
+    pub(super) weighted: Weighted,
 }
+
+/// Buffers for the back projection's weighted copy of the data (see [`Plans`]).
+pub(super) type Weighted = Arc<Mutex<Vec<Vec<f32>>>>;
 
 impl Plans {
     pub fn new(views: &Views3, grid: &VolumeGrid, subset: &[usize]) -> Self {
+        Self::sharing(views, grid, subset, Weighted::default())
+    }
+    fn sharing(views: &Views3, grid: &VolumeGrid, subset: &[usize], weighted: Weighted) -> Self {
         Plans {
             subset: subset.to_vec(),
             views: subset.par_iter().map(|&v| plan(views, v, grid)).collect(),
-            weighted: Mutex::new(Vec::new()),
+            weighted,
         }
     }
     pub fn subset(&self) -> &[usize] {
@@ -341,19 +348,23 @@ pub fn cached_bytes(views: &Views3) -> u64 {
 /// method projects the same subsets every iteration. Subsets past the cache's bound are planned
 /// afresh each time.
 #[derive(Default)]
-pub struct PlanCache(Mutex<Vec<Arc<Plans>>>);
+pub struct PlanCache {
+    cached: Mutex<Vec<Arc<Plans>>>,
+    weighted: Weighted,
+}
 
 impl PlanCache {
     /// The plans of `subset` (of `views` on `grid`, which must be the same for every call).
     pub fn get(&self, views: &Views3, grid: &VolumeGrid, subset: &[usize]) -> Arc<Plans> {
         let mut cached = self
-            .0
+            .cached
             .lock()
             .unwrap_or_else(|poisoned| poisoned.into_inner());
         if let Some(p) = cached.iter().find(|p| p.subset == subset) {
             return Arc::clone(p);
         }
-        let plans = Arc::new(Plans::new(views, grid, subset));
+        let weighted = Arc::clone(&self.weighted);
+        let plans = Arc::new(Plans::sharing(views, grid, subset, weighted));
         let held: u64 = cached.iter().map(|p| p.bytes()).sum();
         if held.saturating_add(plans.bytes()) <= cached_bytes(views) {
             cached.push(Arc::clone(&plans));
