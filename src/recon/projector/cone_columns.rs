@@ -45,21 +45,8 @@ pub fn work_bytes(views: &Views3, grid: &VolumeGrid) -> u64 {
         .saturating_add(super::cone_plans::cached_bytes(views))
 }
 
-/// Forward-project every view of `subset` (flat `volume` `[z][y][x]`) into `out` (`[view][v][u]`).
-pub fn forward(
-    views: &Views3,
-    grid: &VolumeGrid,
-    volume: &[f32],
-    subset: &[usize],
-    out: &mut [f32],
-    cancel: &Cancel,
-) -> Result<(), ReconError> {
-    let plans = Plans::new(views, grid, subset);
-    forward_with(Form::detect(), views, grid, &plans, volume, out, cancel)
-}
-
-/// [`forward`] of the views of `plans` with the loops of `form` (which the CPU must run:
-/// [`Form::available`]).
+/// Forward-project every view of `plans` (flat `volume` `[z][y][x]`) into `out` (`[view][v][u]`, in
+/// the plans' subset order) with the loops of `form` (which the CPU must run: [`Form::available`]).
 pub fn forward_with(
     form: Form,
     views: &Views3,
@@ -142,21 +129,8 @@ fn uses_axis(plans: &[Option<ViewPlan>], axis: Axis) -> bool {
         .any(|p| p.columns.iter().any(|c| c.axis == axis))
 }
 
-/// `image` = the back projection of `data` (`[view][v][u]`, one view per `subset` entry), overwriting it.
-pub fn back(
-    views: &Views3,
-    grid: &VolumeGrid,
-    data: &[f32],
-    subset: &[usize],
-    image: &mut [f32],
-    cancel: &Cancel,
-) -> Result<(), ReconError> {
-    let plans = Plans::new(views, grid, subset);
-    back_with(Form::detect(), views, grid, &plans, data, image, cancel)
-}
-
-/// [`back`] of the views of `plans` with the loops of `form` (which the CPU must run:
-/// [`Form::available`]).
+/// `image` = the back projection of `data` (`[view][v][u]`, one view per entry of the plans' subset),
+/// overwriting it, with the loops of `form` (which the CPU must run: [`Form::available`]).
 pub fn back_with(
     form: Form,
     views: &Views3,
