@@ -65,11 +65,75 @@ impl ReconError {
     }
 }
 
-/// Check that every value of `data` is finite; name the first offender.
-pub fn ensure_finite<'a>(data: impl IntoIterator<Item = &'a f32>) -> Result<(), ReconError> {
-    match data.into_iter().position(|v| !v.is_finite()) {
+/// Values of contiguous data checked together by [`ensure_finite`].
+const FINITE_BLOCK: usize = 4096;
+
+/// Check that every value of `data` is finite; name the first offender (its index in logical order).
+pub fn ensure_finite<D: ndarray::Dimension>(
+    data: ndarray::ArrayView<'_, f32, D>,
+) -> Result<(), ReconError> {
+    let first = match data.as_slice() {
+        // Contiguous data is checked a block at a time by a test without an early exit, which
+        // vectorises; only a block that fails is searched for its first offender.
+        Some(values) => values
+            .chunks(FINITE_BLOCK)
+            .enumerate()
+            .find_map(|(b, block)| {
+                let finite = block.iter().fold(true, |all, v| all & v.is_finite());
+                if finite {
+                    None
+                } else {
+                    let at = block.iter().position(|v| !v.is_finite());
+                    at.map(|i| b * FINITE_BLOCK + i)
+                }
+            }),
+        None => data.iter().position(|v| !v.is_finite()),
+    };
+    match first {
         Some(index) => Err(ReconError::NonFinite { index }),
         None => Ok(()),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use ndarray::Array3;
+
+    /// The first offender by logical index, in contiguous data (in the first block, in a later
+    /// block after a finite one, in the last partial block) and in a transposed view.
+    #[test]
+    fn the_first_value_that_is_not_finite_is_named() {
+        let mut data = Array3::<f32>::ones((3, 50, 70));
+        assert_eq!(ensure_finite(data.view()), Ok(()));
+        let n = data.len();
+        for (at, bad) in [
+            (5, f32::NAN),
+            (FINITE_BLOCK + 17, f32::INFINITY),
+            (n - 1, f32::NEG_INFINITY),
+        ] {
+            let mut d = data.clone();
+            if let Some(v) = d.as_slice_mut().and_then(|s| s.get_mut(at)) {
+                *v = bad;
+            }
+            if let Some(v) = d.as_slice_mut().and_then(|s| s.get_mut(n - 2)) {
+                *v = f32::NAN;
+            }
+            let first = at.min(n - 2);
+            assert_eq!(
+                ensure_finite(d.view()),
+                Err(ReconError::NonFinite { index: first })
+            );
+        }
+        data[[1, 2, 3]] = f32::NAN;
+        let t = data.view().reversed_axes();
+        // Logical index of [3, 2, 1] in the shape [70, 50, 3].
+        assert_eq!(
+            ensure_finite(t),
+            Err(ReconError::NonFinite {
+                index: (3 * 50 + 2) * 3 + 1
+            })
+        );
     }
 }
 

@@ -80,7 +80,7 @@ pub fn reconstruct(
     }
     check_grid(views, grid)?;
     limits.check(estimate_bytes(spec, views, grid))?;
-    ensure_finite(data.iter())?;
+    ensure_finite(data.view())?;
     match spec {
         AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) => analytic_run(p, views, data, grid, ctl),
         _ => {

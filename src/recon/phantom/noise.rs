@@ -53,7 +53,7 @@ pub fn poisson_noise<D: Dimension + RemoveAxis>(
             format!("must be positive, finite and at most {MAX_INCIDENT_PHOTONS:e}, got {i0}"),
         ));
     }
-    ensure_finite(projections.iter())?;
+    ensure_finite(projections.view())?;
     if projections.ndim() == 0 {
         let mut rng = StdRng::seed_from_u64(mix(seed, 0));
         for p in projections.iter_mut() {
