@@ -94,14 +94,17 @@ pub(crate) fn fdk_with(
             .par_chunks_mut(panel_len)
             .enumerate()
             .try_for_each_init(
-                || setup.filter.scratch(),
-                |scratch, (b, panel)| {
+                || (setup.filter.scratch(), vec![0.0f32; ROW_BLOCK * setup.ne]),
+                |(scratch, block), (b, panel)| {
                     ctl.check()?;
+                    let ne = setup.ne;
                     setup.filter_view(proj, first + b, scratch, |r, values| {
                         if columns {
-                            let column = panel[PAD * rows + r + PAD..].iter_mut().step_by(rows);
-                            for (o, v) in column.zip(values) {
-                                *o = *v;
+                            // Rows arrive in order: a block is written once full or at the last row.
+                            let i = r % ROW_BLOCK;
+                            block[i * ne..(i + 1) * ne].copy_from_slice(values);
+                            if i + 1 == ROW_BLOCK || r + 1 == det.nv {
+                                put_columns(panel, rows, r - i, &block[..(i + 1) * ne], ne);
                             }
                         } else {
                             let start = (r + PAD) * width + PAD;
@@ -204,7 +207,7 @@ impl Setup {
     }
 
     /// Weight and filter every detector row of view `k`, handing each filtered row (`ne` values, the
-    /// angular step and D² folded in) to `put` with its row index.
+    /// angular step and D² folded in) to `put` with its row index, in order from row 0.
     fn filter_view(
         &self,
         proj: ArrayView3<'_, f32>,
@@ -217,8 +220,17 @@ impl Setup {
         let post = self.steps[k] * f.dso * f.dso;
         let mut row = vec![0.0f32; ne];
         let mut computed = Vec::new();
+        let mut copied = Vec::new();
         for r in 0..det.nv {
-            let data = proj.slice(ndarray::s![k, r, ..]);
+            let view = proj.slice(ndarray::s![k, r, ..]);
+            let data = match view.as_slice() {
+                Some(data) => data,
+                None => {
+                    copied.clear();
+                    copied.extend(view.iter());
+                    &copied[..]
+                }
+            };
             let pre = match &self.pre {
                 Some(table) => &table[r * det.nu..(r + 1) * det.nu],
                 None => {
@@ -230,14 +242,16 @@ impl Setup {
             let input = scratch.input(ne);
             input.fill(0.0);
             let data_part = &mut input[lo..lo + det.nu];
-            for (c, ((o, d), p)) in data_part.iter_mut().zip(data.iter()).zip(pre).enumerate() {
-                let w = if full {
-                    1.0
-                } else {
+            if full {
+                // The redundancy weight is 1: a loop without it, which vectorises.
+                for ((o, d), p) in data_part.iter_mut().zip(data).zip(pre) {
+                    *o = *d as f64 * p;
+                }
+            } else {
+                for (c, ((o, d), p)) in data_part.iter_mut().zip(data).zip(pre).enumerate() {
                     let u = det.u(c) + f.u0;
-                    self.redundancy.weight(f.angle_rad, (u / f.dsd).atan())
-                };
-                *o = *d as f64 * p * w;
+                    *o = *d as f64 * p * self.redundancy.weight(f.angle_rad, (u / f.dsd).atan());
+                }
             }
             self.filter.run(scratch);
             for (o, q) in row.iter_mut().zip(scratch.output(ne).iter()) {
@@ -253,6 +267,24 @@ impl Setup {
 fn pre_weight(f: &Frame, det: &Detector2, r: usize, c: usize) -> f64 {
     let (u, v) = (det.u(c) + f.u0, det.v(r) + f.v0);
     f.dsd / (f.dsd * f.dsd + u * u + v * v).sqrt()
+}
+
+/// Filtered rows of a view gathered before they are written into its panel stored by columns, so that
+/// each column receives this many contiguous values at once rather than one value per row.
+const ROW_BLOCK: usize = 16;
+
+/// Write `block`, the filtered rows `r0..` of a view (`[row][ne]`), into the view's panel stored by
+/// columns (`rows` stored values per column, zero-padded by [`PAD`] on all sides): column `c` of the
+/// block becomes one contiguous run of stored column `PAD + c`, from stored row `PAD + r0`.
+fn put_columns(panel: &mut [f32], rows: usize, r0: usize, block: &[f32], ne: usize) {
+    let n = block.len() / ne.max(1);
+    let columns = panel[PAD * rows..].chunks_exact_mut(rows).take(ne);
+    for (c, column) in columns.enumerate() {
+        let run = &mut column[PAD + r0..PAD + r0 + n];
+        for (o, v) in run.iter_mut().zip(block[c..].iter().step_by(ne)) {
+            *o = *v;
+        }
+    }
 }
 
 /// Whether every line of voxels along z projects into one detector column position: the detector's
