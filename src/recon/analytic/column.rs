@@ -11,7 +11,7 @@
 //! `backproject`. On x86-64 CPUs with AVX2 and FMA (and AVX-512F) the public kernel runs the vector forms
 //! of `super::column_x86`; [`cone_column_scalar`] is the portable reference.
 
-use super::backproject::{MIN_DEPTH, PAD, split};
+use super::backproject::{MIN_DEPTH, PAD, RowLine, split};
 
 /// Values stored after the last column of a [`ColumnPanel`], so that the vector kernels may load a
 /// window of samples from any row of the last column.
@@ -68,8 +68,8 @@ impl ZLine {
     /// voxel has vertical offset `latv` and whose voxels are `dlatv` apart vertically, on a panel of
     /// `cols` stored columns; `map = [au, bu, av, bv]` maps `lat/lc` and `latv/lc` to stored columns and
     /// rows. `None` where the line adds nothing: at or behind the source, or projecting outside the
-    /// stored columns (whose clamped reads are the zero padding).
-    #[inline]
+    /// stored columns (whose clamped reads are the zero padding). The reference for [`ZLine::row`].
+    #[cfg(test)]
     pub fn new(
         lc: f32,
         lat: f32,
@@ -102,7 +102,7 @@ impl ZLine {
     /// rounding of about 10⁻⁷ of the row positions involved, far below the half sample of margin on
     /// either side for the steps the kernels' windows take (at most four rows per voxel). Every voxel
     /// outside lies below row 1 or above row `rows − 2`, where the interpolation reads only padding.
-    #[inline]
+    #[cfg(test)]
     pub fn span(&self, n: usize, rows: usize) -> (usize, usize) {
         let (lo, hi) = (0.5f32, rows as f32 - 1.5);
         let (p0, d) = (self.pos0, self.dpos);
@@ -116,22 +116,102 @@ impl ZLine {
         } else {
             (1.0, 0.0)
         };
-        // k0 = ⌈first⌉ and k1 = ⌊last⌋ + 1, clamped into [0, n] before the conversions (NaN fails
-        // both comparisons and gives an empty span).
-        let k0 = if first > 0.0 {
-            let t = first.min(top);
-            let k = t as usize;
-            k + usize::from((k as f32) < t)
-        } else {
-            0
-        };
-        let k1 = if last >= 0.0 {
-            (last.min(top) as usize + 1).min(n)
-        } else {
-            0
-        };
-        (k0.min(k1), k1)
+        span_of(first, last, n)
     }
+
+    /// The lines through voxels `x0..x0 + xs` (`xs` ≤ [`ROW_LINES`]) of one row along x of the volume,
+    /// handed to `out(i, line, span)` where voxel `x0 + i` adds something: for each, what
+    /// [`ZLine::new`] (with `lc`, `lat`, `latv` of the voxel on `row` and the vertical step `dlatv`)
+    /// and [`ZLine::span`] (for `n` voxels on `rows` stored rows) give, to the bit. The lines are
+    /// computed lane by lane without branches, so that their divisions vectorise; only the lines that
+    /// add something are converted to indices.
+    #[inline]
+    #[allow(clippy::too_many_arguments)]
+    pub fn row(
+        row: &RowLine,
+        (x0, xs): (usize, usize),
+        dlatv: f32,
+        map: [f32; 4],
+        (cols, rows): (usize, usize),
+        n: usize,
+        mut out: impl FnMut(usize, ZLine, (usize, usize)),
+    ) {
+        const L: usize = ROW_LINES;
+        let [au, bu, av, bv] = map;
+        let last_column = cols.saturating_sub(2) as f32;
+        let (lo, hi, top) = (0.5f32, rows as f32 - 1.5, n as f32);
+        let (mut pu, mut w, mut pos0, mut dpos) =
+            ([0.0f32; L], [0.0f32; L], [0.0f32; L], [0.0f32; L]);
+        let (mut first, mut last, mut adds) = ([0.0f32; L], [0.0f32; L], [false; L]);
+        for i in 0..L {
+            let x = (x0 + i) as f32;
+            let lc = row.lc0 + x * row.dlc;
+            let lat = row.lat0 + x * row.dlat;
+            let latv = row.latv0 + x * row.dlatv;
+            let inv = 1.0 / lc;
+            let p = lat * inv * au + bu;
+            // NaN fails every comparison, as in `new`.
+            adds[i] = lc > MIN_DEPTH && p > 0.0 && p < last_column;
+            pu[i] = p;
+            w[i] = inv * inv;
+            pos0[i] = latv * inv * av + bv;
+            dpos[i] = dlatv * inv * av;
+        }
+        for i in 0..L {
+            let (p0, d) = (pos0[i], dpos[i]);
+            let inv = 1.0 / d;
+            let (a, b) = ((lo - p0) * inv, (hi - p0) * inv);
+            let inside = p0 >= lo && p0 <= hi;
+            (first[i], last[i]) = if d != 0.0 {
+                (a.min(b), a.max(b))
+            } else if inside {
+                (0.0, top)
+            } else {
+                (1.0, 0.0)
+            };
+        }
+        for i in 0..xs.min(L) {
+            if !adds[i] {
+                continue;
+            }
+            let (k0, k1) = span_of(first[i], last[i], n);
+            if k0 < k1 {
+                let iu = pu[i] as usize;
+                let line = ZLine {
+                    iu,
+                    fu: pu[i] - iu as f32,
+                    w: w[i],
+                    pos0: pos0[i],
+                    dpos: dpos[i],
+                };
+                out(i, line, (k0, k1));
+            }
+        }
+    }
+}
+
+/// Lines of one row along x that [`ZLine::row`] sets up together.
+pub const ROW_LINES: usize = 8;
+
+/// The voxels `k0..k1` of `n` from the first and last (fractional) voxel positions that read data:
+/// k0 = ⌈first⌉ and k1 = ⌊last⌋ + 1, clamped into [0, n] before the conversions (NaN fails both
+/// comparisons and gives an empty span).
+#[inline]
+fn span_of(first: f32, last: f32, n: usize) -> (usize, usize) {
+    let top = n as f32;
+    let k0 = if first > 0.0 {
+        let t = first.min(top);
+        let k = t as usize;
+        k + usize::from((k as f32) < t)
+    } else {
+        0
+    };
+    let k1 = if last >= 0.0 {
+        (last.min(top) as usize + 1).min(n)
+    } else {
+        0
+    };
+    (k0.min(k1), k1)
 }
 
 /// Cone beam along z: `acc[k] += w · Q(iu + fu, pos0 + k·dpos)` (bilinear) for the voxels of
@@ -142,8 +222,8 @@ pub fn cone_column(acc: &mut [f32], panel: ColumnPanel<'_>, line: &ZLine) {
     cone_column_spanned(acc, panel, line, span);
 }
 
-/// [`cone_column`] with the line's span computed by the caller (`line.span(acc.len(), panel.rows)`),
-/// so that the set-up of many lines can run ahead of their kernels.
+/// [`cone_column`] with the line's span computed by the caller ([`ZLine::row`]), so that the set-up of
+/// many lines can run ahead of their kernels.
 #[allow(unsafe_code)]
 pub fn cone_column_spanned(
     acc: &mut [f32],

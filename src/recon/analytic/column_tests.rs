@@ -207,3 +207,74 @@ fn inconsistent_panels_are_ignored() {
     cone_column(&mut acc, full, &edge);
     assert!(acc.iter().all(|v| *v == 0.0));
 }
+
+/// The lines of a row set up together are those of `ZLine::new` and `ZLine::span` voxel by voxel, to
+/// the bit: rows through the source, beside the panel, with level and steep lines, over and under
+/// the panel, partial rows and NaN.
+#[test]
+fn lines_set_up_together_are_those_set_up_one_by_one() {
+    let mut seed = 0x2545_f491_u32;
+    let mut next = move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 17;
+        seed ^= seed << 5;
+        seed as f32 / u32::MAX as f32
+    };
+    let (cols, rows, n) = (70, 90, 64);
+    let mut checked = (0, 0);
+    for case in 0..4000 {
+        let row = RowLine {
+            lc0: if case % 97 == 0 {
+                f32::NAN
+            } else {
+                40.0 * next() - 2.0
+            },
+            dlc: 0.8 * next() - 0.4,
+            lat0: 30.0 * next() - 15.0,
+            dlat: 0.6 * next() - 0.3,
+            latv0: 40.0 * next() - 20.0,
+            dlatv: 0.2 * next() - 0.1,
+        };
+        let dlatv = if case % 5 == 0 {
+            0.0
+        } else {
+            2.0 * next() - 1.0
+        };
+        let map = [
+            20.0 * next(),
+            35.0,
+            30.0 * next(),
+            45.0 + 20.0 * next() - 10.0,
+        ];
+        let (x0, xs) = (case % 13, 1 + case % ROW_LINES);
+        let mut together = Vec::new();
+        ZLine::row(&row, (x0, xs), dlatv, map, (cols, rows), n, |i, z, span| {
+            together.push((i, z, span));
+        });
+        let mut alone = Vec::new();
+        for i in 0..xs {
+            let x = (x0 + i) as f32;
+            let (lc, lat) = (row.lc0 + x * row.dlc, row.lat0 + x * row.dlat);
+            let latv = row.latv0 + x * row.dlatv;
+            if let Some(z) = ZLine::new(lc, lat, latv, dlatv, map, cols) {
+                let span = z.span(n, rows);
+                if span.0 < span.1 {
+                    alone.push((i, z, span));
+                }
+            }
+        }
+        assert_eq!(together.len(), alone.len(), "case {case}");
+        for (a, b) in together.iter().zip(&alone) {
+            let bits = |z: &ZLine| [z.fu, z.w, z.pos0, z.dpos].map(f32::to_bits);
+            assert!(
+                a.0 == b.0 && a.1.iu == b.1.iu && a.2 == b.2,
+                "case {case}: {a:?} {b:?}"
+            );
+            assert_eq!(bits(&a.1), bits(&b.1), "case {case}: {a:?} {b:?}");
+        }
+        checked.0 += alone.len();
+        checked.1 += xs - alone.len();
+    }
+    // Both kinds of voxel were met often.
+    assert!(checked.0 > 10_000 && checked.1 > 1000, "{checked:?}");
+}

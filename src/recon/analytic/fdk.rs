@@ -19,7 +19,7 @@ use ndarray::{Array3, ArrayView3, Axis};
 use rayon::prelude::*;
 
 use super::backproject::{PAD, Panel, RowLine, cone_row};
-use super::column::{ColumnPanel, SLACK, ZLine, cone_column_spanned};
+use super::column::{ColumnPanel, ROW_LINES, SLACK, ZLine, cone_column_spanned};
 use super::fbp2d::fan_extent;
 use super::filter::{FilterScratch, Kernel, RowFilter, padded_len};
 use super::orbit::{Frame, cone_frames};
@@ -321,10 +321,11 @@ fn batch_views(columns: bool, panel_len: usize) -> usize {
     }
 }
 
-/// Side of the square tiles of lines along z that a thread backprojects together: the tile's lines
+/// Side of the square tiles of lines along z that a thread backprojects together (a row of a tile is
+/// set up at once, [`ROW_LINES`] lines): the tile's lines
 /// read only a narrow band of detector columns of every view of the batch, which stays in the core's
 /// cache while the tile's lines are summed (a whole plane of lines would stream every view through it).
-const TILE: usize = 8;
+const TILE: usize = ROW_LINES;
 
 /// The volume while it is backprojected along z: blocks of [`TILE`] planes y (the last may be thinner),
 /// each holding its lines along z contiguous, `[y][x][z]`. Turned into the `[z][y][x]` volume once at
@@ -399,15 +400,10 @@ fn backproject_columns(
                     set.clear();
                     for j in 0..ys {
                         let (line, dlatv) = &rows[j * frames.len() + b];
-                        for i in 0..xs {
-                            let x = (x0 + i) as f32;
-                            let lc = line.lc0 + x * line.dlc;
-                            let lat = line.lat0 + x * line.dlat;
-                            let latv = line.latv0 + x * line.dlatv;
-                            if let Some(z) = ZLine::new(lc, lat, latv, *dlatv, *map, panel.cols) {
-                                set.push(((j * nx + x0 + i) * nz, z, z.span(nz, panel.rows)));
-                            }
-                        }
+                        let sizes = (panel.cols, panel.rows);
+                        ZLine::row(line, (x0, xs), *dlatv, *map, sizes, nz, |i, z, span| {
+                            set.push(((j * nx + x0 + i) * nz, z, span));
+                        });
                     }
                     for (start, z, span) in &set {
                         cone_column_spanned(&mut acc[*start..*start + nz], *panel, z, *span);
