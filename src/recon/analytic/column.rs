@@ -219,30 +219,52 @@ fn span_of(first: f32, last: f32, n: usize) -> (usize, usize) {
 #[cfg(test)]
 pub fn cone_column(acc: &mut [f32], panel: ColumnPanel<'_>, line: &ZLine) {
     let span = line.span(acc.len(), panel.rows);
-    cone_column_spanned(acc, panel, line, span);
+    cone_columns(acc, panel, &[(0, *line, span)]);
 }
 
-/// [`cone_column`] with the line's span computed by the caller ([`ZLine::row`]), so that the set-up of
-/// many lines can run ahead of their kernels.
+/// A line of voxels in a block of lines: the index of its first voxel in the block, the line as one
+/// view sees it, and its span ([`ZLine::row`]).
+pub type Placed = (usize, ZLine, (usize, usize));
+
+/// Cone beam along z for many lines of a block against one panel: `acc[start + k] += w · Q(iu + fu,
+/// pos0 + k·dpos)` for the voxels k of each line's span, the spans computed by the caller so that the
+/// set-up of many lines can run ahead of their kernels. The panel is checked once and each line as it
+/// comes ([`placed`]: a line outside the block or the panel adds nothing); the vector forms take all
+/// the lines in one call.
 #[allow(unsafe_code)]
-pub fn cone_column_spanned(
-    acc: &mut [f32],
-    panel: ColumnPanel<'_>,
-    line: &ZLine,
-    (k0, k1): (usize, usize),
-) {
-    if !panel.valid() || line.iu + 2 > panel.cols || k0 >= k1 || k1 > acc.len() {
+pub fn cone_columns(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Placed]) {
+    if !panel.valid() {
         return;
     }
     #[cfg(target_arch = "x86_64")]
     if crate::recon::cpu::avx2_fma() {
         let wide = crate::recon::cpu::avx512f();
         // SAFETY: AVX2 and FMA (and AVX-512F where `wide`) are present, checked at run time; the
-        // panel is valid and iu + 1 < cols, checked above; k0 < k1 ≤ acc.len(), the caller's span.
-        unsafe { super::column_x86::cone_column(&mut acc[k0..k1], k0, panel, line, wide) };
+        // panel is valid, checked above.
+        unsafe { super::column_x86::cone_columns(acc, panel, lines, wide) };
         return;
     }
-    cone_column_from(&mut acc[k0..k1], k0, panel, line);
+    for (start, line, span) in lines {
+        if let Some(out) = placed(acc, panel, *start, line, *span) {
+            cone_column_from(out, span.0, panel, line);
+        }
+    }
+}
+
+/// The voxels `k0..k1` of a line whose first voxel is `acc[start]`, where they lie inside `acc`, the
+/// span is not empty and the line reads two stored columns of the panel (`iu + 1 < cols`).
+#[inline(always)]
+pub(super) fn placed<'a>(
+    acc: &'a mut [f32],
+    panel: ColumnPanel<'_>,
+    start: usize,
+    line: &ZLine,
+    (k0, k1): (usize, usize),
+) -> Option<&'a mut [f32]> {
+    if line.iu + 2 > panel.cols || k0 >= k1 {
+        return None;
+    }
+    acc.get_mut(start.checked_add(k0)?..start.checked_add(k1)?)
 }
 
 /// The portable (reference) form of [`cone_column`], over every voxel of `acc`.

@@ -47,8 +47,8 @@ fn kernels() -> Vec<(&'static str, Kernel)> {
             out.push((
                 "avx2 dispatch",
                 Box::new(move |acc, p, l| {
-                    let (k0, k1) = span(acc, p, l);
-                    unsafe { x86::cone_column(&mut acc[k0..k1], k0, p, l, false) }
+                    let span = span(acc, p, l);
+                    unsafe { x86::cone_columns(acc, p, &[(0, *l, span)], false) }
                 }),
             ));
             out.push((
@@ -65,8 +65,8 @@ fn kernels() -> Vec<(&'static str, Kernel)> {
             out.push((
                 "avx-512 dispatch",
                 Box::new(move |acc, p, l| {
-                    let (k0, k1) = span(acc, p, l);
-                    unsafe { x86::cone_column(&mut acc[k0..k1], k0, p, l, true) }
+                    let span = span(acc, p, l);
+                    unsafe { x86::cone_columns(acc, p, &[(0, *l, span)], true) }
                 }),
             ));
         } else {

@@ -12,7 +12,7 @@ use std::arch::x86_64::*;
 
 use crate::recon::pairs::{lanes, load_pairs, select16};
 
-use super::column::{ColumnPanel, SLACK, ZLine, cone_column_from};
+use super::column::{ColumnPanel, Placed, SLACK, ZLine, cone_column_from, placed};
 
 /// Whether `lanes` voxels whose row positions are `step` apart read all their sample pairs from a
 /// window of `window` samples starting [`behind`] the first voxel's index: their indices spread over
@@ -32,30 +32,67 @@ fn behind(step: f32, lanes: usize) -> i32 {
     }
 }
 
+/// The lines of [`super::column::cone_columns`] one after the other, each [`placed`] and computed by
+/// the form its step suits: 16 voxels from a window of 32 or 64 samples (AVX-512F, where `wide`), else
+/// 8 voxels from a window of 16 samples or from 64-bit loads.
+///
 /// # Safety
 /// AVX2 and FMA must be available, and AVX-512F too where `wide`; `panel` must be valid
-/// (`cols·rows + SLACK ≤ q.len() < i32::MAX`, `rows ≥ 4`) with `line.iu + 1 < cols`; `acc` holds the
-/// voxels `k0..k0 + acc.len()`. Memory safety rests on these alone; the values are right for voxels
-/// inside [`ZLine::span`] (the windows do not clamp positions).
+/// (`cols·rows + SLACK ≤ q.len() < i32::MAX`, `rows ≥ 4`). Memory safety rests on these alone; the
+/// values are right for voxels inside [`ZLine::span`] (the windows do not clamp positions).
 #[target_feature(enable = "avx2,fma")]
-pub unsafe fn cone_column(
-    acc: &mut [f32],
-    k0: usize,
-    panel: ColumnPanel<'_>,
-    line: &ZLine,
-    wide: bool,
-) {
-    debug_assert!(panel.cols * panel.rows + SLACK <= panel.q.len() && line.iu + 2 <= panel.cols);
-    // SAFETY (all arms): the caller's contract, passed on; AVX-512F forms only where `wide`.
+pub unsafe fn cone_columns(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Placed], wide: bool) {
+    debug_assert!(panel.cols * panel.rows + SLACK <= panel.q.len());
+    // SAFETY: the caller's contract, passed on; the AVX-512F loop only where `wide`.
     unsafe {
-        if wide && fits(line.dpos, 16, 32) {
-            column_wide::<32>(acc, k0, panel, line)
-        } else if wide && fits(line.dpos, 16, 64) {
-            column_wide::<64>(acc, k0, panel, line)
-        } else if fits(line.dpos, 8, 16) {
-            column_narrow::<true>(acc, k0, panel, line)
+        if wide {
+            columns_wide(acc, panel, lines)
         } else {
-            column_narrow::<false>(acc, k0, panel, line)
+            columns_narrow(acc, panel, lines)
+        }
+    }
+}
+
+/// # Safety
+/// As [`cone_columns`], and AVX-512F must be available.
+#[target_feature(enable = "avx2,fma,avx512f")]
+unsafe fn columns_wide(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Placed]) {
+    for (start, line, span) in lines {
+        let Some(out) = placed(acc, panel, *start, line, *span) else {
+            continue;
+        };
+        // SAFETY: the CPU has AVX-512F, AVX2 and FMA and the panel is valid (the caller's
+        // contract); `placed` checked iu + 1 < cols and gave the span's voxels.
+        unsafe {
+            if fits(line.dpos, 16, 32) {
+                column_wide::<32>(out, span.0, panel, line)
+            } else if fits(line.dpos, 16, 64) {
+                column_wide::<64>(out, span.0, panel, line)
+            } else if fits(line.dpos, 8, 16) {
+                column_narrow::<true>(out, span.0, panel, line)
+            } else {
+                column_narrow::<false>(out, span.0, panel, line)
+            }
+        }
+    }
+}
+
+/// # Safety
+/// As [`cone_columns`].
+#[target_feature(enable = "avx2,fma")]
+unsafe fn columns_narrow(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Placed]) {
+    for (start, line, span) in lines {
+        let Some(out) = placed(acc, panel, *start, line, *span) else {
+            continue;
+        };
+        // SAFETY: the CPU has AVX2 and FMA and the panel is valid (the caller's contract); `placed`
+        // checked iu + 1 < cols and gave the span's voxels.
+        unsafe {
+            if fits(line.dpos, 8, 16) {
+                column_narrow::<true>(out, span.0, panel, line)
+            } else {
+                column_narrow::<false>(out, span.0, panel, line)
+            }
         }
     }
 }
@@ -64,7 +101,8 @@ pub unsafe fn cone_column(
 /// a 16-sample window of the blended columns, otherwise from 64-bit loads in both columns.
 ///
 /// # Safety
-/// As [`cone_column`].
+/// As [`cone_columns`], with `iu + 1 < cols`; `acc` holds the voxels `k0..k0 + acc.len()`.
+#[inline]
 #[target_feature(enable = "avx2,fma")]
 pub(super) unsafe fn column_narrow<const WINDOW: bool>(
     acc: &mut [f32],
@@ -139,7 +177,8 @@ pub(super) unsafe fn column_narrow<const WINDOW: bool>(
 /// columns; the step must [`fits`] 16 lanes in `W` samples.
 ///
 /// # Safety
-/// As [`cone_column`], and AVX-512F must be available.
+/// As [`column_narrow`], and AVX-512F must be available.
+#[inline]
 #[target_feature(enable = "avx2,fma,avx512f")]
 unsafe fn column_wide<const W: usize>(
     acc: &mut [f32],

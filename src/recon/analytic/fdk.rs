@@ -10,7 +10,7 @@
 //! Two backprojection loops. Where the detector's u axis has no z component (every parametric geometry),
 //! a line of voxels along z projects into one detector column position with one distance weight and row
 //! positions affine in z: the views are stored by detector columns and each (x, y) line of the volume is
-//! backprojected by `column::cone_column`, all views of the batch into a plane of lines held per thread,
+//! backprojected by `column::cone_columns`, all views of the batch into a plane of lines held per thread,
 //! which is then added to the volume ([`COLUMN_BATCH`] views per pass). Otherwise (a detector rolled about
 //! the central ray) rows along x are backprojected by `backproject::cone_row` ([`VIEWS_PER_THREAD`] views
 //! per thread and pass). Memory: the volume plus the batch's filtered projections and a plane per thread.
@@ -19,7 +19,7 @@ use ndarray::{Array3, ArrayView3, Axis};
 use rayon::prelude::*;
 
 use super::backproject::{PAD, Panel, RowLine, cone_row};
-use super::column::{ColumnPanel, ROW_LINES, SLACK, ZLine, cone_column_spanned};
+use super::column::{ColumnPanel, ROW_LINES, SLACK, ZLine, cone_columns};
 use super::fbp2d::fan_extent;
 use super::filter::{FilterScratch, Kernel, RowFilter, padded_len};
 use super::orbit::{Frame, cone_frames};
@@ -405,9 +405,7 @@ fn backproject_columns(
                             set.push(((j * nx + x0 + i) * nz, z, span));
                         });
                     }
-                    for (start, z, span) in &set {
-                        cone_column_spanned(&mut acc[*start..*start + nz], *panel, z, *span);
-                    }
+                    cone_columns(acc, *panel, &set);
                 }
             }
             Ok(())
