@@ -247,11 +247,16 @@ unsafe fn column_wide<const W: usize>(
             (pick(rel), pick(rel1))
         };
         let v = _mm512_fmadd_ps(fv, _mm512_sub_ps(c1, c0), c0);
-        // SAFETY: the mask covers only the voxels i..min(i + 16, n) of acc.
+        // SAFETY: the mask covers only the voxels i..min(i + 16, n) of acc (all 16 where the mask
+        // is full: a plain load and store).
         unsafe {
             let out = acc.as_mut_ptr().add(i);
-            let sum = _mm512_fmadd_ps(w, v, _mm512_maskz_loadu_ps(mask, out));
-            _mm512_mask_storeu_ps(out, mask, sum);
+            if mask == 0xffff {
+                _mm512_storeu_ps(out, _mm512_fmadd_ps(w, v, _mm512_loadu_ps(out)));
+            } else {
+                let sum = _mm512_fmadd_ps(w, v, _mm512_maskz_loadu_ps(mask, out));
+                _mm512_mask_storeu_ps(out, mask, sum);
+            }
         }
         k = _mm512_add_ps(k, sixteen);
         i += 16;
