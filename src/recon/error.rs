@@ -95,6 +95,33 @@ pub fn ensure_finite<D: ndarray::Dimension>(
     }
 }
 
+pub(crate) fn finite(field: &'static str, value: f64) -> Result<f64, GeometryError> {
+    if value.is_finite() {
+        Ok(value)
+    } else {
+        Err(GeometryError::NonFinite { field, value })
+    }
+}
+
+pub(crate) fn positive(field: &'static str, value: f64) -> Result<f64, GeometryError> {
+    finite(field, value)?;
+    if value > 0.0 {
+        Ok(value)
+    } else {
+        Err(GeometryError::NonPositive { field, value })
+    }
+}
+
+pub(crate) fn count(field: &'static str, value: usize, max: usize) -> Result<usize, GeometryError> {
+    if value == 0 {
+        Err(GeometryError::Zero { field })
+    } else if value > max {
+        Err(GeometryError::TooMany { field, value, max })
+    } else {
+        Ok(value)
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -134,32 +161,5 @@ mod tests {
                 index: (3 * 50 + 2) * 3 + 1
             })
         );
-    }
-}
-
-pub(crate) fn finite(field: &'static str, value: f64) -> Result<f64, GeometryError> {
-    if value.is_finite() {
-        Ok(value)
-    } else {
-        Err(GeometryError::NonFinite { field, value })
-    }
-}
-
-pub(crate) fn positive(field: &'static str, value: f64) -> Result<f64, GeometryError> {
-    finite(field, value)?;
-    if value > 0.0 {
-        Ok(value)
-    } else {
-        Err(GeometryError::NonPositive { field, value })
-    }
-}
-
-pub(crate) fn count(field: &'static str, value: usize, max: usize) -> Result<usize, GeometryError> {
-    if value == 0 {
-        Err(GeometryError::Zero { field })
-    } else if value > max {
-        Err(GeometryError::TooMany { field, value, max })
-    } else {
-        Ok(value)
     }
 }
