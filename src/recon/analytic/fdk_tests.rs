@@ -1,4 +1,6 @@
 use super::*;
+use crate::recon::analytic::fdk_filter::pre_weight;
+use crate::recon::analytic::orbit::cone_frames;
 use crate::recon::control::unattended;
 use crate::recon::geometry::{Angles, ConeBeam, Panel as Detector};
 use crate::recon::phantom::{Ellipsoid, Phantom3};

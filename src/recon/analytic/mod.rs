@@ -23,6 +23,7 @@ mod column;
 mod column_x86;
 mod fbp2d;
 mod fdk;
+mod fdk_filter;
 pub mod filter;
 mod orbit;
 mod progress;
