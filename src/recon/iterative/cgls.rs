@@ -61,61 +61,12 @@ pub fn cgls(
 
 #[cfg(test)]
 mod tests {
-    use std::sync::atomic::{AtomicUsize, Ordering};
-
     use super::*;
     use crate::recon::control::{Cancel, NoProgress};
     use crate::recon::geometry::{Angles, ParallelBeam};
     use crate::recon::grid::ImageGrid;
+    use crate::recon::iterative::counted::Counted;
     use crate::recon::projector::Projector2;
-
-    /// The real projector, its passes counted.
-    struct Counted<'a> {
-        op: &'a dyn Operator,
-        forward: AtomicUsize,
-        back: AtomicUsize,
-    }
-
-    impl Operator for Counted<'_> {
-        fn image_len(&self) -> usize {
-            self.op.image_len()
-        }
-        fn view_count(&self) -> usize {
-            self.op.view_count()
-        }
-        fn view_len(&self) -> usize {
-            self.op.view_len()
-        }
-        fn forward(
-            &self,
-            x: &[f32],
-            s: &[usize],
-            out: &mut [f32],
-            c: &Cancel,
-        ) -> Result<(), ReconError> {
-            self.forward.fetch_add(1, Ordering::Relaxed);
-            self.op.forward(x, s, out, c)
-        }
-        fn back(
-            &self,
-            d: &[f32],
-            s: &[usize],
-            out: &mut [f32],
-            c: &Cancel,
-        ) -> Result<(), ReconError> {
-            self.back.fetch_add(1, Ordering::Relaxed);
-            self.op.back(d, s, out, c)
-        }
-        fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
-            self.op.ray_dot(view, element, image)
-        }
-        fn ray_axpy(&self, view: usize, element: usize, alpha: f32, image: &mut [f32]) {
-            self.op.ray_axpy(view, element, alpha, image)
-        }
-        fn ray_norm2(&self, view: usize, element: usize) -> f32 {
-            self.op.ray_norm2(view, element)
-        }
-    }
 
     /// k iterations from zero take k forward and k back projections (the first back projection of
     /// the data, then one per iteration but the last); a run that converges at its first iteration
@@ -141,11 +92,7 @@ mod tests {
             .forward(&truth, &all, &mut b, &Cancel::new())
             .unwrap();
         for (iterations, tolerance, passes) in [(5, None, 5), (1, None, 1), (8, Some(0.99), 1)] {
-            let counted = Counted {
-                op: &projector,
-                forward: AtomicUsize::new(0),
-                back: AtomicUsize::new(0),
-            };
+            let counted = Counted::new(&projector);
             let mut x = vec![0.0f32; truth.len()];
             let params = CglsParams {
                 iterations,
@@ -161,7 +108,7 @@ mod tests {
                 &Control::new(&cancel, &NoProgress),
             )
             .unwrap();
-            let counts = (counted.forward.into_inner(), counted.back.into_inner());
+            let counts = counted.passes();
             assert_eq!(
                 counts,
                 (passes, passes),

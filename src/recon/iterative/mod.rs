@@ -13,6 +13,8 @@
 
 mod art;
 mod cgls;
+#[cfg(test)]
+mod counted;
 mod mlem;
 mod ops;
 pub mod params;

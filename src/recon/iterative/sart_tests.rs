@@ -11,50 +11,9 @@ use crate::recon::algorithm::{AlgorithmSpec, OutputGrid};
 use crate::recon::control::{Cancel, NoProgress};
 use crate::recon::geometry::{Angles, FanBeam, FanDetector, ParallelBeam, Views, Views2};
 use crate::recon::grid::ImageGrid;
+use crate::recon::iterative::counted::Counted;
 use crate::recon::iterative::estimate_bytes;
 use crate::recon::projector::Projector2;
-
-/// An operator without line plans: the sweep takes the whole-image passes.
-struct Passes<'a>(&'a dyn Operator);
-
-impl Operator for Passes<'_> {
-    fn image_len(&self) -> usize {
-        self.0.image_len()
-    }
-    fn view_count(&self) -> usize {
-        self.0.view_count()
-    }
-    fn view_len(&self) -> usize {
-        self.0.view_len()
-    }
-    fn forward(
-        &self,
-        image: &[f32],
-        s: &[usize],
-        out: &mut [f32],
-        c: &Cancel,
-    ) -> Result<(), ReconError> {
-        self.0.forward(image, s, out, c)
-    }
-    fn back(
-        &self,
-        data: &[f32],
-        s: &[usize],
-        image: &mut [f32],
-        c: &Cancel,
-    ) -> Result<(), ReconError> {
-        self.0.back(data, s, image, c)
-    }
-    fn ray_dot(&self, view: usize, element: usize, image: &[f32]) -> f32 {
-        self.0.ray_dot(view, element, image)
-    }
-    fn ray_axpy(&self, view: usize, element: usize, alpha: f32, image: &mut [f32]) {
-        self.0.ray_axpy(view, element, alpha, image)
-    }
-    fn ray_norm2(&self, view: usize, element: usize) -> f32 {
-        self.0.ray_norm2(view, element)
-    }
-}
 
 /// Parallel views and random data (uniform in `0 .. max`, from `seed`) for a test of the sweeps.
 fn parallel_data(beam: ParallelBeam, seed: u64, max: f32) -> (Views2, Vec<f32>) {
@@ -99,7 +58,7 @@ fn run_both(
 ) -> (Vec<f32>, Vec<f32>, Vec<(f64, f64)>) {
     let cancel = Cancel::new();
     let ctl = Control::new(&cancel, &NoProgress);
-    let plain = Passes(op);
+    let plain = Counted::new(op);
     let (mut x1, mut x2) = (start.to_vec(), start.to_vec());
     let residuals = (0..n)
         .map(|_| {
@@ -132,7 +91,7 @@ fn fused_updates_match_the_whole_image_passes_bit_for_bit() {
         println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
         return;
     }
-    let plain = Passes(&op);
+    let plain = Counted::new(&op);
     let mut passes = Sweep::new(&plain, 41, &ctl).unwrap();
     assert!(passes.lines.is_none());
     let (plans, _, _) = op.line_plans().unwrap();
@@ -169,7 +128,7 @@ fn fused_updates_on_the_avx2_kernels_match_the_whole_image_passes() {
         return;
     };
     lines.narrow();
-    let plain = Passes(&op);
+    let plain = Counted::new(&op);
     let mut passes = Sweep::new(&plain, 41, &ctl).unwrap();
     let start = vec![0.0f32; grid.nx * grid.ny];
     let bounds = Bounds::new(true, None);
@@ -279,7 +238,7 @@ fn fused_updates_split_between_threads_match_the_whole_image_passes() {
             println!("skipped: the fused SART updates need AVX2 + FMA (this CPU lacks them)");
             return;
         }
-        let plain = Passes(&op);
+        let plain = Counted::new(&op);
         let mut passes = Sweep::new(&plain, 7, &ctl).unwrap();
         let start = vec![0.0f32; grid.nx * grid.ny];
         let bounds = Bounds::new(true, None);
