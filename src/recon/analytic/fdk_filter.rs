@@ -81,49 +81,75 @@ impl Setup {
         scratch: &mut FilterScratch,
         mut put: impl FnMut(usize, &[f32]),
     ) {
-        let (det, f, lo, ne) = (&self.det, &self.frames[k], self.lo, self.ne);
-        let full = self.redundancy.is_full();
-        let post = self.steps[k] * f.dso * f.dso;
+        let (nv, ne) = (self.det.nv, self.ne);
+        let post = self.steps[k] * self.frames[k].dso * self.frames[k].dso;
         let mut row = vec![0.0f32; ne];
-        let mut computed = Vec::new();
-        let mut copied = Vec::new();
-        for r in 0..det.nv {
-            let view = proj.slice(ndarray::s![k, r, ..]);
-            let data = match view.as_slice() {
-                Some(data) => data,
-                None => {
-                    copied.clear();
-                    copied.extend(view.iter());
-                    &copied[..]
-                }
-            };
-            let pre = match &self.pre {
-                Some(table) => &table[r * det.nu..(r + 1) * det.nu],
-                None => {
-                    computed.clear();
-                    computed.extend((0..det.nu).map(|c| pre_weight(f, det, r, c)));
-                    &computed[..]
-                }
-            };
-            let input = scratch.input(ne);
-            input.fill(0.0);
-            let data_part = &mut input[lo..lo + det.nu];
-            if full {
-                // The redundancy weight is 1: a loop without it, which vectorises.
-                for ((o, d), p) in data_part.iter_mut().zip(data).zip(pre) {
-                    *o = *d as f64 * p;
-                }
-            } else {
-                for (c, ((o, d), p)) in data_part.iter_mut().zip(data).zip(pre).enumerate() {
-                    let u = det.u(c) + f.u0;
-                    *o = *d as f64 * p * self.redundancy.weight(f.angle_rad, (u / f.dsd).atan());
-                }
-            }
-            self.filter.run(scratch);
-            for (o, q) in row.iter_mut().zip(scratch.output(ne).iter()) {
+        let mut held = (Vec::new(), Vec::new());
+        let mut emit = |r: usize, filtered: &[f64]| {
+            for (o, q) in row.iter_mut().zip(filtered) {
                 *o = (q * post) as f32;
             }
             put(r, &row);
+        };
+        // Rows two at a time through one complex FFT; an odd last row alone.
+        for r in (0..nv).step_by(2) {
+            if r + 1 < nv {
+                let (first, second) = scratch.inputs(ne);
+                self.weigh_row(proj, k, r, first, &mut held);
+                self.weigh_row(proj, k, r + 1, second, &mut held);
+                self.filter.run_pair(scratch);
+                let (first, second) = scratch.outputs(ne);
+                emit(r, first);
+                emit(r + 1, second);
+            } else {
+                self.weigh_row(proj, k, r, scratch.input(ne), &mut held);
+                self.filter.run(scratch);
+                emit(r, scratch.output(ne));
+            }
+        }
+    }
+
+    /// Row `r` of view `k`, pre- and redundancy-weighted, into `input` (`ne` values: `lo` zeros, the
+    /// row, zeros). `held` keeps a row copied out of a strided view and pre-weights computed for a view
+    /// without the shared table.
+    fn weigh_row(
+        &self,
+        proj: ArrayView3<'_, f32>,
+        k: usize,
+        r: usize,
+        input: &mut [f64],
+        (copied, computed): &mut (Vec<f32>, Vec<f64>),
+    ) {
+        let (det, f, lo) = (&self.det, &self.frames[k], self.lo);
+        let view = proj.slice(ndarray::s![k, r, ..]);
+        let data = match view.as_slice() {
+            Some(data) => data,
+            None => {
+                copied.clear();
+                copied.extend(view.iter());
+                &copied[..]
+            }
+        };
+        let pre = match &self.pre {
+            Some(table) => &table[r * det.nu..(r + 1) * det.nu],
+            None => {
+                computed.clear();
+                computed.extend((0..det.nu).map(|c| pre_weight(f, det, r, c)));
+                &computed[..]
+            }
+        };
+        input.fill(0.0);
+        let data_part = &mut input[lo..lo + det.nu];
+        if self.redundancy.is_full() {
+            // The redundancy weight is 1: a loop without it, which vectorises.
+            for ((o, d), p) in data_part.iter_mut().zip(data).zip(pre) {
+                *o = *d as f64 * p;
+            }
+        } else {
+            for (c, ((o, d), p)) in data_part.iter_mut().zip(data).zip(pre).enumerate() {
+                let u = det.u(c) + f.u0;
+                *o = *d as f64 * p * self.redundancy.weight(f.angle_rad, (u / f.dsd).atan());
+            }
         }
     }
 }
