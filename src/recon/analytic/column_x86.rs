@@ -68,10 +68,8 @@ unsafe fn columns_wide(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Placed]
                 column_wide::<32>(out, span.0, panel, line)
             } else if fits(line.dpos, 16, 64) {
                 column_wide::<64>(out, span.0, panel, line)
-            } else if fits(line.dpos, 8, 16) {
-                column_narrow::<true>(out, span.0, panel, line)
             } else {
-                column_narrow::<false>(out, span.0, panel, line)
+                column_eight(out, span.0, panel, line)
             }
         }
     }
@@ -87,12 +85,23 @@ unsafe fn columns_narrow(acc: &mut [f32], panel: ColumnPanel<'_>, lines: &[Place
         };
         // SAFETY: the CPU has AVX2 and FMA and the panel is valid (the caller's contract); `placed`
         // checked iu + 1 < cols and gave the span's voxels.
-        unsafe {
-            if fits(line.dpos, 8, 16) {
-                column_narrow::<true>(out, span.0, panel, line)
-            } else {
-                column_narrow::<false>(out, span.0, panel, line)
-            }
+        unsafe { column_eight(out, span.0, panel, line) }
+    }
+}
+
+/// 8 voxels at a time: from a 16-sample window where the step [`fits`], else from 64-bit loads.
+///
+/// # Safety
+/// As [`column_narrow`].
+#[inline]
+#[target_feature(enable = "avx2,fma")]
+unsafe fn column_eight(acc: &mut [f32], k0: usize, panel: ColumnPanel<'_>, line: &ZLine) {
+    // SAFETY: the caller's contract, passed on.
+    unsafe {
+        if fits(line.dpos, 8, 16) {
+            column_narrow::<true>(acc, k0, panel, line)
+        } else {
+            column_narrow::<false>(acc, k0, panel, line)
         }
     }
 }
