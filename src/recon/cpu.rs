@@ -51,11 +51,15 @@ pub fn avx2_fma() -> bool {
     *FLAG.get_or_init(|| cap() >= Simd::Avx2 && has(Feature::Avx2) && has(Feature::Fma))
 }
 
-/// True when the CPU has AVX2, FMA, AVX-512F and BMI2 (and the cap allows AVX-512F).
+/// True when the CPU has AVX2, FMA, AVX-512F, BMI2 and POPCNT (and the cap allows AVX-512F).
 pub fn avx512f() -> bool {
     static FLAG: OnceLock<bool> = OnceLock::new();
     *FLAG.get_or_init(|| {
-        cap() >= Simd::Any && avx2_fma() && has(Feature::Avx512f) && has(Feature::Bmi2)
+        cap() >= Simd::Any
+            && avx2_fma()
+            && has(Feature::Avx512f)
+            && has(Feature::Bmi2)
+            && has(Feature::Popcnt)
     })
 }
 
@@ -68,6 +72,9 @@ enum Feature {
     /// Bit deposit and extract (`pdep`, `pext`), which the AVX-512F loops use beside the vectors;
     /// every CPU with AVX-512F has them.
     Bmi2,
+    /// The population count instruction, likewise (without it a bit count is a dozen shifts and
+    /// masks).
+    Popcnt,
 }
 
 /// Whether the CPU has `feature` (never off x86-64).
@@ -79,6 +86,7 @@ fn has(feature: Feature) -> bool {
             Feature::Fma => std::arch::is_x86_feature_detected!("fma"),
             Feature::Avx512f => std::arch::is_x86_feature_detected!("avx512f"),
             Feature::Bmi2 => std::arch::is_x86_feature_detected!("bmi2"),
+            Feature::Popcnt => std::arch::is_x86_feature_detected!("popcnt"),
         }
     }
     #[cfg(not(target_arch = "x86_64"))]

@@ -197,7 +197,7 @@ pub enum Form {
     Portable,
     /// Compiled with AVX2 + FMA; only where the CPU has them.
     Avx2,
-    /// Compiled with AVX-512F and BMI2; only where the CPU has them.
+    /// Compiled with AVX-512F, BMI2 and POPCNT; only where the CPU has them.
     Avx512,
 }
 
@@ -245,7 +245,7 @@ impl Form {
             // SAFETY: `Form::Avx2` is only built where the CPU has AVX2 and FMA (`detect`, `available`).
             Form::Avx2 => unsafe { x86::forward_avx2(a, b, line, step, rows, acc) },
             #[cfg(target_arch = "x86_64")]
-            // SAFETY: `Form::Avx512` is only built where the CPU has AVX-512F and BMI2.
+            // SAFETY: `Form::Avx512` is only built where the CPU has AVX-512F, BMI2 and POPCNT.
             Form::Avx512 => unsafe { x86::forward_avx512(a, b, line, step, rows, acc) },
             _ => forward_body(a, b, line, step, rows, acc),
         }

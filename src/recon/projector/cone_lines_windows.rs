@@ -94,8 +94,8 @@ fn span16(i: __m512i) -> (i32, i32, bool) {
 /// pattern `1` or `10` per lane, packed by a bit extract.
 ///
 /// # Safety
-/// Every index must lie inside both slices, and the CPU must have AVX-512F and BMI2.
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+/// Every index must lie inside both slices, and the CPU must have AVX-512F, BMI2 and POPCNT.
+#[target_feature(enable = "avx512f,avx2,fma,bmi2,popcnt")]
 pub(super) unsafe fn window_add(
     first: &mut [f32],
     second: &mut [f32],

@@ -218,7 +218,7 @@ unsafe fn no_scatter(_: &mut [f32], _: &mut [f32], _: __m256i, _: __m256, _: __m
 row_loops!(
     forward_avx512,
     back_avx512,
-    "avx512f,avx2,fma,bmi2",
+    "avx512f,avx2,fma,bmi2,popcnt",
     16,
     __m512,
     _mm512_set1_ps,
@@ -275,9 +275,9 @@ fn positions16(step: &PlaneStep, rows: __m512, hi: f32) -> (__m512i, __m512) {
 ///
 /// # Safety
 /// `first` and `second` hold at least `len ≥ 3` values each, the rows left are fewer than 16, and
-/// the CPU must have AVX-512F and BMI2.
+/// the CPU must have AVX-512F, BMI2 and POPCNT.
 #[allow(clippy::too_many_arguments)]
-#[target_feature(enable = "avx512f,avx2,fma,bmi2")]
+#[target_feature(enable = "avx512f,avx2,fma,bmi2,popcnt")]
 unsafe fn back_tail16(
     first: &mut [f32],
     second: &mut [f32],
