@@ -2,18 +2,23 @@
 //! criterion's wall-clock figures overstate the cost: CPU time (user + system of this process, from
 //! `/proc/self/stat`) divided by the thread count estimates the wall time on an idle machine.
 //!
-//! `cargo run --release --example analytic_timing -- [parallel|fan_arc|fan_flat|fdk128|fdk256] [runs]`;
-//! under `/usr/bin/time -v` the maximum resident set size is the peak memory.
+//! `cargo run --release --example analytic_timing -- [parallel|fan_arc|fan_flat|fdk128|fdk256|cone_pair] [runs]`;
+//! under `/usr/bin/time -v` the maximum resident set size is the peak memory. `cone_pair` times one
+//! forward and one back projection of the matched cone-beam pair, apart, on the peers' cone case
+//! (`benches/peers/`: 128³ of 1 mm from 360 views of 256², magnification 1.5), the two passes of
+//! every iteration of the cone-beam iterative methods.
 
 use std::time::Instant;
 
 use ctrecon::recon::algorithm::FbpParams;
 use ctrecon::recon::analytic::{fbp_2d, fdk};
+use ctrecon::recon::control::Cancel;
 use ctrecon::recon::control::unattended;
 use ctrecon::recon::geometry::{
     Angles, ConeBeam, FanBeam, FanDetector, Panel, ParallelBeam, Views2,
 };
 use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
+use ctrecon::recon::projector::{Operator, Projector3};
 use ndarray::{Array2, Array3};
 
 /// CPU seconds (user + system) used by this process so far; 0 where /proc is missing.
@@ -59,11 +64,70 @@ fn cone(n: usize) -> (ConeBeam, VolumeGrid) {
     (g, VolumeGrid::cube(n, 256.0 / n as f64))
 }
 
+/// CPU and wall seconds of `f`.
+fn timed(f: impl FnOnce()) -> (f64, f64) {
+    let (wall0, cpu0) = (Instant::now(), cpu_seconds());
+    f();
+    (cpu_seconds() - cpu0, wall0.elapsed().as_secs_f64())
+}
+
+/// One forward and one back projection of the peers' cone case, `runs` times, timed apart.
+fn cone_pair(runs: usize) {
+    let g = ConeBeam {
+        angles: Angles::uniform(360, 360.0),
+        dso_mm: 500.0,
+        dsd_mm: 750.0,
+        detector: Panel {
+            nu: 256,
+            nv: 256,
+            du_mm: 1.5,
+            dv_mm: 1.5,
+            offset_u_mm: 0.0,
+            offset_v_mm: 0.0,
+        },
+    };
+    let grid = VolumeGrid::cube(128, 1.0);
+    let views = g.to_views().expect("valid cone geometry");
+    let op = Projector3::new(&views, &grid);
+    let volume: Vec<f32> = (0..op.image_len())
+        .map(|i| ((i as f32 * 0.001).sin() + 1.0) * 0.01)
+        .collect();
+    let subset: Vec<usize> = (0..op.view_count()).collect();
+    let mut data = vec![0.0f32; op.view_count() * op.view_len()];
+    let mut back = vec![0.0f32; op.image_len()];
+    let cancel = Cancel::new();
+    let threads = rayon::current_num_threads();
+    for _ in 0..runs {
+        let f = timed(|| {
+            data.fill(0.0);
+            op.forward(&volume, &subset, &mut data, &cancel)
+                .expect("forward runs");
+        });
+        let b = timed(|| {
+            op.back(&data, &subset, &mut back, &cancel)
+                .expect("back runs");
+        });
+        println!(
+            "cone_pair ({threads} threads): forward CPU {:.3} s (wall {:.3} s), back CPU {:.3} s \
+             (wall {:.3} s); checksum {:.6e}",
+            f.0,
+            f.1,
+            b.0,
+            b.1,
+            back.iter().map(|&v| v as f64).sum::<f64>()
+        );
+    }
+}
+
 fn main() {
     ctrecon::config::limit_simd_from_env();
     let args: Vec<String> = std::env::args().collect();
     let case = args.get(1).map(String::as_str).unwrap_or("parallel");
     let runs: usize = args.get(2).and_then(|s| s.parse().ok()).unwrap_or(3);
+    if case == "cone_pair" {
+        cone_pair(runs);
+        return;
+    }
     let params = FbpParams::default();
     let threads = rayon::current_num_threads() as f64;
     let grid = ImageGrid::square(512, 0.5);
