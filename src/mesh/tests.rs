@@ -291,6 +291,12 @@ fn the_bitset_passes_give_the_mesh_of_the_byte_per_point_reference_exactly() {
     let got = marching_cubes(vol.view(), &frame, 0.0);
     let want = super::marching_reference::marching_cubes(vol.view(), &frame, 0.0);
     assert!(got.triangle_count() > 20_000, "{}", got.triangle_count());
+    // The form compiled without POPCNT (what a CPU without it runs) gives the same mesh.
+    let plain = super::marching::marching(vol.view(), &frame, 0.0);
+    assert_eq!(
+        (&plain.triangles, &plain.vertices),
+        (&want.triangles, &want.vertices)
+    );
     assert_eq!(
         (got.triangles, got.vertices),
         (want.triangles, want.vertices)
