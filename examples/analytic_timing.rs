@@ -6,7 +6,8 @@
 //! under `/usr/bin/time -v` the maximum resident set size is the peak memory. `cone_pair` times one
 //! forward and one back projection of the matched cone-beam pair, apart, on the peers' cone case
 //! (`benches/peers/`: 128³ of 1 mm from 360 views of 256², magnification 1.5), the two passes of
-//! every iteration of the cone-beam iterative methods.
+//! every iteration of the cone-beam iterative methods, and FDK of the same projections (its voxel-driven
+//! back projection of the same voxel updates, with the filtering).
 
 use std::time::Instant;
 
@@ -107,13 +108,22 @@ fn cone_pair(runs: usize) {
             op.back(&data, &subset, &mut back, &cancel)
                 .expect("back runs");
         });
+        // FDK of the same projections: a voxel-driven back projection of the same updates, with its
+        // filtering, for comparison with the matched back projection.
+        let proj = ndarray::ArrayView3::from_shape(views.shape(), &data[..]).expect("view shape");
+        let params = FbpParams::default();
+        let v = timed(|| {
+            fdk(&views, proj, &grid, &params, unattended()).expect("FDK runs");
+        });
         println!(
             "cone_pair ({threads} threads): forward CPU {:.3} s (wall {:.3} s), back CPU {:.3} s \
-             (wall {:.3} s); checksum {:.6e}",
+             (wall {:.3} s), FDK CPU {:.3} s (wall {:.3} s); checksum {:.6e}",
             f.0,
             f.1,
             b.0,
             b.1,
+            v.0,
+            v.1,
             back.iter().map(|&v| v as f64).sum::<f64>()
         );
     }
