@@ -41,6 +41,22 @@ pub fn fdk(
     fdk_with(views, proj, grid, params, ctl, None)
 }
 
+/// The voxel-driven back projection of FDK applied to the projections as they are, neither filtered
+/// nor pre-weighted: every voxel's centre is projected into every view, the view is sampled
+/// bilinearly there and weighted Δβ·D²/lc² (the angular step, the source distance, the distance of
+/// the voxel from the source along the central ray). It is not the transpose of the Joseph forward
+/// projector (which weights by the path of each ray through the voxel), but close to it up to a
+/// constant factor: the back projector RTK's iterative filters use by default. Same geometries,
+/// loops and speed as [`fdk`], without the filtering.
+pub fn back_project_voxels(
+    views: &Views3,
+    proj: ArrayView3<'_, f32>,
+    grid: &VolumeGrid,
+    ctl: Control<'_>,
+) -> Result<Array3<f32>, ReconError> {
+    run(views, proj, grid, &FbpParams::default(), ctl, None, false)
+}
+
 /// [`fdk`] with the backprojection loop forced (`Some(true)`: along z, which the geometry must allow;
 /// `Some(false)`: along x), for the tests that compare the two.
 pub(crate) fn fdk_with(
@@ -50,6 +66,19 @@ pub(crate) fn fdk_with(
     params: &FbpParams,
     ctl: Control<'_>,
     along_z: Option<bool>,
+) -> Result<Array3<f32>, ReconError> {
+    run(views, proj, grid, params, ctl, along_z, true)
+}
+
+/// FDK (`filtered`) or its back projection alone.
+fn run(
+    views: &Views3,
+    proj: ArrayView3<'_, f32>,
+    grid: &VolumeGrid,
+    params: &FbpParams,
+    ctl: Control<'_>,
+    along_z: Option<bool>,
+    filtered: bool,
 ) -> Result<Array3<f32>, ReconError> {
     grid.validate()?;
     params.validate()?;
@@ -97,7 +126,7 @@ pub(crate) fn fdk_with(
                 |(scratch, block), (b, panel)| {
                     ctl.check()?;
                     let ne = setup.ne;
-                    setup.filter_view(proj, first + b, scratch, |r, values| {
+                    let put = |r: usize, values: &[f32]| {
                         if columns {
                             // Rows arrive in order: a block is written once full or at the last row.
                             let i = r % ROW_BLOCK;
@@ -109,7 +138,12 @@ pub(crate) fn fdk_with(
                             let start = (r + PAD) * width + PAD;
                             panel[start..start + values.len()].copy_from_slice(values);
                         }
-                    });
+                    };
+                    if filtered {
+                        setup.filter_view(proj, first + b, scratch, put);
+                    } else {
+                        setup.raw_view(proj, first + b, put);
+                    }
                     Ok::<(), ReconError>(())
                 },
             )?;

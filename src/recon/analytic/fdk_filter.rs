@@ -109,6 +109,27 @@ impl Setup {
         }
     }
 
+    /// Every detector row of view `k` as it is, times the angular step and D² (the factors
+    /// [`Self::filter_view`] folds into its rows), on rows of `ne` values like the filtered ones,
+    /// handed to `put` in order from row 0.
+    pub(super) fn raw_view(
+        &self,
+        proj: ArrayView3<'_, f32>,
+        k: usize,
+        mut put: impl FnMut(usize, &[f32]),
+    ) {
+        let (nu, lo) = (self.det.nu, self.lo);
+        let post = (self.steps[k] * self.frames[k].dso * self.frames[k].dso) as f32;
+        let mut row = vec![0.0f32; self.ne];
+        for r in 0..self.det.nv {
+            let out = &mut row[lo..lo + nu];
+            for (o, d) in out.iter_mut().zip(proj.slice(ndarray::s![k, r, ..])) {
+                *o = d * post;
+            }
+            put(r, &row);
+        }
+    }
+
     /// Row `r` of view `k`, pre- and redundancy-weighted, into `input` (`ne` values: `lo` zeros, the
     /// row, zeros). `held` keeps a row copied out of a strided view and pre-weights computed for a view
     /// without the shared table.

@@ -63,6 +63,13 @@ pub fn fdk(
     fdk::fdk(views, projections, grid, params, ctl)
 }
 
+pub use fdk::back_project_voxels;
+
+/// Bytes [`back_project_voxels`] allocates besides its input: those of FDK with default parameters.
+pub fn back_project_voxels_bytes(views: &Views3, grid: &VolumeGrid) -> u64 {
+    fdk::estimate_bytes(views, grid, &FbpParams::default())
+}
+
 /// Bytes FBP or FDK allocates besides its input: the output, the filtered views (2D) or one filtered
 /// projection per thread (FDK), and per-thread filter buffers. Grids of the wrong dimensionality count
 /// zero (the dispatcher refuses them).
