@@ -325,9 +325,11 @@ async fn json_requests_with_bad_syntax_fields_or_values_are_refused_with_their_c
             5.0,
         )
         .await;
+    // The voxel-driven back projector takes cone beams only.
     for alg in [
         json!({"name": "fbp"}),
         json!({"name": "sirt", "initial": "fbp"}),
+        json!({"name": "cgls", "back_projector": "voxel"}),
     ] {
         let body = json!({"input": narrow, "algorithm": alg,
                           "grid": {"nx": 8, "ny": 8, "dx_mm": 1, "dy_mm": 1}});
@@ -338,6 +340,16 @@ async fn json_requests_with_bad_syntax_fields_or_values_are_refused_with_their_c
         )
         .await;
     }
+    let unknown_value = job(
+        json!({"name": "cgls", "back_projector": "joseph"}),
+        cube.clone(),
+    );
+    assert_problem(
+        app.post_json("/v1/jobs", &unknown_value).await,
+        422,
+        "invalid_request",
+    )
+    .await;
     let unknown_param = job(json!({"name": "fdk", "iterations": 3}), cube.clone());
     assert_problem(
         app.post_json("/v1/jobs", &unknown_param).await,

@@ -84,6 +84,7 @@ pub fn check_algorithm(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconE
         // those of the FBP that starts it when asked to.
         _ => {
             crate::recon::iterative::validate(spec, n_views)?;
+            crate::recon::iterative::check_views(spec, views)?;
             if starts_from_fbp(spec) {
                 crate::recon::analytic::check(views, &FbpParams::default())?;
             }

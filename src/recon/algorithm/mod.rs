@@ -13,7 +13,8 @@ mod run;
 pub use run::{check_grid, estimate_bytes, reconstruct};
 
 pub use crate::recon::iterative::params::{
-    ArtParams, CglsParams, InitialImage, MlemParams, SartParams, SirtParams, TvParams,
+    ArtParams, BackProjector, CglsParams, InitialImage, MlemParams, SartParams, SirtParams,
+    TvParams,
 };
 
 /// Apodisation window applied to the ramp filter (on normalised frequency w ∈ [0, π], cut-off d).

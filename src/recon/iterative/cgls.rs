@@ -1,13 +1,16 @@
-//! CGLS: conjugate gradients on the normal equations AᵀA x = Aᵀ b, without forming AᵀA.
+//! CGLS: conjugate gradients on the normal equations AᵀA x = Aᵀ b, without forming AᵀA; with a
+//! back projector B that is not Aᵀ ([`BackProjector::Voxel`]), conjugate gradients on B A x = B b
+//! ([`cg_normal`]).
 
 use super::ops::{axpy, converged, dot, forward_from, norm, report, residual_in_place};
-use super::params::CglsParams;
+use super::params::{BackProjector, CglsParams};
 use crate::recon::control::Control;
 use crate::recon::error::ReconError;
 use crate::recon::projector::Operator;
 
 /// Run CGLS from `x` (overwritten). The residual reported with iteration `k` is ‖A x_k − b‖, which
 /// CGLS decreases monotonically. Stops early when the search direction vanishes (exact solution).
+/// With [`BackProjector::Voxel`], `op`'s back side is that back projector and [`cg_normal`] runs.
 pub fn cgls(
     op: &dyn Operator,
     b: &[f32],
@@ -15,6 +18,9 @@ pub fn cgls(
     p: &CglsParams,
     ctl: &Control<'_>,
 ) -> Result<(), ReconError> {
+    if p.back_projector == BackProjector::Voxel {
+        return cg_normal(op, b, x, p, ctl);
+    }
     let all: Vec<usize> = (0..op.view_count()).collect();
     let b_norm = norm(b);
     let mut r = vec![0.0f32; b.len()];
@@ -48,6 +54,64 @@ pub fn cgls(
             break;
         }
         op.back(&r, &all, &mut s, ctl.cancel)?;
+        let gamma_new = dot(&s, &s);
+        let beta = (gamma_new / gamma) as f32;
+        gamma = gamma_new;
+        for (d, sv) in dir.iter_mut().zip(&s) {
+            *d = sv + beta * *d;
+        }
+        report(ctl, "cgls", k, p.iterations, res);
+    }
+    Ok(())
+}
+
+/// Conjugate gradients on B A x = B b, with `op`'s back side as B (RTK's conjugate gradient filter):
+/// the step is ⟨s, s⟩ / ⟨d, B A d⟩ for the residual s = B (b − A x) and the direction d. Where B = Aᵀ
+/// this is CGLS in exact arithmetic; where B is only close to Aᵀ up to a positive factor, B A is
+/// not symmetric and the iterates are no longer the least-squares ones, which is why it is an option
+/// and not the default. Each iteration takes one forward and one back projection, and one back
+/// projection of the data before the first. Reports ‖A x_k − b‖ like CGLS (no longer monotone) and
+/// stops on the same tolerance, or where a step would not be positive.
+fn cg_normal(
+    op: &dyn Operator,
+    b: &[f32],
+    x: &mut [f32],
+    p: &CglsParams,
+    ctl: &Control<'_>,
+) -> Result<(), ReconError> {
+    let all: Vec<usize> = (0..op.view_count()).collect();
+    let b_norm = norm(b);
+    let mut r = vec![0.0f32; b.len()];
+    forward_from(op, x, &all, &mut r, ctl)?;
+    residual_in_place(&mut r, b);
+    let mut s = vec![0.0f32; x.len()];
+    op.back(&r, &all, &mut s, ctl.cancel)?;
+    let mut dir = s.clone();
+    let mut gamma = dot(&s, &s);
+    let mut q = vec![0.0f32; b.len()];
+    let mut z = vec![0.0f32; x.len()];
+    for k in 1..=p.iterations {
+        ctl.check()?;
+        if gamma <= 0.0 {
+            report(ctl, "cgls", k, p.iterations, norm(&r));
+            break;
+        }
+        op.forward(&dir, &all, &mut q, ctl.cancel)?;
+        op.back(&q, &all, &mut z, ctl.cancel)?;
+        let curvature = dot(&dir, &z);
+        if curvature <= 0.0 || !curvature.is_finite() {
+            report(ctl, "cgls", k, p.iterations, norm(&r));
+            break;
+        }
+        let alpha = (gamma / curvature) as f32;
+        axpy(x, alpha, &dir);
+        axpy(&mut r, -alpha, &q);
+        axpy(&mut s, -alpha, &z);
+        let res = norm(&r);
+        if k == p.iterations || converged(p.tolerance, res, b_norm) {
+            report(ctl, "cgls", k, p.iterations, res);
+            break;
+        }
         let gamma_new = dot(&s, &s);
         let beta = (gamma_new / gamma) as f32;
         gamma = gamma_new;

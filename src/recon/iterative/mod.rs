@@ -21,6 +21,7 @@ pub mod params;
 mod sart;
 mod sirt;
 mod tv;
+mod voxel;
 
 use ndarray::{ArrayD, ArrayViewD, IxDyn};
 
@@ -57,6 +58,26 @@ pub fn validate(spec: &AlgorithmSpec, views: usize) -> Result<(), ReconError> {
             format!("`{}` is not an iterative method", spec.name()),
         )),
     }
+}
+
+/// Whether `spec` asks for the voxel-driven back projector ([`params::BackProjector::Voxel`]).
+fn voxel_back(spec: &AlgorithmSpec) -> bool {
+    matches!(spec, AlgorithmSpec::Cgls(p) if p.back_projector == params::BackProjector::Voxel)
+}
+
+/// What `spec` needs of the views beyond [`validate`]: the voxel-driven back projector is FDK's, so it
+/// takes the cone beams FDK takes.
+pub fn check_views(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconError> {
+    if !voxel_back(spec) {
+        return Ok(());
+    }
+    if !matches!(views, Views::D3(_)) {
+        return Err(ReconError::param(
+            "back_projector",
+            "`voxel` back-projects cone beams only; 2D geometries use `matched`",
+        ));
+    }
+    crate::recon::analytic::check(views, &crate::recon::algorithm::FbpParams::default())
 }
 
 fn sizes(views: &Views, grid: &OutputGrid) -> (u64, u64, u64) {
@@ -123,6 +144,11 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
             (Projector2::table_bytes(v), data + 1)
         }
         (Views::D2(_), _) => (0, data + 1),
+        (Views::D3(v), OutputGrid::Volume(g)) if voxel_back(spec) => (
+            cone_columns::work_bytes(v, g)
+                .saturating_add(crate::recon::analytic::back_project_voxels_bytes(v, g)),
+            data,
+        ),
         (Views::D3(v), OutputGrid::Volume(g)) => (cone_columns::work_bytes(v, g), data),
         (Views::D3(_), _) => (0, data),
     };
@@ -159,6 +185,7 @@ pub fn solve(
         });
     }
     limits.check(estimate_bytes(spec, views, grid))?;
+    check_views(spec, views)?;
     let (op, out_shape, shape3): (Box<dyn Operator + '_>, Vec<usize>, Shape3) = match (views, grid)
     {
         (Views::D2(v), OutputGrid::Image(g)) => {
@@ -179,8 +206,13 @@ pub fn solve(
         }
         (Views::D3(v), OutputGrid::Volume(g)) => {
             g.validate()?;
+            let op: Box<dyn Operator + '_> = if voxel_back(spec) {
+                Box::new(voxel::VoxelBack3::new(v, g))
+            } else {
+                Box::new(Projector3::new(v, g))
+            };
             (
-                Box::new(Projector3::new(v, g)),
+                op,
                 g.shape().to_vec(),
                 Shape3 {
                     nz: g.nz,
