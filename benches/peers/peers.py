@@ -14,7 +14,8 @@ Gaussian noise of 1 % of their largest value added (fixed seed, one `.npy` both 
 runs each of them twice: with its default projector pair (`rtk`: Joseph forward projection, voxel-based
 back projection, which is not the forward projection's transpose) and with its matched pair
 (`rtk_joseph`: Joseph forward and Joseph back projection, the transpose), which is the pair ctrecon's
-iterative methods use.
+iterative methods use by default; the rows "..., voxel-driven back projection" run ctrecon's CGLS with
+`"back_projector": "voxel"` (RTK's default pair, conjugate gradients on B A x = B b) beside RTK's default.
 
 Timing: ctrecon is timed as a whole process (read the `.npy`, reconstruct, write the `.npy`); the
 peers only around their reconstruction call (data already in memory, imports done), which favours
@@ -120,6 +121,10 @@ def cases(quick):
             case = dict(cone_case(*cone), noise=noise)
             out.append(("cone %s x10, %d³ from %d x %d²%s" % ((name,) + cone + (tail,)), case, algorithm,
                         {"iterations": 10}, ["rtk", "rtk_joseph"]))
+        # ctrecon with RTK's default pair (voxel-driven back projection) beside RTK's default.
+        case = dict(cone_case(*cone), noise=noise)
+        out.append(("cone CGLS x10, %d³ from %d x %d²%s, voxel-driven back projection" % (cone + (tail,)), case,
+                    "cgls", {"iterations": 10, "back_projector": "voxel"}, ["rtk"]))
     return out
 
 
