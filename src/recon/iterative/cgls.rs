@@ -21,15 +21,14 @@ pub fn cgls(
     if p.back_projector == BackProjector::Voxel {
         return cg_normal(op, b, x, p, ctl);
     }
-    let all: Vec<usize> = (0..op.view_count()).collect();
-    let b_norm = norm(b);
-    let mut r = vec![0.0f32; b.len()];
-    forward_from(op, x, &all, &mut r, ctl)?;
-    residual_in_place(&mut r, b);
-    let mut s = vec![0.0f32; x.len()];
-    op.back(&r, &all, &mut s, ctl.cancel)?;
-    let mut dir = s.clone();
-    let mut gamma = dot(&s, &s);
+    let Start {
+        all,
+        b_norm,
+        mut r,
+        mut s,
+        mut dir,
+        mut gamma,
+    } = Start::new(op, b, x, ctl)?;
     let mut q = vec![0.0f32; b.len()];
     for k in 1..=p.iterations {
         ctl.check()?;
@@ -57,12 +56,48 @@ pub fn cgls(
         let gamma_new = dot(&s, &s);
         let beta = (gamma_new / gamma) as f32;
         gamma = gamma_new;
-        for (d, sv) in dir.iter_mut().zip(&s) {
-            *d = sv + beta * *d;
-        }
+        turn(&mut dir, &s, beta);
         report(ctl, "cgls", k, p.iterations, res);
     }
     Ok(())
+}
+
+/// What both iterations start from: every view, ‖b‖, the data residual r = b − A x, the back-projected
+/// residual s = B r, the first direction (s) and ⟨s, s⟩.
+struct Start {
+    all: Vec<usize>,
+    b_norm: f64,
+    r: Vec<f32>,
+    s: Vec<f32>,
+    dir: Vec<f32>,
+    gamma: f64,
+}
+
+impl Start {
+    fn new(op: &dyn Operator, b: &[f32], x: &[f32], ctl: &Control<'_>) -> Result<Self, ReconError> {
+        let all: Vec<usize> = (0..op.view_count()).collect();
+        let b_norm = norm(b);
+        let mut r = vec![0.0f32; b.len()];
+        forward_from(op, x, &all, &mut r, ctl)?;
+        residual_in_place(&mut r, b);
+        let mut s = vec![0.0f32; x.len()];
+        op.back(&r, &all, &mut s, ctl.cancel)?;
+        Ok(Start {
+            all,
+            b_norm,
+            dir: s.clone(),
+            gamma: dot(&s, &s),
+            r,
+            s,
+        })
+    }
+}
+
+/// The next direction: `dir = s + beta·dir`.
+fn turn(dir: &mut [f32], s: &[f32], beta: f32) {
+    for (d, sv) in dir.iter_mut().zip(s) {
+        *d = sv + beta * *d;
+    }
 }
 
 /// Conjugate gradients on B A x = B b, with `op`'s back side as B (RTK's conjugate gradient filter):
@@ -79,15 +114,14 @@ fn cg_normal(
     p: &CglsParams,
     ctl: &Control<'_>,
 ) -> Result<(), ReconError> {
-    let all: Vec<usize> = (0..op.view_count()).collect();
-    let b_norm = norm(b);
-    let mut r = vec![0.0f32; b.len()];
-    forward_from(op, x, &all, &mut r, ctl)?;
-    residual_in_place(&mut r, b);
-    let mut s = vec![0.0f32; x.len()];
-    op.back(&r, &all, &mut s, ctl.cancel)?;
-    let mut dir = s.clone();
-    let mut gamma = dot(&s, &s);
+    let Start {
+        all,
+        b_norm,
+        mut r,
+        mut s,
+        mut dir,
+        mut gamma,
+    } = Start::new(op, b, x, ctl)?;
     let mut q = vec![0.0f32; b.len()];
     let mut z = vec![0.0f32; x.len()];
     for k in 1..=p.iterations {
@@ -115,9 +149,7 @@ fn cg_normal(
         let gamma_new = dot(&s, &s);
         let beta = (gamma_new / gamma) as f32;
         gamma = gamma_new;
-        for (d, sv) in dir.iter_mut().zip(&s) {
-            *d = sv + beta * *d;
-        }
+        turn(&mut dir, &s, beta);
         report(ctl, "cgls", k, p.iterations, res);
     }
     Ok(())
