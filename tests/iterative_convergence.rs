@@ -62,7 +62,7 @@ fn solve_with(
     (x, log.into_inner().unwrap())
 }
 
-fn rel_error(x: &ArrayD<f32>, truth: &Array2<f32>) -> f64 {
+fn rel_error<D: ndarray::Dimension>(x: &ArrayD<f32>, truth: &ndarray::Array<f32, D>) -> f64 {
     let num: f64 = x
         .iter()
         .zip(truth.iter())
@@ -399,13 +399,7 @@ fn cone_beam_cgls_fits_the_data_of_a_small_volume() {
         unattended(),
     )
     .unwrap();
-    let num: f64 = x
-        .iter()
-        .zip(truth.iter())
-        .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
-        .sum();
-    let den: f64 = truth.iter().map(|b| (*b as f64).powi(2)).sum();
-    let e = (num / den).sqrt();
+    let e = rel_error(&x, &truth);
     println!("cone CGLS×100 on 16³: relative error {e:.4}");
     assert!(e < 0.1, "relative error {e}");
 }
@@ -455,13 +449,7 @@ fn cone_beam_cg_with_the_voxel_driven_back_projector_reconstructs_like_the_match
             Control::new(&cancel, &progress),
         )
         .unwrap();
-        let num: f64 = x
-            .iter()
-            .zip(truth.iter())
-            .map(|(a, b)| (*a as f64 - *b as f64).powi(2))
-            .sum();
-        let den: f64 = truth.iter().map(|b| (*b as f64).powi(2)).sum();
-        ((num / den).sqrt(), x, log.into_inner().unwrap())
+        (rel_error(&x, &truth), x, log.into_inner().unwrap())
     };
     let (matched, xm, _) = run(BackProjector::Matched);
     let (voxel, xv, log) = run(BackProjector::Voxel);

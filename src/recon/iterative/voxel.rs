@@ -1,7 +1,8 @@
 //! The cone-beam operator pair with the voxel-driven back projector ([`BackProjector::Voxel`]): the
 //! Joseph forward projection of [`Projector3`] and, as its "back" side, FDK's back projection of
 //! the unfiltered data ([`back_project_voxels`]), which is not the transpose of the forward
-//! projection. Only the conjugate gradients on B A x = B b use it (`cgls::cg_normal`).
+//! projection. Only the conjugate gradients on B A x = B b use it ([`super::cgls::cgls`] with
+//! `back_projector: voxel`).
 //!
 //! [`BackProjector::Voxel`]: super::params::BackProjector::Voxel
 
