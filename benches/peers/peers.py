@@ -122,7 +122,7 @@ def cases(quick):
             out.append(("cone %s x10, %d³ from %d x %d²%s" % ((name,) + cone + (tail,)), case, algorithm,
                         {"iterations": 10}, ["rtk", "rtk_joseph"]))
         # ctrecon with RTK's default pair (voxel-driven back projection) beside RTK's default.
-        case = dict(cone_case(*cone), noise=noise)
+        case = dict(cone_case(*cone), noise=noise, output="_voxel")
         out.append(("cone CGLS x10, %d³ from %d x %d²%s, voxel-driven back projection" % (cone + (tail,)), case,
                     "cgls", {"iterations": 10, "back_projector": "voxel"}, ["rtk"]))
     return out
@@ -353,7 +353,7 @@ def case_files(case, algorithm, work):
         run_ctrecon(["phantom", "--dims", str(case["dims"]), "--size", str(n), "--fov-mm", str(n),
                      "--supersample", "4" if case["dims"] == 2 else "2", "--out", ref_path])
     data, ref = np.load(data_path), np.load(ref_path)
-    out = os.path.join(work, tag + "_ctrecon.npy")
+    out = os.path.join(work, tag + case.get("output", "") + "_ctrecon.npy")
     grid = os.path.join(work, tag + "_grid.json")
     with open(grid, "w") as f:
         if case["dims"] == 2:
