@@ -8,6 +8,8 @@
 //! - [`unpack`]: an upload body (a single file or a ZIP, with bomb limits; names inside the ZIP are labels,
 //!   never paths) into named byte buffers; [`read_upload`] decodes them in parallel and splits them by
 //!   SeriesInstanceUID into [`SeriesGroup`]s, each with a [`SeriesReport`] and [`SeriesGroup::assemble`].
+//! - [`declared`]: what a file's pixels will cost once decoded, from its header alone (reserved before
+//!   decoding, so that compressed input cannot escape the memory budget).
 //! - [`unpack_file`] / [`read_upload_files`]: the same from files on disk, ZIP members inflated one by one
 //!   into a scratch directory and refused one by one (what the service uses: nothing is held whole).
 //! - Writers: [`write_ct_series`] (a volume as a derived CT series), [`write_enhanced_ct`] (one multi-frame
@@ -23,6 +25,7 @@
 //! Every failure is a [`DicomError`] with a stable [`DicomError::code`].
 
 mod contain;
+mod declared;
 mod decompress;
 mod error;
 mod framing;
@@ -43,6 +46,7 @@ mod web;
 mod write;
 
 pub use contain::panic_is_contained;
+pub use declared::{Declared, MAX_LEADING_BYTES, declared};
 pub use decompress::{explicit_le_bytes, transcodable_to_explicit_le};
 pub use error::DicomError;
 #[doc(hidden)]

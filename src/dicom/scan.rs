@@ -330,6 +330,57 @@ enum Open {
 /// of the top level. Stops without a defect where the bytes end inside a header or where the structure is
 /// one the parser refuses by itself.
 pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
+    walk(d, enc, |_, _| false).map(|w| w.end)
+}
+
+/// Top-level elements as [`leading`] finds them: tag and value bytes.
+pub(super) type Leading<'a> = Vec<((u16, u16), &'a [u8])>;
+
+/// The top-level elements of defined length of a data set's leading groups (up to and including
+/// `last_group`), walked as [`dataset`] walks them: tag and value bytes, in file order. `Ok(None)` when `d`
+/// ends before an element past `last_group` (or Pixel Data) is met: `d` may be a prefix of the data set, and
+/// whether a longer one would do is the caller's call. A defect found on the way is a defect of the prefix,
+/// which may only mean that it was cut (an [`Defect::Overrun`]).
+pub(super) fn leading(
+    d: &[u8],
+    enc: Encoding,
+    last_group: u16,
+) -> Result<Option<Leading<'_>>, Defect> {
+    let mut elements = Vec::new();
+    let walked = walk(d, enc, |h, start| {
+        if h.tag.0 > last_group || h.tag == (0x7FE0, 0x0010) {
+            return true;
+        }
+        if let Some(value) = (h.len != UNDEFINED && !h.sequence)
+            .then(|| d.get(start..start.checked_add(h.len as usize)?))
+            .flatten()
+        {
+            elements.push((h.tag, value));
+        }
+        false
+    })?;
+    Ok(walked.stopped.then_some(elements))
+}
+
+/// Where a walk ended: the bytes to parse, and whether the visitor stopped it before a top-level element.
+struct Walked {
+    end: usize,
+    stopped: bool,
+}
+
+/// The walk of [`dataset`]; `stop` sees the header and value offset of every top-level element before its
+/// length is checked, and ends the walk there by answering true.
+fn walk(
+    d: &[u8],
+    enc: Encoding,
+    mut stop: impl FnMut(&Header, usize) -> bool,
+) -> Result<Walked, Defect> {
+    let ran_out = |end| {
+        Ok(Walked {
+            end,
+            stopped: false,
+        })
+    };
     // Open containers with the offset where a defined length ends them.
     let mut open: Vec<(Open, Option<usize>)> = Vec::new();
     let mut p = 0usize;
@@ -342,17 +393,23 @@ pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
         }
         let top = open.last().map(|o| o.0);
         if top.is_none() && p < d.len() && d[p..].iter().all(|&b| b == 0) {
-            return Ok(p);
+            return ran_out(p);
         }
         let Some(h) = header(d, p, enc) else {
-            return Ok(d.len());
+            return ran_out(d.len());
         };
         if top.is_none() && h.tag == (0xFFFC, 0xFFFC) {
-            return Ok(p);
+            return ran_out(p);
         }
         let start = p + h.size;
         let left = d.len().saturating_sub(start);
         let defined = h.len != UNDEFINED;
+        if top.is_none() && h.tag.0 != 0xFFFE && stop(&h, start) {
+            return Ok(Walked {
+                end: p,
+                stopped: true,
+            });
+        }
         if defined && h.len as usize > left {
             return Err(Defect::Overrun {
                 tag: h.tag,
@@ -369,7 +426,7 @@ pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
                     open.pop();
                     p = start;
                 }
-                _ => return Ok(d.len()),
+                _ => return ran_out(d.len()),
             },
             Some(Open::Sequence) => match h.tag {
                 (0xFFFE, 0xE000) => {
@@ -380,7 +437,7 @@ pub(super) fn dataset(d: &[u8], enc: Encoding) -> Result<usize, Defect> {
                     open.pop();
                     p = start;
                 }
-                _ => return Ok(d.len()),
+                _ => return ran_out(d.len()),
             },
             None | Some(Open::Item) => {
                 if h.tag == (0xFFFE, 0xE00D) {

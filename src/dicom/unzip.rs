@@ -264,7 +264,7 @@ pub fn unpack_file(
 /// Whether `head` (the first bytes of a file) can start DICOM: a Part 10 file (`DICM` after the preamble or
 /// first), or a raw data set whose first element is in the file meta (0002) or identification (0008) group,
 /// little or big endian (what the reader's framing accepts).
-fn may_be_dicom(head: &[u8], len: u64) -> bool {
+pub(super) fn may_be_dicom(head: &[u8], len: u64) -> bool {
     let group = |b: &[u8]| {
         [
             u16::from_le_bytes([b[0], b[1]]),

@@ -280,11 +280,21 @@ impl BlobStore {
     /// Write `bytes` to a temporary file and sync it; [`commit`](Self::commit) moves it into place once its
     /// database row exists (so a crash leaves a row without a file, never a file without a row).
     pub fn write_temp(&self, bytes: &[u8]) -> io::Result<TempBlob> {
+        self.write_temp_with(|f| f.write_all(bytes))
+            .map(|(temp, ())| temp)
+    }
+
+    /// [`write_temp`](Self::write_temp) of what `write` writes through a 64 KiB buffer (the file is removed
+    /// when it fails).
+    pub fn write_temp_with<T>(
+        &self,
+        write: impl FnOnce(&mut io::BufWriter<fs::File>) -> io::Result<T>,
+    ) -> io::Result<(TempBlob, T)> {
         let temp = self.temp();
-        let mut f = fs::File::create(temp.path())?;
-        f.write_all(bytes)?;
-        f.sync_all()?;
-        Ok(temp)
+        let mut f = io::BufWriter::with_capacity(64 << 10, fs::File::create(temp.path())?);
+        let out = write(&mut f)?;
+        f.into_inner().map_err(|e| e.into_error())?.sync_all()?;
+        Ok((temp, out))
     }
 
     /// [`commit`](Self::commit) off the async runtime.

@@ -87,3 +87,50 @@ fn a_binary_value_that_is_not_a_whole_number_of_values_is_refused() {
     d = vec![0x28, 0x00, 0x02, 0x01, 2, 0, 0, 0, 7, 0];
     assert_eq!(dataset(&d, implicit), Ok(d.len()));
 }
+
+#[test]
+fn the_leading_walk_collects_the_image_attributes_and_stops_at_the_pixel_data_whatever_it_declares()
+{
+    let mut d = Vec::new();
+    // (0008,1140) SQ of undefined length holding one item with a (0008,1150) UI: skipped, not collected.
+    d.extend_from_slice(&[
+        0x08, 0x00, 0x40, 0x11, b'S', b'Q', 0, 0, 0xFF, 0xFF, 0xFF, 0xFF,
+    ]);
+    d.extend_from_slice(&[0xFE, 0xFF, 0x00, 0xE0, 0xFF, 0xFF, 0xFF, 0xFF]);
+    d.extend_from_slice(&[0x08, 0x00, 0x50, 0x11, b'U', b'I', 2, 0, b'1', 0]);
+    d.extend_from_slice(&[0xFE, 0xFF, 0x0D, 0xE0, 0, 0, 0, 0]);
+    d.extend_from_slice(&[0xFE, 0xFF, 0xDD, 0xE0, 0, 0, 0, 0]);
+    // (0028,0010) Rows = 8192, (0028,0011) Columns = 8192.
+    d.extend_from_slice(&[0x28, 0x00, 0x10, 0x00, b'U', b'S', 2, 0, 0x00, 0x20]);
+    d.extend_from_slice(&[0x28, 0x00, 0x11, 0x00, b'U', b'S', 2, 0, 0x00, 0x20]);
+    let header_len = d.len();
+    // (7FE0,0010) OW declaring 128 MiB, of which this prefix holds 16 bytes.
+    d.extend_from_slice(&[0xE0, 0x7F, 0x10, 0x00, b'O', b'W', 0, 0]);
+    d.extend_from_slice(&(128u32 << 20).to_le_bytes());
+    d.extend_from_slice(&[0u8; 16]);
+    assert!(
+        dataset(&d, EXPLICIT).is_err(),
+        "the whole walk sees the overrun"
+    );
+    let got = leading(&d, EXPLICIT, 0x0028).expect("no defect before the pixel data");
+    assert_eq!(
+        got,
+        Some(vec![
+            ((0x0028, 0x0010), &[0x00u8, 0x20][..]),
+            ((0x0028, 0x0011), &[0x00u8, 0x20][..]),
+        ])
+    );
+    // A prefix cut before the walk leaves group 0028 answers nothing found yet.
+    assert_eq!(leading(&d[..header_len - 4], EXPLICIT, 0x0028), Ok(None));
+    // A cut inside a value of the leading groups is an overrun of the prefix.
+    let mut long = vec![0x10, 0x00, 0x10, 0x00, b'P', b'N', 0, 0];
+    long[6..8].copy_from_slice(&1000u16.to_le_bytes());
+    long.extend_from_slice(&[b'A'; 10]);
+    assert!(matches!(
+        leading(&long, EXPLICIT, 0x0028),
+        Err(Defect::Overrun {
+            tag: (0x0010, 0x0010),
+            ..
+        })
+    ));
+}
