@@ -327,7 +327,7 @@ impl From<&crate::series::SeriesError> for ErrorCode {
             E::MissingSlices { .. } => ErrorCode::SeriesMissingSlices,
             E::UnevenSpacing { .. } => ErrorCode::SeriesUnevenSpacing,
             E::SpacingJump { .. } => ErrorCode::SeriesSpacingJump,
-            E::TooLarge { .. } => ErrorCode::SeriesTooLarge,
+            E::TooLarge { .. } | E::OverBudget { .. } => ErrorCode::SeriesTooLarge,
             E::Canceled => ErrorCode::Internal,
         }
     }

@@ -57,4 +57,7 @@ pub mod names {
     pub const RUNNING_HERE: &str = "ctrecon_jobs_running_here";
     /// Bytes of the memory budget that uploads being assembled hold now (beside the running jobs').
     pub const MEMORY_RESERVED: &str = "ctrecon_memory_reserved_bytes";
+    /// DICOM series assembled from received or uploaded files, by `outcome`: `ready`, `refused`, or
+    /// `refused_unread` (refused from their headers, before any pixel was decoded).
+    pub const SERIES_INGESTED: &str = "ctrecon_series_ingested_total";
 }

@@ -6,6 +6,7 @@
 //! to its own wire form (the HTTP layer to problem+json, in one place).
 
 pub mod arrivals;
+mod decoding;
 pub mod deliveries;
 pub mod dicom_caller;
 pub mod dicomweb;

@@ -2,7 +2,7 @@
 //! whole set of received instances as one completed upload — what an HTTP upload and the DICOM node share —
 //! and fetch or delete a stored series.
 
-use std::path::PathBuf;
+use std::sync::Arc;
 
 use serde_json::{Value, json};
 
@@ -11,13 +11,14 @@ use super::{App, AppError, AppResult};
 use crate::dicom::{ReadLimits, UploadFile, ZipLimits};
 use crate::error_code::ErrorCode;
 use crate::jobs::SeriesRecord;
-use crate::jobs::ingest::{IngestOptions, Ingested, Staged, ingest};
+use crate::jobs::ingest::{IngestOptions, Ingested, Staged, ingest_series, prepare};
 use crate::jobs::model::rfc3339;
 use crate::jobs::repo::Deleted;
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::sweep::BlobKind;
 use crate::storage::{SeriesId, UploadId};
+use crate::telemetry::names;
 
 /// The JSON document of a stored series (also part of an upload's outcome).
 pub fn series_json(r: &SeriesRecord) -> Value {
@@ -100,8 +101,14 @@ impl App {
         }
     }
 
-    /// Decode and assemble `files` (on disk; read, never moved) on the pool; the volumes are staged, not
-    /// yet in place.
+    /// Decode and assemble `files` (on disk; read, never moved) on the pool, one series at a time; the
+    /// volumes are staged, not yet in place.
+    ///
+    /// What a series holds in memory is known from its files' headers before anything is decoded
+    /// ([`crate::jobs::ingest::DeclaredSeries::memory_bytes`]): a series that could never fit the memory budget is refused
+    /// (`series_too_large`) unread, and every other one is decoded only once that much of the budget is
+    /// reserved — whichever door the files came through (uploads, the DICOM node, STOW-RS), and however
+    /// small they are on disk.
     pub async fn ingest_files(
         &self,
         id: UploadId,
@@ -110,26 +117,59 @@ impl App {
     ) -> AppResult<(Ingested, Staged)> {
         let store = self.store.clone();
         let opts = self.ingest_options(uneven);
-        // The stored slices and the f32 volume are held while assembling: about three times the bytes of
-        // uncompressed 16-bit slices (a compressed series may hold more than this estimate).
-        let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
-        let on_disk = tokio::task::spawn_blocking(move || {
-            paths
-                .iter()
-                .filter_map(|p| std::fs::metadata(p).ok())
-                .map(|m| m.len())
-                .sum::<u64>()
-        })
-        .await
-        .unwrap_or(0);
-        let _held = self.engine.reserve_memory(on_disk.saturating_mul(3)).await;
-        Ok(self
+        let prepared = self
             .engine
             .compute(move || {
                 let cancel = Cancel::new();
-                ingest(&store, id, files, &opts, Control::new(&cancel, &NoProgress))
+                prepare(&store, files, &opts, Control::new(&cancel, &NoProgress))
             })
-            .await?)
+            .await?;
+        let budget = self.settings.memory_budget_bytes;
+        let threads = self.settings.resolved_worker_threads();
+        let mut ingested = Ingested {
+            series: Vec::new(),
+            rejected: prepared.rejected.clone(),
+        };
+        let mut staged = Staged::default();
+        let prepared = Arc::new(prepared);
+        for i in 0..prepared.series.len() {
+            let series = &prepared.series[i];
+            if let Some(refused) = series.refusal(opts.max_voxels, budget, threads) {
+                tracing::warn!(series_uid = %series.series_uid, instances = series.instances(), "series refused from its headers");
+                metrics::counter!(names::SERIES_INGESTED, "outcome" => "refused_unread")
+                    .increment(1);
+                ingested.series.push(refused);
+                continue;
+            }
+            let _held = self
+                .engine
+                .reserve_memory(series.memory_bytes(threads))
+                .await;
+            let (store, prepared) = (self.store.clone(), prepared.clone());
+            let done = self
+                .engine
+                .compute(move || {
+                    let cancel = Cancel::new();
+                    let ctl = Control::new(&cancel, &NoProgress);
+                    ingest_series(&store, id, &prepared.series[i], &opts, ctl)
+                })
+                .await;
+            match done {
+                Ok((more, more_staged)) => {
+                    for s in &more.series {
+                        metrics::counter!(names::SERIES_INGESTED, "outcome" => s.status)
+                            .increment(1);
+                    }
+                    ingested.append(more);
+                    staged.append(more_staged);
+                }
+                Err(e) => {
+                    staged.discard().await;
+                    return Err(e.into());
+                }
+            }
+        }
+        Ok((ingested, staged))
     }
 
     /// Assemble a complete set of received instances and record it as one completed upload, its series

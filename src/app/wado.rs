@@ -192,15 +192,12 @@ impl App {
     /// engine's memory budget while they exist).
     pub async fn instance_explicit_le(&self, i: &StoredInstance) -> AppResult<Vec<u8>> {
         let (path, max) = (self.instance_file(i), self.instance_limit());
-        let compressed = i.instance.transfer_syntax != EXPLICIT_LE
-            && !crate::dicom::le_interchangeable(&i.instance.transfer_syntax, EXPLICIT_LE);
-        // The file, its decoded pixels (up to 20 × a compressed file) and the answer.
-        let held = if compressed {
-            i.instance.bytes.saturating_mul(22)
-        } else {
-            i.instance.bytes.saturating_mul(3)
-        };
-        let _held = self.engine.reserve_memory(held).await;
+        // Decoding, and the answer: the file with its pixels decoded.
+        let _held = self
+            .reserve_decoding(path.clone(), &i.instance.sop_instance_uid, |d| {
+                d.file_bytes.saturating_add(d.decoded_bytes)
+            })
+            .await?;
         Ok(self
             .engine
             .compute(move || {
@@ -238,6 +235,12 @@ impl App {
         how: Rendering,
     ) -> AppResult<Vec<u8>> {
         let path = self.instance_file(i);
+        // Decoding, and the frame in HU with its viewport.
+        let _held = self
+            .reserve_decoding(path.clone(), &i.instance.sop_instance_uid, |d| {
+                d.kept_bytes().saturating_mul(2)
+            })
+            .await?;
         Ok(self
             .engine
             .compute(move || {

@@ -139,7 +139,7 @@ pub struct SeriesGroup {
 }
 
 /// A summary of one series for the client.
-#[derive(Debug, Clone, PartialEq, Serialize)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize)]
 pub struct SeriesReport {
     pub series_uid: String,
     pub study_uid: Option<String>,

@@ -173,6 +173,17 @@ pub enum SeriesError {
     },
     #[error("the volume would have {voxels} voxels, more than the limit of {limit}")]
     TooLarge { voxels: usize, limit: usize },
+    #[error(
+        "its headers declare {samples} samples: decoding and assembling them would hold about {} MiB, more than \
+         the memory budget of {} MiB (memory_budget_bytes)",
+        bytes.div_ceil(1 << 20),
+        budget >> 20
+    )]
+    OverBudget {
+        samples: u64,
+        bytes: u64,
+        budget: u64,
+    },
     #[error("canceled")]
     Canceled,
 }
@@ -192,7 +203,7 @@ impl SeriesError {
             SeriesError::MissingSlices { .. } => "series_missing_slices",
             SeriesError::UnevenSpacing { .. } => "series_uneven_spacing",
             SeriesError::SpacingJump { .. } => "series_spacing_jump",
-            SeriesError::TooLarge { .. } => "series_too_large",
+            SeriesError::TooLarge { .. } | SeriesError::OverBudget { .. } => "series_too_large",
             SeriesError::Canceled => "canceled",
         }
     }

@@ -131,6 +131,9 @@ impl App {
             label: "the instance".to_string(),
             path: body.path().to_path_buf(),
         };
+        let _held = self
+            .reserve_decoding(file.path.clone(), &file.label, |_| 0)
+            .await?;
         Ok(self
             .engine
             .compute(move || {
