@@ -417,6 +417,26 @@ fn zip_with(
     zip.finish().unwrap().into_inner()
 }
 
+/// `zip` with the uncompressed size of member `name` declared as `size` in its local header and its central
+/// directory entry (what a lying archive does).
+fn declare_size(mut zip: Vec<u8>, name: &str, size: u32) -> Vec<u8> {
+    let mut patched = 0;
+    for (signature, size_at, name_at) in [(b"PK\x03\x04", 22, 30), (b"PK\x01\x02", 24, 46)] {
+        let mut i = 0;
+        while i + name_at + name.len() <= zip.len() {
+            if &zip[i..i + 4] == signature
+                && &zip[i + name_at..i + name_at + name.len()] == name.as_bytes()
+            {
+                zip[i + size_at..i + size_at + 4].copy_from_slice(&size.to_le_bytes());
+                patched += 1;
+            }
+            i += 1;
+        }
+    }
+    assert_eq!(patched, 2, "the member's two headers");
+    zip
+}
+
 #[tokio::test]
 async fn zip_bombs_oversized_members_and_climbing_names_are_refused_member_by_member() {
     let _alone = EXCLUSIVE.write().await;
@@ -468,6 +488,29 @@ async fn zip_bombs_oversized_members_and_climbing_names_are_refused_member_by_me
         "zip_limits_exceeded",
     )
     .await;
+
+    // A member that declares 1 KiB and inflates to 64 MiB (within the ratio cap of its compressed size) is
+    // refused at the size it declares, not inflated to the caps.
+    let liar = zip_with(&good, |z| {
+        z.start_file("liar.dcm", zip::write::SimpleFileOptions::default())
+            .unwrap();
+        for _ in 0..64 {
+            z.write_all(&vec![0u8; MIB]).unwrap();
+        }
+    });
+    let liar = declare_size(liar, "liar.dcm", 1024);
+    let r = post(&app, "/v1/series", "application/zip", liar).await;
+    assert_eq!(r.status(), 201);
+    let v: Value = r.json().await.unwrap();
+    assert_eq!(
+        rejected(&v),
+        [("liar.dcm".to_string(), "zip_limits_exceeded".to_string())]
+    );
+    let detail = v["rejected"][0]["detail"].as_str().unwrap();
+    assert!(
+        detail.contains("inflates past the 1024 bytes it declares"),
+        "{detail}"
+    );
 
     // An archive whose end record declares 65 534 entries is refused before they are read.
     let mut many = write_zip(&good).unwrap();

@@ -189,7 +189,13 @@ pub fn unpack_file(
             refuse(out, label, bomb(reason));
             continue;
         }
-        let allowed = limits.max_member_bytes.min(by_ratio).min(left);
+        // A member inflates no further than it declares: one that lies about its size is refused at that
+        // size, not at the ratio cap.
+        let allowed = limits
+            .max_member_bytes
+            .min(by_ratio)
+            .min(left)
+            .min(declared);
         let path = scratch.join(format!("m{}", out.files.len()));
         let mut dest = File::create(&path).map_err(|e| io_error(&label, e))?;
         let mut written: u64 = 0;
@@ -212,7 +218,9 @@ pub fn unpack_file(
             written += n as u64;
             if written > allowed {
                 break Err(bomb(
-                    if left <= by_ratio && left <= limits.max_member_bytes {
+                    if declared < left.min(by_ratio).min(limits.max_member_bytes) {
+                        format!("entry {label} inflates past the {declared} bytes it declares")
+                    } else if left <= by_ratio && left <= limits.max_member_bytes {
                         format!("more than {} bytes once inflated", limits.max_total_bytes)
                     } else if limits.max_member_bytes <= by_ratio {
                         format!(
