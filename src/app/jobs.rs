@@ -2,6 +2,7 @@
 
 use super::App;
 use super::error::{AppError, AppResult, refused};
+use super::hints::misplaced_fields;
 use super::idempotency::{Replay, settle};
 use crate::error_code::ErrorCode;
 use crate::jobs::imaging::{VolumeShape, plan, resolve_input};
@@ -75,6 +76,7 @@ impl App {
         let budget = self.settings.memory_budget_bytes;
         match kind.as_deref() {
             Some(KIND_VOLUME) => {
+                misplaced_fields(&body, true)?;
                 let req: VolumeJobRequest = parse(body)?;
                 crate::jobs::render_products::check_render_sizes(
                     &req,
@@ -82,7 +84,13 @@ impl App {
                 )?;
                 let (shape, units) = match &req.input {
                     VolumeSource::Stored(id) => {
-                        let input = resolve_input(&self.db, &self.store, *id).await?;
+                        let input = match resolve_input(&self.db, &self.store, *id).await {
+                            Ok(input) => input,
+                            Err(p) if p.code == ErrorCode::SeriesNotFound => {
+                                return Err(self.volume_input_not_found(&id.to_string(), p).await);
+                            }
+                            Err(p) => return Err(p.into()),
+                        };
                         (input.shape, input.units)
                     }
                     VolumeSource::Pacs(source) => {
@@ -106,13 +114,11 @@ impl App {
                 if let Some(m) = body.as_object_mut() {
                     m.remove("kind");
                 }
+                misplaced_fields(&body, false)?;
                 let req: JobRequest = parse(body)?;
-                let dataset = self.db.get_dataset(req.input).await?.ok_or_else(|| {
-                    refused(
-                        ErrorCode::DatasetNotFound,
-                        format!("no dataset {}", req.input),
-                    )
-                })?;
+                let Some(dataset) = self.db.get_dataset(req.input).await? else {
+                    return Err(self.dataset_not_found(req.input).await);
+                };
                 let estimate = admit_job(&req, &dataset, budget)?;
                 Ok((JobSpec::Reconstruction(req), estimate))
             }
@@ -205,7 +211,16 @@ impl App {
 
     /// A job by id.
     pub async fn get_job(&self, id: JobId) -> AppResult<Job> {
-        self.db.get_job(id).await?.ok_or_else(|| job_not_found(id))
+        match self.db.get_job(id).await? {
+            Some(job) => Ok(job),
+            None => Err(self
+                .not_found(
+                    ErrorCode::JobNotFound,
+                    format!("no job {id}"),
+                    &id.to_string(),
+                )
+                .await),
+        }
     }
 
     /// The summaries of the jobs matching `filter` (its `limit`: the page size), newest first.

@@ -12,6 +12,7 @@ pub mod dicom_caller;
 pub mod dicomweb;
 pub mod error;
 pub mod feed;
+mod hints;
 pub mod idempotency;
 pub mod instances;
 pub mod jobs;

@@ -220,11 +220,12 @@ impl App {
 
     /// The series `id` and whether its volume is available.
     pub async fn get_series(&self, id: SeriesId) -> AppResult<StoredSeries> {
-        let record = self
-            .db
-            .get_series(id)
-            .await?
-            .ok_or_else(|| series_not_found(id))?;
+        let Some(record) = self.db.get_series(id).await? else {
+            let detail = format!("no series {id}");
+            return Err(self
+                .not_found(ErrorCode::SeriesNotFound, detail, &id.to_string())
+                .await);
+        };
         let missing = self
             .db
             .blob_missing(BlobKind::Series, &record.id.to_string())

@@ -194,7 +194,8 @@ pub fn reconstruction_bytes(
         return Err(Problem::new(
             ErrorCode::JobTooLarge,
             format!(
-                "the job needs about {need} bytes, more than the whole memory budget of {budget_bytes} bytes"
+                "the job needs about {need} bytes, more than the whole memory budget of {budget_bytes} bytes: \
+                 reconstruct onto a smaller grid (or from fewer views), or raise the service's memory_budget_bytes"
             ),
         ));
     }

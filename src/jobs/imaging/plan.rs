@@ -369,7 +369,8 @@ pub fn plan(
         return Err(Problem::new(
             ErrorCode::JobTooLarge,
             format!(
-                "the job needs about {estimate} bytes, more than the whole memory budget of {budget_bytes} bytes"
+                "the job needs about {estimate} bytes, more than the whole memory budget of {budget_bytes} bytes: \
+                 resample to coarser voxels or ask for smaller products, or raise the service's memory_budget_bytes"
             ),
         ));
     }

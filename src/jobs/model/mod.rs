@@ -125,7 +125,11 @@ pub const KIND_VOLUME: &str = "volume";
 /// What a job does: reconstruct projections, or process a volume. Stored as the request JSON; which one it
 /// is follows from the job's `kind`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(
+    untagged,
+    expecting = "a job: a reconstruction {\"input\": <dataset id>, \"algorithm\", \"grid\"} or a volume job \
+                 {\"kind\": \"volume\", \"input\": <series or job id>, \"steps\", \"products\"}"
+)]
 pub enum JobSpec {
     Volume(VolumeJobRequest),
     Reconstruction(JobRequest),

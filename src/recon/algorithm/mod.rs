@@ -114,7 +114,11 @@ impl AlgorithmSpec {
 
 /// The grid a reconstruction is computed on: an image for 2D geometries, a volume for cone beams.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
+#[serde(
+    untagged,
+    expecting = "a grid: {\"nx\", \"ny\", \"dx_mm\", \"dy_mm\"} for a 2D geometry, or {\"nx\", \"ny\", \"nz\", \
+                 \"spacing_mm\": [x, y, z]} (three numbers) for a cone beam; \"centre_mm\" optional in both"
+)]
 pub enum OutputGrid {
     Volume(VolumeGrid),
     Image(ImageGrid),

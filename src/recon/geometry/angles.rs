@@ -11,7 +11,12 @@ pub const MAX_VIEWS: usize = 100_000;
 /// end excluded), `{"count": 200, "short_scan": true}` (π + fan angle, both ends included) or
 /// `{"degrees": [0, 1.5, …]}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged, deny_unknown_fields)]
+#[serde(
+    untagged,
+    deny_unknown_fields,
+    expecting = "angles: {\"count\": N} with optional \"start_deg\" and \"range_deg\" (equally spaced), \
+                 {\"count\": N, \"short_scan\": true}, or {\"degrees\": [a, b, …]}"
+)]
 pub enum Angles {
     Uniform {
         count: usize,
