@@ -58,7 +58,9 @@ pub use header::{
 pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use transcode::{data_set_as, le_interchangeable};
-pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
+pub use unzip::{
+    Unpacked, UploadFile, is_zip, read_upload_file, read_upload_files, starts_like, unpack_file,
+};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
 };

@@ -269,6 +269,35 @@ pub fn unpack_file(
     Ok(())
 }
 
+/// What a file that is not a ZIP archive starts like, from its first bytes (at least 132 for DICOM): a
+/// few formats sent by mistake, for a message that says what was sent.
+pub fn starts_like(head: &[u8]) -> Option<&'static str> {
+    const SIGNATURES: &[(&[u8], &str)] = &[
+        (b"\x89PNG\r\n\x1a\n", "a PNG image"),
+        (b"\xFF\xD8\xFF", "a JPEG image"),
+        (b"GIF8", "a GIF image"),
+        (b"%PDF", "a PDF document"),
+        (b"\x1F\x8B", "a gzip file"),
+        (b"II*\0", "a TIFF image"),
+        (b"MM\0*", "a TIFF image"),
+        (b"\x93NUMPY", "a NumPy .npy array"),
+        (b"Rar!", "a RAR archive"),
+        (b"7z\xBC\xAF", "a 7-Zip archive"),
+    ];
+    if may_be_dicom(head, head.len() as u64) {
+        return Some("a DICOM file");
+    }
+    SIGNATURES
+        .iter()
+        .find(|(magic, _)| head.starts_with(magic))
+        .map(|(_, what)| *what)
+}
+
+/// Whether the file at `path` starts like a ZIP archive (a local file header or an empty archive's end).
+pub fn is_zip(path: &Path) -> io::Result<bool> {
+    starts_with_zip_magic(path)
+}
+
 /// Whether `head` (the first bytes of a file) can start DICOM: a Part 10 file (`DICM` after the preamble or
 /// first), or a raw data set whose first element is in the file meta (0002) or identification (0008) group,
 /// little or big endian (what the reader's framing accepts).

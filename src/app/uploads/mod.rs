@@ -18,7 +18,7 @@ use super::instances::StagedInstances;
 use super::series::outcome_json;
 use super::{App, AppError, AppResult, Replay};
 use crate::dicom::UploadFile;
-use crate::error_code::ErrorCode;
+use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::ingest::Staged;
 use crate::jobs::model::rfc3339;
 use crate::jobs::{IdempotencyKey, SeriesRecord, UploadRecord};
@@ -133,6 +133,37 @@ impl App {
             )),
             Some(_) => Ok(()),
         }
+    }
+
+    /// Refuse a body sent as `application/zip` that is not a ZIP archive (415, naming what it starts like
+    /// and how to send that), rather than reading it as one DICOM file named `upload.zip`.
+    pub async fn check_zip(&self, path: &std::path::Path) -> AppResult<()> {
+        let path = path.to_path_buf();
+        let (zip, head) =
+            tokio::task::spawn_blocking(move || -> std::io::Result<(bool, Vec<u8>)> {
+                use std::io::Read;
+                let mut head = Vec::new();
+                std::fs::File::open(&path)?
+                    .take(132)
+                    .read_to_end(&mut head)?;
+                Ok((crate::dicom::is_zip(&path)?, head))
+            })
+            .await
+            .map_err(|_| Problem::internal())??;
+        if zip {
+            return Ok(());
+        }
+        let what = crate::dicom::starts_like(&head).unwrap_or("not a ZIP archive");
+        let how = if what == "a DICOM file" {
+            "send one instance as application/dicom, or several as multipart/form-data"
+        } else {
+            "send DICOM files as a ZIP (application/zip), as multipart/form-data parts, or one instance as \
+             application/dicom"
+        };
+        Err(refused(
+            ErrorCode::UnsupportedMediaType,
+            format!("the body was sent as application/zip but is {what}: {how}"),
+        ))
     }
 
     /// Ingest `files` (`bytes` in all) as one upload completed at once: replayed when `key` was used by an

@@ -176,9 +176,13 @@ pub async fn post_series(
         }
         "multipart/form-data" => read_multipart(&st, req).await?,
         "application/zip" | "application/x-zip-compressed" | "application/octet-stream" => {
+            let file = read_body(&st, req).await?;
+            if media != "application/octet-stream" {
+                st.check_zip(file.temp.path()).await?;
+            }
             vec![Received {
                 label: "upload.zip".to_string(),
-                file: read_body(&st, req).await?,
+                file,
             }]
         }
         _ => {
