@@ -10,6 +10,7 @@ mod s3;
 mod sse;
 
 mod api_errors;
+mod api_hints;
 mod api_jobs;
 mod api_lifecycle;
 mod api_recovery;
