@@ -14,6 +14,7 @@ pub mod extract;
 pub mod files;
 pub mod lists;
 pub mod problem;
+pub mod progress;
 pub mod routes;
 pub mod serve;
 pub mod upload;
@@ -313,6 +314,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             post(stow::store_study_instances),
         )
         .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn_with_state(
+            progress::ProgressRule::from_settings(s),
+            progress::require_progress,
+        ))
         .layer(timeout(upload_timeout));
     let streams = Router::new()
         .route("/v1/jobs/{id}/events", get(events::job_events))
