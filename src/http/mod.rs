@@ -20,6 +20,8 @@ pub mod serve;
 pub mod upload;
 pub mod web;
 
+pub use serve::shutdown_signal;
+
 use std::future::Future;
 use std::net::SocketAddr;
 use std::ops::Deref;
@@ -473,27 +475,5 @@ impl Application {
             );
         }
         served
-    }
-}
-
-/// Completes on Ctrl-C or SIGTERM.
-pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {}
-        _ = term => {}
     }
 }
