@@ -139,12 +139,14 @@ catalogue! {
     InvalidIdempotencyKey = ("invalid_idempotency_key", 400, "The Idempotency-Key header is malformed"),
     Unauthorized = ("unauthorized", 401, "A valid bearer token is required"),
     RequestTimeout = ("request_timeout", 408, "The request took too long"),
+    UploadStalled = ("upload_stalled", 408, "The upload sent too little for too long"),
     // Failed jobs.
     ReconstructionFailed = ("reconstruction_failed", 422, "The reconstruction refused its input"),
     AttemptsExhausted = ("attempts_exhausted", 500, "The job was interrupted too many times"),
     // The server.
     Internal = ("internal", 500, "Internal server error"),
     Unavailable = ("unavailable", 503, "The service is not ready"),
+    TooManyConnections = ("too_many_connections", 503, "Too many open connections"),
 }
 
 impl ErrorCode {

@@ -40,6 +40,12 @@ pub fn metrics_handle() -> PrometheusHandle {
 pub mod names {
     pub const HTTP_REQUESTS: &str = "ctrecon_http_requests_total";
     pub const HTTP_DURATION: &str = "ctrecon_http_request_duration_seconds";
+    /// HTTP connections open now.
+    pub const HTTP_CONNECTIONS: &str = "ctrecon_http_connections";
+    /// HTTP connections answered 503 and closed at once, by the `cap` they were over (total, address).
+    pub const HTTP_CONNECTIONS_REFUSED: &str = "ctrecon_http_connections_refused_total";
+    /// HTTP connections closed by a timeout, by `timeout` (header, idle, send).
+    pub const HTTP_CONNECTIONS_TIMED_OUT: &str = "ctrecon_http_connections_timed_out_total";
     pub const JOBS: &str = "ctrecon_jobs";
     pub const QUEUE_DEPTH: &str = "ctrecon_queue_depth";
     pub const JOBS_FINISHED: &str = "ctrecon_jobs_finished_total";

@@ -4,6 +4,8 @@
 #[path = "common/postgres.rs"]
 mod cluster;
 mod common;
+#[path = "common/roles.rs"]
+mod roles;
 #[path = "common/s3.rs"]
 mod s3;
 #[path = "common/sse.rs"]
@@ -23,6 +25,7 @@ mod cli;
 mod contract_schemathesis;
 mod docs_examples;
 mod fuzz_replay;
+mod hostile_http;
 mod job_store;
 #[path = "mesh_honest/main.rs"]
 mod mesh_honest;

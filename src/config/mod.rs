@@ -42,6 +42,12 @@
 //! | `storage.endpoint` | `CTRECON_STORAGE_ENDPOINT` | none: AWS (or `AWS_ENDPOINT_URL`); `http://host:port` for a self-hosted server, addressed path-style |
 //! | `storage.region` | `CTRECON_STORAGE_REGION` | none: `AWS_REGION` / `AWS_DEFAULT_REGION`, else `us-east-1` |
 //! | `storage.access_key_id`, `storage.secret_access_key` | — | none: `AWS_ACCESS_KEY_ID` / `AWS_SECRET_ACCESS_KEY` (and, on AWS, the instance's role) |
+//! | `header_read_timeout_ms` | `CTRECON_HEADER_READ_TIMEOUT_MS` | 10000: a connection whose first request head is not complete this long after it was accepted is closed |
+//! | `idle_timeout_ms` | `CTRECON_IDLE_TIMEOUT_MS` | 60000: a connection with no request in flight since its last one, or whose client reads none of a response, for this long is closed |
+//! | `max_connections` | `CTRECON_MAX_CONNECTIONS` | 2048 open HTTP connections (at most half the open-file limit less a reserve); more are answered 503 `too_many_connections` and closed |
+//! | `max_connections_per_ip` | `CTRECON_MAX_CONNECTIONS_PER_IP` | 256 open connections per client address; 0 = no cap per address (behind a proxy) |
+//! | `upload_min_bytes` | `CTRECON_UPLOAD_MIN_BYTES` | 16384: an upload body that delivers less in `upload_progress_window_secs` is answered 408 `upload_stalled`; 0 = off |
+//! | `upload_progress_window_secs` | `CTRECON_UPLOAD_PROGRESS_WINDOW_SECS` | 30 |
 //!
 //! Every `ctrecon` command (and the examples and benchmarks) also reads `CTRECON_SIMD` at start-up
 //! ([`limit_simd_from_env`]): `avx2` leaves AVX-512F unused, `scalar` every vector kernel.
@@ -110,6 +116,17 @@ pub struct Settings {
     pub lease_secs: u64,
     /// Object storage for datasets, series and results (off unless `storage.url` is set).
     pub storage: StorageSettings,
+    /// Milliseconds from accepting a connection to its first complete request head.
+    pub header_read_timeout_ms: u64,
+    /// Milliseconds a connection may stay idle between requests, or blocked on a client that reads nothing.
+    pub idle_timeout_ms: u64,
+    /// Open HTTP connections at once (clamped below the open-file limit at start).
+    pub max_connections: usize,
+    /// Open HTTP connections of one client address at once; 0 = no cap per address.
+    pub max_connections_per_ip: usize,
+    /// Least bytes an upload body delivers in each progress window; 0 = no rule.
+    pub upload_min_bytes: u64,
+    pub upload_progress_window_secs: u64,
 }
 
 /// Where datasets, series and results live durably besides the data directory.
@@ -172,6 +189,12 @@ impl Default for Settings {
             database_url: None,
             lease_secs: 30,
             storage: StorageSettings::default(),
+            header_read_timeout_ms: 10_000,
+            idle_timeout_ms: 60_000,
+            max_connections: 2048,
+            max_connections_per_ip: 256,
+            upload_min_bytes: 16 << 10,
+            upload_progress_window_secs: 30,
         }
     }
 }
@@ -295,6 +318,14 @@ impl Settings {
             "CTRECON_STORAGE_REGION" => {
                 self.storage.region = Some(v.trim().to_string()).filter(|u| !u.is_empty())
             }
+            "CTRECON_HEADER_READ_TIMEOUT_MS" => self.header_read_timeout_ms = parsed(name, v)?,
+            "CTRECON_IDLE_TIMEOUT_MS" => self.idle_timeout_ms = parsed(name, v)?,
+            "CTRECON_MAX_CONNECTIONS" => self.max_connections = parsed(name, v)?,
+            "CTRECON_MAX_CONNECTIONS_PER_IP" => self.max_connections_per_ip = parsed(name, v)?,
+            "CTRECON_UPLOAD_MIN_BYTES" => self.upload_min_bytes = parsed(name, v)?,
+            "CTRECON_UPLOAD_PROGRESS_WINDOW_SECS" => {
+                self.upload_progress_window_secs = parsed(name, v)?
+            }
             other if READ_ELSEWHERE.contains(&other) => {}
             other if other.starts_with("CTRECON_") => {
                 return Err(ConfigError::Env {
@@ -370,6 +401,15 @@ impl Settings {
         }
         if self.request_timeout_secs == 0 || self.upload_timeout_secs == 0 {
             return invalid("timeouts", "must be positive");
+        }
+        if self.header_read_timeout_ms == 0
+            || self.idle_timeout_ms == 0
+            || self.upload_progress_window_secs == 0
+        {
+            return invalid("connection timeouts", "must be positive");
+        }
+        if self.max_connections == 0 {
+            return invalid("max_connections", "must be at least 1");
         }
         for h in &self.api_token_sha256 {
             if h.len() != 64 || !h.bytes().all(|b| b.is_ascii_hexdigit()) {

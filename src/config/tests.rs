@@ -99,3 +99,55 @@ fn a_public_bind_needs_tokens_or_the_insecure_flag() {
     assert!(s.validate().is_ok());
     assert!(Settings::default().validate().is_ok());
 }
+
+#[test]
+fn connection_caps_and_timeouts_come_from_the_environment_and_zero_timeouts_are_refused() {
+    let s = Settings::load(
+        None,
+        env(&[
+            ("CTRECON_HEADER_READ_TIMEOUT_MS", "2000"),
+            ("CTRECON_IDLE_TIMEOUT_MS", "3000"),
+            ("CTRECON_MAX_CONNECTIONS", "64"),
+            ("CTRECON_MAX_CONNECTIONS_PER_IP", "0"),
+            ("CTRECON_UPLOAD_MIN_BYTES", "1024"),
+            ("CTRECON_UPLOAD_PROGRESS_WINDOW_SECS", "2"),
+        ]),
+    )
+    .unwrap();
+    assert_eq!((s.header_read_timeout_ms, s.idle_timeout_ms), (2000, 3000));
+    assert_eq!((s.max_connections, s.max_connections_per_ip), (64, 0));
+    assert_eq!(
+        (s.upload_min_bytes, s.upload_progress_window_secs),
+        (1024, 2)
+    );
+    assert!(s.validate().is_ok());
+    let d = Settings::default();
+    assert_eq!(
+        (
+            d.header_read_timeout_ms,
+            d.max_connections,
+            d.max_connections_per_ip
+        ),
+        (10_000, 2048, 256)
+    );
+    for broken in [
+        Settings {
+            header_read_timeout_ms: 0,
+            ..Settings::default()
+        },
+        Settings {
+            idle_timeout_ms: 0,
+            ..Settings::default()
+        },
+        Settings {
+            upload_progress_window_secs: 0,
+            ..Settings::default()
+        },
+        Settings {
+            max_connections: 0,
+            ..Settings::default()
+        },
+    ] {
+        assert!(broken.validate().is_err(), "{broken:?}");
+    }
+}

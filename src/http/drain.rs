@@ -1,45 +1,19 @@
-//! A bounded drain at shutdown: every accepted connection is wrapped so that, once the drain deadline has
-//! passed, its next read or write fails and the connection closes — even one whose client has stopped
-//! reading a large body (its pending write is woken by the deadline, not by the client).
+//! A bounded drain at shutdown: every accepted connection is wrapped ([`Cuttable`], by the server loop in
+//! `serve`) so that, once the drain deadline has passed, its next read or write fails and the connection
+//! closes — even one whose client has stopped reading a large body (its pending write is woken by the
+//! deadline, not by the client).
 //!
 //! Until the deadline nothing changes: open requests finish, idle keep-alive connections are closed by the
 //! server's graceful shutdown, and event streams end on the shutdown signal.
 
 use std::future::Future;
 use std::io;
-use std::net::SocketAddr;
 use std::pin::Pin;
 use std::task::{Context, Poll};
 
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::net::TcpStream;
 use tokio_util::sync::{CancellationToken, WaitForCancellationFutureOwned};
-
-/// A TCP listener whose connections are cut when `cut` is cancelled.
-pub struct DrainListener {
-    inner: TcpListener,
-    cut: CancellationToken,
-}
-
-impl DrainListener {
-    pub fn new(inner: TcpListener, cut: CancellationToken) -> Self {
-        Self { inner, cut }
-    }
-}
-
-impl axum::serve::Listener for DrainListener {
-    type Io = Cuttable;
-    type Addr = SocketAddr;
-
-    async fn accept(&mut self) -> (Self::Io, Self::Addr) {
-        let (io, addr) = axum::serve::Listener::accept(&mut self.inner).await;
-        (Cuttable::new(io, self.cut.clone()), addr)
-    }
-
-    fn local_addr(&self) -> io::Result<Self::Addr> {
-        self.inner.local_addr()
-    }
-}
 
 /// An accepted connection that fails every read and write once its token is cancelled.
 pub struct Cuttable {
@@ -48,7 +22,7 @@ pub struct Cuttable {
 }
 
 impl Cuttable {
-    fn new(io: TcpStream, cut: CancellationToken) -> Self {
+    pub fn new(io: TcpStream, cut: CancellationToken) -> Self {
         Self {
             io,
             cut: Box::pin(cut.cancelled_owned()),

@@ -2,20 +2,27 @@
 //!
 //! [`Application::build`] opens the application ([`App::open`]: data directory, database, recovery,
 //! engine) and binds the listener (port 0 picks a free port: tests run the real server);
-//! [`Application::run_until`] serves until the shutdown signal, then lets open requests finish for at most
-//! the drain timeout. Routes extract, call the application layer and map its answers to responses.
+//! [`Application::run_until`] serves (`serve`: connection caps and timeouts) until the shutdown signal, then
+//! lets open requests finish for at most the drain timeout. Routes extract, call the application layer and
+//! map its answers to responses.
 
+pub mod activity;
 pub mod auth;
+pub mod connections;
 pub mod drain;
 pub mod extract;
 pub mod files;
 pub mod lists;
 pub mod problem;
+pub mod progress;
 pub mod routes;
+pub mod serve;
 pub mod upload;
 pub mod web;
 
-use std::future::{Future, IntoFuture};
+pub use serve::shutdown_signal;
+
+use std::future::Future;
 use std::net::SocketAddr;
 use std::ops::Deref;
 use std::sync::Arc;
@@ -101,6 +108,7 @@ pub struct Application {
     shutdown: watch::Sender<bool>,
     addr: SocketAddr,
     drain_timeout: Duration,
+    connections: serve::Options,
     engine: Engine,
 }
 
@@ -308,6 +316,10 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
             post(stow::store_study_instances),
         )
         .layer(DefaultBodyLimit::disable())
+        .layer(middleware::from_fn_with_state(
+            progress::ProgressRule::from_settings(s),
+            progress::require_progress,
+        ))
         .layer(timeout(upload_timeout));
     let streams = Router::new()
         .route("/v1/jobs/{id}/events", get(events::job_events))
@@ -372,6 +384,7 @@ impl Application {
             app.spawn_retention(shutdown_rx.clone());
         }
         let drain_timeout = Duration::from_millis(settings.drain_timeout_ms);
+        let connections = serve::Options::from_settings(settings);
         let tokens = auth::Tokens::from_settings(settings);
         let engine = app.engine.clone();
         let state = AppState(Arc::new(Shared {
@@ -390,6 +403,7 @@ impl Application {
             shutdown,
             addr,
             drain_timeout,
+            connections,
             engine,
         })
     }
@@ -420,16 +434,19 @@ impl Application {
         let cut = CancellationToken::new();
         let (began, signalled) = oneshot::channel::<tokio::time::Instant>();
         let signalled = signalled.shared();
-        let listener = drain::DrainListener::new(self.listener, cut.clone());
-        let serve = axum::serve(listener, self.router)
-            .with_graceful_shutdown(async move {
+        let serve = serve::serve(
+            self.listener,
+            self.router,
+            self.connections,
+            cut.clone(),
+            async move {
                 signal.await;
                 tracing::info!(drain_ms = drain.as_millis() as u64, "shutting down");
                 let _ = shutdown.send(true);
                 stopping.begin_stop();
                 let _ = began.send(tokio::time::Instant::now());
-            })
-            .into_future();
+            },
+        );
         let deadline = async {
             if signalled.clone().await.is_err() {
                 // The server ended without a signal (it failed): nothing to bound.
@@ -458,27 +475,5 @@ impl Application {
             );
         }
         served
-    }
-}
-
-/// Completes on Ctrl-C or SIGTERM.
-pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        let _ = tokio::signal::ctrl_c().await;
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {}
-        _ = term => {}
     }
 }

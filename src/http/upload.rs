@@ -48,6 +48,14 @@ pub fn too_large(limit: u64) -> ApiError {
     )
 }
 
+/// The `Content-Length` a request declares, if any.
+pub fn declared_length(headers: &axum::http::HeaderMap) -> Option<u64> {
+    headers
+        .get(axum::http::header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok())
+}
+
 /// Write `stream` to a temporary file chunk by chunk; `spent` counts the bytes of the whole request and the
 /// upload is refused (413, the file removed) as soon as it passes `limit`. A stream error is a truncated upload.
 pub async fn spool<S, B, E>(

@@ -2,7 +2,8 @@
 //!
 //! The body is parsed as it streams ([`crate::dicom::multipart::Parser`]): each part goes to a temporary file
 //! chunk by chunk, refused as soon as it passes the DICOM node's instance limit, and the whole body is
-//! refused (413) as soon as it passes the upload limit of `/v1` uploads. The parts are then stored through
+//! refused (413) as soon as it passes the upload limit of `/v1` uploads (at once, unread, when its
+//! `Content-Length` is already over it). The parts are then stored through
 //! the same receive path as C-STORE ([`crate::app::App::stow`]). The answer is the PS3.18 response in
 //! `application/dicom+json`: ReferencedSOPSequence (0008,1199) with a RetrieveURL per stored instance,
 //! FailedSOPSequence (0008,1198) with a FailureReason (0008,1197) per refused part; 200 when all were stored,
@@ -19,7 +20,7 @@ use tokio::io::AsyncWriteExt;
 
 use super::super::AppState;
 use super::super::problem::{ApiResult, api_error};
-use super::super::upload::too_large;
+use super::super::upload::{declared_length, too_large};
 use super::dicomweb::{base_url, dicom_json_response};
 use crate::app::dicomweb::resource_path;
 use crate::app::stow::{StowOutcome, StowPart, reason};
@@ -211,6 +212,11 @@ async fn stow(
     study: Option<String>,
     body: Body,
 ) -> ApiResult<Response> {
+    // A body declared over the limit is refused before a byte of it is read.
+    let limit = state.settings.max_upload_bytes;
+    if declared_length(&headers).is_some_and(|n| n > limit) {
+        return Err(too_large(limit));
+    }
     let b = boundary(&headers)?;
     if let Some(s) = &study
         && !crate::dicom::is_valid_uid(s)

@@ -14,7 +14,7 @@ use sha2::{Digest, Sha256};
 use super::super::AppState;
 use super::super::extract::{ApiQuery, idempotency_key, media_type};
 use super::super::problem::{ApiResult, api_error};
-use super::super::upload::{Spooled, paced, spool, too_large};
+use super::super::upload::{Spooled, declared_length, paced, spool, too_large};
 use crate::app::uploads::{AppendAnswer, ReceivedFile, UploadAnswer, upload_json};
 use crate::error_code::ErrorCode;
 use crate::jobs::{IdempotencyKey, UploadRecord};
@@ -62,11 +62,7 @@ fn label(name: Option<&str>, fallback: String) -> String {
 
 fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     let limit = st.settings.max_upload_bytes;
-    match headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok())
-    {
+    match declared_length(headers) {
         Some(n) if n > limit.saturating_add(64 << 10) => Err(too_large(limit)),
         _ => Ok(()),
     }
