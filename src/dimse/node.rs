@@ -2,21 +2,22 @@
 //! syntaxes the reader decodes, PDU size, timeouts, a cap on concurrent associations), serves each on its
 //! own task, and seals series whose stable age passed.
 
-use std::net::{IpAddr, SocketAddr};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use dicom_ul::association::Association as _;
-use dicom_ul::association::server::{AccessControl, ServerAssociationOptions};
+use dicom_ul::association::server::ServerAssociationOptions;
 use dicom_ul::pdu::{
     AssociationRJ, AssociationRJResult, AssociationRJServiceProviderPresentationReason,
-    AssociationRJServiceUserReason, AssociationRJSource, Pdu, UserIdentity,
+    AssociationRJSource, Pdu,
 };
 use tokio::io::AsyncWriteExt;
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::{Semaphore, mpsc, watch};
 use tracing::Instrument as _;
 
+use super::allow_list::{Gate, Peers};
 use super::association::{self, Grant};
 use super::command::VERIFICATION;
 use super::inbox::Inbox;
@@ -49,82 +50,6 @@ impl std::fmt::Debug for DicomNode {
             .field("addr", &self.addr)
             .finish()
     }
-}
-
-/// Calling AE titles allowed from one remote address (`None`: any).
-struct Gate {
-    allowed: Option<Vec<String>>,
-}
-
-impl AccessControl for Gate {
-    fn check_access(
-        &self,
-        this_ae_title: &str,
-        calling_ae_title: &str,
-        called_ae_title: &str,
-        _user_identity: Option<&UserIdentity>,
-    ) -> Result<(), AssociationRJServiceUserReason> {
-        if called_ae_title.trim() != this_ae_title.trim() {
-            return Err(AssociationRJServiceUserReason::CalledAETitleNotRecognized);
-        }
-        match &self.allowed {
-            Some(list) if !list.iter().any(|a| a == calling_ae_title.trim()) => {
-                Err(AssociationRJServiceUserReason::CallingAETitleNotRecognized)
-            }
-            _ => Ok(()),
-        }
-    }
-}
-
-/// The peers' addresses, resolved once at start.
-struct Peers {
-    settings: NodeSettings,
-    addresses: Vec<(String, Vec<IpAddr>)>,
-}
-
-impl Peers {
-    async fn resolve(settings: NodeSettings) -> Self {
-        let mut addresses = Vec::new();
-        for p in &settings.peers {
-            let ips = match tokio::net::lookup_host((p.host.as_str(), p.port)).await {
-                Ok(it) => it.map(|a| a.ip()).collect(),
-                Err(e) => {
-                    tracing::warn!(peer = %p.ae_title, host = %p.host, error = %e, "cannot resolve a DICOM peer");
-                    Vec::new()
-                }
-            };
-            addresses.push((p.ae_title.clone(), ips));
-        }
-        Self {
-            settings,
-            addresses,
-        }
-    }
-
-    /// The AE titles that may call from `ip`, or `None` when the node has no allow-list.
-    fn allowed_from(&self, ip: IpAddr) -> Option<Vec<String>> {
-        if self.settings.peers.is_empty() {
-            return None;
-        }
-        Some(
-            self.addresses
-                .iter()
-                .filter(|(_, ips)| ips.iter().any(|a| same_host(*a, ip)))
-                .map(|(ae, _)| ae.clone())
-                .collect(),
-        )
-    }
-}
-
-fn same_host(a: IpAddr, b: IpAddr) -> bool {
-    let canon = |ip: IpAddr| match ip {
-        IpAddr::V6(v6) => v6
-            .to_ipv4_mapped()
-            .map(IpAddr::V4)
-            .unwrap_or(IpAddr::V6(v6)),
-        v4 => v4,
-    };
-    canon(a) == canon(b)
 }
 
 impl DicomNode {
