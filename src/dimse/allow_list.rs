@@ -1,11 +1,13 @@
 //! The allow-list of the DICOM node: which calling AE titles may call from which address (the peers'
-//! host names resolved once at start), applied by the association negotiation ([`Gate`]).
+//! host names resolved once at start), applied to a caller's A-ASSOCIATE-RQ before it may take an
+//! association slot ([`Peers::may_call`]) and by the negotiation itself ([`Gate`]).
 
 use std::net::IpAddr;
 
 use dicom_ul::association::server::AccessControl;
 use dicom_ul::pdu::{AssociationRJServiceUserReason, UserIdentity};
 
+use super::admission;
 use crate::config::dicom::NodeSettings;
 
 /// Calling AE titles allowed from one remote address (`None`: any).
@@ -71,15 +73,54 @@ impl Peers {
                 .collect(),
         )
     }
+
+    /// Whether an A-ASSOCIATE-RQ from `ip` calling `called` as `calling` passes the allow-list (the rule the
+    /// negotiation applies with [`Gate`]).
+    pub fn may_call(&self, ip: IpAddr, called: &str, calling: &str) -> bool {
+        let gate = Gate {
+            allowed: self.allowed_from(ip),
+        };
+        gate.check_access(&self.settings.ae_title, calling, called, None)
+            .is_ok()
+    }
 }
 
 fn same_host(a: IpAddr, b: IpAddr) -> bool {
-    let canon = |ip: IpAddr| match ip {
-        IpAddr::V6(v6) => v6
-            .to_ipv4_mapped()
-            .map(IpAddr::V4)
-            .unwrap_or(IpAddr::V6(v6)),
-        v4 => v4,
-    };
-    canon(a) == canon(b)
+    admission::canonical(a) == admission::canonical(b)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::dicom::Peer;
+
+    fn ip(s: &str) -> IpAddr {
+        s.parse().unwrap()
+    }
+
+    #[tokio::test]
+    async fn a_peer_may_call_ctrecon_only_from_its_own_address() {
+        let peer = Peer {
+            ae_title: "PEER".into(),
+            host: "127.0.0.1".into(),
+            port: 104,
+            store: true,
+            query: true,
+            retrieve: true,
+        };
+        let peers = Peers::resolve(NodeSettings {
+            peers: vec![peer],
+            ..NodeSettings::default()
+        })
+        .await;
+        assert!(peers.may_call(ip("127.0.0.1"), "CTRECON", "PEER"));
+        assert!(peers.may_call(ip("::ffff:127.0.0.1"), "CTRECON  ", "PEER "));
+        assert!(!peers.may_call(ip("127.0.0.2"), "CTRECON", "PEER"));
+        assert!(!peers.may_call(ip("127.0.0.1"), "OTHER", "PEER"));
+        assert!(!peers.may_call(ip("127.0.0.1"), "CTRECON", "STRANGER"));
+        // Without an allow-list (a loopback node) any caller may call CTRECON.
+        let open = Peers::resolve(NodeSettings::default()).await;
+        assert!(open.may_call(ip("127.0.0.9"), "CTRECON", "ANYONE"));
+        assert!(!open.may_call(ip("127.0.0.9"), "OTHER", "ANYONE"));
+    }
 }
