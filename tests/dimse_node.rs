@@ -19,10 +19,10 @@ use ctrecon::volume::{Frame, Volume};
 use dicom_ul::association::client::ClientAssociationOptions;
 use dicom_ul::pdu::{PDataValue, PDataValueType, Pdu, PresentationContextResultReason};
 
-const CT: &str = "1.2.840.10008.5.1.4.1.1.2";
-const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
+pub(crate) const CT: &str = "1.2.840.10008.5.1.4.1.1.2";
+pub(crate) const EXPLICIT_LE: &str = "1.2.840.10008.1.2.1";
 
-fn dcmtk_present() -> bool {
+pub(crate) fn dcmtk_present() -> bool {
     let ok = ["echoscu", "storescu", "storescp"].iter().all(|t| {
         std::process::Command::new(t)
             .arg("--version")
@@ -50,7 +50,9 @@ fn test_peer() -> Peer {
     }
 }
 
-async fn start_node(configure: impl FnOnce(&mut NodeSettings)) -> (DicomNode, tempfile::TempDir) {
+pub(crate) async fn start_node(
+    configure: impl FnOnce(&mut NodeSettings),
+) -> (DicomNode, tempfile::TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let mut s = NodeSettings {
         port: Some(0),
@@ -65,7 +67,7 @@ async fn start_node(configure: impl FnOnce(&mut NodeSettings)) -> (DicomNode, te
 }
 
 /// A synthetic CT series of `nz` slices of 24 × 20 written to `dir`; returns its series UID and files.
-fn synthetic_series(dir: &Path, nz: usize) -> (String, Vec<PathBuf>) {
+pub(crate) fn synthetic_series(dir: &Path, nz: usize) -> (String, Vec<PathBuf>) {
     let data = ndarray::Array3::from_shape_fn((nz, 20, 24), |(k, j, i)| {
         (k * 100 + j * 10 + i) as f32 - 1000.0
     });
@@ -97,7 +99,7 @@ fn synthetic_series(dir: &Path, nz: usize) -> (String, Vec<PathBuf>) {
     (s.series_uid, files)
 }
 
-async fn run(tool: &str, args: &[String]) -> Output {
+pub(crate) async fn run(tool: &str, args: &[String]) -> Output {
     let (tool, args) = (tool.to_string(), args.to_vec());
     tokio::task::spawn_blocking(move || {
         std::process::Command::new(tool)
@@ -110,11 +112,11 @@ async fn run(tool: &str, args: &[String]) -> Output {
     .unwrap()
 }
 
-fn args(list: &[&str]) -> Vec<String> {
+pub(crate) fn args(list: &[&str]) -> Vec<String> {
     list.iter().map(|s| s.to_string()).collect()
 }
 
-fn text(o: &Output) -> String {
+pub(crate) fn text(o: &Output) -> String {
     format!(
         "{}{}",
         String::from_utf8_lossy(&o.stdout),
@@ -123,7 +125,7 @@ fn text(o: &Output) -> String {
 }
 
 /// `storescu` sending every file of `dir` as TESTSCU to CTRECON on 127.0.0.1:`port`.
-async fn storescu(port: &str, dir: &Path) -> Output {
+pub(crate) async fn storescu(port: &str, dir: &Path) -> Output {
     let dir = dir.to_string_lossy();
     run(
         "storescu",
@@ -150,7 +152,7 @@ async fn echoscu(node: &DicomNode, calling: &str, called: &str) -> Output {
     .await
 }
 
-async fn completed(node: &mut DicomNode) -> CompletedSeries {
+pub(crate) async fn completed(node: &mut DicomNode) -> CompletedSeries {
     tokio::time::timeout(Duration::from_secs(60), node.next_completed())
         .await
         .expect("a series completes")
@@ -257,9 +259,9 @@ async fn lidc_sent_by_storescu_arrives_exactly() {
     );
 }
 
-type Client = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
+pub(crate) type Client = dicom_ul::association::AsyncClientAssociation<tokio::net::TcpStream>;
 
-async fn associate(node: &DicomNode, contexts: &[(&str, &str)]) -> Client {
+pub(crate) async fn associate(node: &DicomNode, contexts: &[(&str, &str)]) -> Client {
     let mut o = ClientAssociationOptions::new()
         .calling_ae_title("TESTSCU")
         .called_ae_title("CTRECON");
@@ -567,7 +569,7 @@ async fn a_series_stored_into_the_service_becomes_a_series_of_the_api() {
 
 /// Read from `stream` until the node ends the connection (at most 10 s, which bounds a hang): the bytes it
 /// sent and how long it took. A reset counts as the end.
-async fn until_closed(stream: &mut tokio::net::TcpStream) -> (Vec<u8>, Duration) {
+pub(crate) async fn until_closed(stream: &mut tokio::net::TcpStream) -> (Vec<u8>, Duration) {
     use tokio::io::AsyncReadExt;
     let t0 = std::time::Instant::now();
     let mut got = Vec::new();

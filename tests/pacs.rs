@@ -9,6 +9,7 @@ mod orthanc;
 mod dicomweb;
 mod dicomweb_client;
 mod dicomweb_wado;
+mod dimse_admission;
 mod dimse_node;
 mod dimse_pull;
 mod dimse_query;

@@ -176,9 +176,18 @@ pub struct NodeSettings {
     pub max_pdu_length: u32,
     /// Time for a caller to complete association negotiation (seconds).
     pub association_timeout_secs: u64,
+    /// Time for a caller to send its whole A-ASSOCIATE-RQ after connecting (seconds, at most
+    /// `association_timeout_secs`); a connection still without one is closed. It holds no association slot.
+    pub negotiation_timeout_secs: u64,
+    /// Connections from one address still waiting for their A-ASSOCIATE-RQ; one more closes the oldest.
+    pub max_pending_per_address: usize,
+    /// Connections from all addresses still waiting for their A-ASSOCIATE-RQ; one more closes the oldest.
+    /// 0 = 4 × `max_associations`, at least 64.
+    pub max_pending: usize,
     /// Longest silence inside an association before it is aborted (seconds).
     pub dimse_timeout_secs: u64,
-    /// Associations served at once; more are rejected (transient, local limit exceeded).
+    /// Associations served at once, counted from a known caller's complete A-ASSOCIATE-RQ; more are rejected
+    /// (transient, local limit exceeded).
     pub max_associations: usize,
     /// A series is complete when no instance of it arrived for this long (seconds).
     pub stable_age_secs: u64,
@@ -205,6 +214,9 @@ impl Default for NodeSettings {
             web_peers: Vec::new(),
             max_pdu_length: 65_536,
             association_timeout_secs: 30,
+            negotiation_timeout_secs: 5,
+            max_pending_per_address: 8,
+            max_pending: 0,
             dimse_timeout_secs: 60,
             max_associations: 16,
             stable_age_secs: 15,
@@ -220,6 +232,22 @@ impl Default for NodeSettings {
 impl NodeSettings {
     pub fn association_timeout(&self) -> Duration {
         Duration::from_secs(self.association_timeout_secs.max(1))
+    }
+
+    /// How long a connection may wait before its whole A-ASSOCIATE-RQ has arrived: `negotiation_timeout_secs`
+    /// (at least 1 s), at most the association timeout.
+    pub fn negotiation_timeout(&self) -> Duration {
+        Duration::from_secs(self.negotiation_timeout_secs.max(1)).min(self.association_timeout())
+    }
+
+    /// Connections waiting for their A-ASSOCIATE-RQ at once, from all addresses (`max_pending`, or
+    /// 4 × `max_associations` and at least 64 when it is 0).
+    pub fn pending_cap(&self) -> usize {
+        if self.max_pending > 0 {
+            self.max_pending
+        } else {
+            self.max_associations.saturating_mul(4).max(64)
+        }
     }
 
     pub fn dimse_timeout(&self) -> Duration {
@@ -280,6 +308,9 @@ impl NodeSettings {
         }
         if self.max_associations == 0 || self.max_instance_bytes == 0 {
             return Some("max_associations and max_instance_bytes must be positive".into());
+        }
+        if self.max_pending_per_address == 0 {
+            return Some("max_pending_per_address must be positive".into());
         }
         None
     }
@@ -422,6 +453,33 @@ mod tests {
             ..NodeSettings::default()
         };
         assert!(twice.problem().unwrap().contains("already"));
+    }
+
+    #[test]
+    fn connections_wait_for_their_request_at_most_the_association_timeout_and_64_at_least_in_all() {
+        let s = NodeSettings::default();
+        assert_eq!(s.negotiation_timeout(), Duration::from_secs(5));
+        assert_eq!(s.pending_cap(), 64);
+        let s = NodeSettings {
+            association_timeout_secs: 2,
+            max_associations: 40,
+            ..s
+        };
+        assert_eq!(s.negotiation_timeout(), Duration::from_secs(2));
+        assert_eq!(s.pending_cap(), 160);
+        assert_eq!(
+            NodeSettings {
+                max_pending: 10,
+                ..s
+            }
+            .pending_cap(),
+            10
+        );
+        let none_per_address = NodeSettings {
+            max_pending_per_address: 0,
+            ..NodeSettings::default()
+        };
+        assert!(none_per_address.problem().is_some());
     }
 
     #[test]

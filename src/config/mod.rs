@@ -30,6 +30,9 @@
 //! | `dicom.ae_title` | `CTRECON_DICOM_AE_TITLE` | `CTRECON` |
 //! | `dicom.host` | `CTRECON_DICOM_HOST` | `127.0.0.1` |
 //! | `dicom.stable_age_secs` | `CTRECON_DICOM_STABLE_AGE_SECS` | 15: a series is complete after this long without an instance |
+//! | `dicom.negotiation_timeout_secs` | — | 5: a connection that has not sent its whole A-ASSOCIATE-RQ this long after connecting is closed (at most `dicom.association_timeout_secs`, 30); until then it holds no association slot |
+//! | `dicom.max_pending_per_address` | — | 8: connections from one address waiting for their A-ASSOCIATE-RQ; one more closes the oldest |
+//! | `dicom.max_pending` | — | 0 = 4 × `dicom.max_associations` (16), at least 64: connections from all addresses waiting for their A-ASSOCIATE-RQ; one more closes the oldest |
 //! | `dicom.rules` | — | processing rules (`POST /v1/rules` bodies) read at every start; read-only in the API |
 //! | `dicom.delivery_retry_base_ms` | — | 5000: first wait before a delivery to an unreachable peer is tried again, doubled each time |
 //! | `dicom.delivery_retry_max_ms` | — | 600000: longest wait between attempts of a delivery |

@@ -11,10 +11,14 @@
 //!   settings in [`crate::config`];
 //! - [`command`]: DIMSE command sets; `cancel`: C-CANCEL of a C-FIND or C-MOVE in progress;
 //! - [`inbox`] and [`tracker`]: where instances go, and when a series is complete;
-//! - [`node`]: the listener; [`association`]: one association; [`query`]: C-FIND and C-MOVE over the
-//!   application's instance index; [`scu`]: ctrecon calling a peer; [`pull`]: ctrecon querying and
-//!   retrieving from a peer; [`puller`]: a volume job's series pulled from a PACS through them.
+//! - [`node`]: the listener; `admission`: connections before negotiation (pending caps, the request read
+//!   ahead, association slots); `allow_list`: who may call from where; [`association`]: one association;
+//!   [`query`]: C-FIND and C-MOVE over the application's instance index; [`scu`]: ctrecon calling a peer;
+//!   [`pull`]: ctrecon querying and retrieving from a peer; [`puller`]: a volume job's series pulled from a
+//!   PACS through them.
 
+mod admission;
+mod allow_list;
 pub mod association;
 mod cancel;
 pub mod command;

@@ -1,22 +1,21 @@
-//! The listener: accepts TCP connections, negotiates associations (allow-list, SOP classes and transfer
-//! syntaxes the reader decodes, PDU size, timeouts, a cap on concurrent associations), serves each on its
-//! own task, and seals series whose stable age passed.
+//! The listener: accepts TCP connections, admits them ([`admission`]: a connection holds an association
+//! slot only once a caller on the allow-list sent its whole A-ASSOCIATE-RQ; until then it is pending, capped
+//! per address and node-wide, and closed at the negotiation timeout), negotiates associations (allow-list,
+//! SOP classes and transfer syntaxes the reader decodes, PDU size, timeouts, a cap on concurrent
+//! associations), serves each on its own task, and seals series whose stable age passed.
 
-use std::net::{IpAddr, SocketAddr};
+use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use dicom_ul::association::Association as _;
-use dicom_ul::association::server::{AccessControl, ServerAssociationOptions};
-use dicom_ul::pdu::{
-    AssociationRJ, AssociationRJResult, AssociationRJServiceProviderPresentationReason,
-    AssociationRJServiceUserReason, AssociationRJSource, Pdu, UserIdentity,
-};
-use tokio::io::AsyncWriteExt;
+use dicom_ul::association::server::ServerAssociationOptions;
 use tokio::net::{TcpListener, TcpStream};
-use tokio::sync::{Semaphore, mpsc, watch};
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, watch};
 use tracing::Instrument as _;
 
+use super::admission::{self, Opening, Pending, Throttle, Ticket};
+use super::allow_list::{Gate, Peers};
 use super::association::{self, Grant};
 use super::command::VERIFICATION;
 use super::inbox::Inbox;
@@ -49,82 +48,6 @@ impl std::fmt::Debug for DicomNode {
             .field("addr", &self.addr)
             .finish()
     }
-}
-
-/// Calling AE titles allowed from one remote address (`None`: any).
-struct Gate {
-    allowed: Option<Vec<String>>,
-}
-
-impl AccessControl for Gate {
-    fn check_access(
-        &self,
-        this_ae_title: &str,
-        calling_ae_title: &str,
-        called_ae_title: &str,
-        _user_identity: Option<&UserIdentity>,
-    ) -> Result<(), AssociationRJServiceUserReason> {
-        if called_ae_title.trim() != this_ae_title.trim() {
-            return Err(AssociationRJServiceUserReason::CalledAETitleNotRecognized);
-        }
-        match &self.allowed {
-            Some(list) if !list.iter().any(|a| a == calling_ae_title.trim()) => {
-                Err(AssociationRJServiceUserReason::CallingAETitleNotRecognized)
-            }
-            _ => Ok(()),
-        }
-    }
-}
-
-/// The peers' addresses, resolved once at start.
-struct Peers {
-    settings: NodeSettings,
-    addresses: Vec<(String, Vec<IpAddr>)>,
-}
-
-impl Peers {
-    async fn resolve(settings: NodeSettings) -> Self {
-        let mut addresses = Vec::new();
-        for p in &settings.peers {
-            let ips = match tokio::net::lookup_host((p.host.as_str(), p.port)).await {
-                Ok(it) => it.map(|a| a.ip()).collect(),
-                Err(e) => {
-                    tracing::warn!(peer = %p.ae_title, host = %p.host, error = %e, "cannot resolve a DICOM peer");
-                    Vec::new()
-                }
-            };
-            addresses.push((p.ae_title.clone(), ips));
-        }
-        Self {
-            settings,
-            addresses,
-        }
-    }
-
-    /// The AE titles that may call from `ip`, or `None` when the node has no allow-list.
-    fn allowed_from(&self, ip: IpAddr) -> Option<Vec<String>> {
-        if self.settings.peers.is_empty() {
-            return None;
-        }
-        Some(
-            self.addresses
-                .iter()
-                .filter(|(_, ips)| ips.iter().any(|a| same_host(*a, ip)))
-                .map(|(ae, _)| ae.clone())
-                .collect(),
-        )
-    }
-}
-
-fn same_host(a: IpAddr, b: IpAddr) -> bool {
-    let canon = |ip: IpAddr| match ip {
-        IpAddr::V6(v6) => v6
-            .to_ipv4_mapped()
-            .map(IpAddr::V4)
-            .unwrap_or(IpAddr::V6(v6)),
-        v4 => v4,
-    };
-    canon(a) == canon(b)
 }
 
 impl DicomNode {
@@ -253,29 +176,76 @@ async fn accept_loop(
     retrieval: Option<Retrieval>,
     mut stopped: watch::Receiver<bool>,
 ) {
-    let slots = Arc::new(Semaphore::new(peers.settings.max_associations));
+    let s = &peers.settings;
+    let slots = Arc::new(Semaphore::new(s.max_associations));
+    let pending = Arc::new(Pending::new(s.max_pending_per_address, s.pending_cap()));
+    let noise = Arc::new(Noise::default());
+    let mut backoff = Duration::ZERO;
     loop {
+        tokio::select! {
+            _ = pending.room() => {}
+            _ = stopped.changed() => return,
+        }
         let (socket, remote) = tokio::select! {
             r = listener.accept() => match r {
                 Ok(x) => x,
                 Err(e) => {
-                    tracing::warn!(error = %e, "DICOM accept failed");
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                    continue;
+                    use std::io::ErrorKind::{ConnectionAborted, ConnectionReset, Interrupted};
+                    if matches!(e.kind(), ConnectionAborted | ConnectionReset | Interrupted) {
+                        continue;
+                    }
+                    // Out of descriptors (EMFILE, ENFILE) or buffers: free one by closing the oldest
+                    // connection still without a request, wait (longer while it lasts), keep listening.
+                    let freed = pending.close_oldest();
+                    backoff = (backoff * 2).clamp(Duration::from_millis(10), Duration::from_secs(1));
+                    if let Some(n) = noise.accept_failed.tick() {
+                        tracing::warn!(error = %e, failures = n, freed, retry_in = ?backoff,
+                            "DICOM accept failed");
+                    }
+                    tokio::select! {
+                        _ = tokio::time::sleep(backoff) => continue,
+                        _ = stopped.changed() => return,
+                    }
                 }
             },
             _ = stopped.changed() => return,
         };
+        backoff = Duration::ZERO;
         let _ = socket.set_nodelay(true);
-        let Ok(slot) = slots.clone().try_acquire_owned() else {
-            tokio::spawn(reject_busy(socket));
-            continue;
-        };
+        let (ticket, closed) = pending.enter(remote.ip());
+        if closed > 0
+            && let Some(n) = noise.crowded.tick()
+        {
+            let (total, here) = pending.count(remote.ip());
+            tracing::warn!(%remote, closed = n, pending = total, pending_here = here,
+                "too many connections without an A-ASSOCIATE-RQ: the oldest closed");
+        }
         let (peers, tracker, retrieval) = (peers.clone(), tracker.clone(), retrieval.clone());
+        let (slots, noise) = (slots.clone(), noise.clone());
         let span = tracing::info_span!("association", %remote);
         tokio::spawn(
             async move {
-                handle(socket, remote, &peers, tracker, retrieval).await;
+                let accepted = Instant::now();
+                let Some((socket, slot)) =
+                    admit(socket, remote, ticket, &peers, &slots, &noise).await
+                else {
+                    return;
+                };
+                // The request is on the socket already: what is left of the association timeout (at
+                // least 1 s) is for answering it.
+                let left = peers
+                    .settings
+                    .association_timeout()
+                    .saturating_sub(accepted.elapsed());
+                handle(
+                    socket,
+                    remote,
+                    &peers,
+                    tracker,
+                    retrieval,
+                    left.max(Duration::from_secs(1)),
+                )
+                .await;
                 drop(slot);
             }
             .instrument(span),
@@ -283,19 +253,82 @@ async fn accept_loop(
     }
 }
 
-/// Answer a caller over the association cap with A-ASSOCIATE-RJ (transient, local limit exceeded).
-async fn reject_busy(mut socket: TcpStream) {
-    let mut buf = Vec::new();
-    let rj = Pdu::AssociationRJ(AssociationRJ {
-        result: AssociationRJResult::Transient,
-        source: AssociationRJSource::ServiceProviderPresentation(
-            AssociationRJServiceProviderPresentationReason::LocalLimitExceeded,
-        ),
-    });
-    if dicom_ul::pdu::write_pdu(&mut buf, &rj).is_ok() {
-        let _ = tokio::time::timeout(Duration::from_secs(5), socket.write_all(&buf)).await;
+/// Log lines for events a remote host can repeat at will, at most one per kind every 10 s.
+struct Noise {
+    accept_failed: Throttle,
+    crowded: Throttle,
+    silent: Throttle,
+    not_a_request: Throttle,
+    busy: Throttle,
+}
+
+impl Default for Noise {
+    fn default() -> Self {
+        let t = || Throttle::new(Duration::from_secs(10));
+        Self {
+            accept_failed: t(),
+            crowded: t(),
+            silent: t(),
+            not_a_request: t(),
+            busy: t(),
+        }
     }
-    tracing::warn!("association refused: too many at once");
+}
+
+/// Wait (as a pending connection, within the negotiation timeout) for the caller's whole A-ASSOCIATE-RQ,
+/// then decide: a caller that may call from its address takes an association slot, or is refused
+/// transiently when none is free; any other is negotiated without a slot (and so rejected by the
+/// negotiation). `None`: the connection was answered and closed here.
+async fn admit(
+    socket: TcpStream,
+    remote: SocketAddr,
+    mut ticket: Ticket,
+    peers: &Peers,
+    slots: &Arc<Semaphore>,
+    noise: &Noise,
+) -> Option<(TcpStream, Option<OwnedSemaphorePermit>)> {
+    let s = &peers.settings;
+    let opening = tokio::select! {
+        o = tokio::time::timeout(s.negotiation_timeout(), admission::read_opening(&socket)) => o,
+        _ = &mut ticket.closed => return None,
+    };
+    drop(ticket);
+    match opening {
+        Ok(Opening::Request {
+            called,
+            calling,
+            len,
+        }) => {
+            if !peers.may_call(remote.ip(), &called, &calling) {
+                return Some((socket, None));
+            }
+            match slots.clone().try_acquire_owned() {
+                Ok(slot) => Some((socket, Some(slot))),
+                Err(_) => {
+                    if let Some(n) = noise.busy.tick() {
+                        tracing::warn!(calling_ae = %calling.trim(), refused = n,
+                            "association refused: too many at once");
+                    }
+                    admission::answer_request(socket, len, &admission::busy_pdu()).await;
+                    None
+                }
+            }
+        }
+        Ok(Opening::NotARequest(why)) => {
+            if let Some(n) = noise.not_a_request.tick() {
+                tracing::warn!(%remote, why, aborted = n, "connection aborted before negotiation");
+            }
+            admission::abort(socket).await;
+            None
+        }
+        Ok(Opening::Closed) => None,
+        Err(_) => {
+            if let Some(n) = noise.silent.tick() {
+                tracing::warn!(%remote, closed = n, "no A-ASSOCIATE-RQ within the negotiation timeout");
+            }
+            None
+        }
+    }
 }
 
 async fn handle(
@@ -304,6 +337,7 @@ async fn handle(
     peers: &Peers,
     tracker: Arc<Tracker>,
     retrieval: Option<Retrieval>,
+    negotiation: Duration,
 ) {
     let s = &peers.settings;
     let mut options = ServerAssociationOptions::new()
@@ -326,9 +360,7 @@ async fn handle(
     for ts in decodable_transfer_syntaxes() {
         options = options.with_transfer_syntax(ts);
     }
-    let assoc = match tokio::time::timeout(s.association_timeout(), options.establish_async(socket))
-        .await
-    {
+    let assoc = match tokio::time::timeout(negotiation, options.establish_async(socket)).await {
         Ok(Ok(a)) => a,
         Ok(Err(e)) => {
             tracing::warn!(%remote, error = %e, "association refused");
