@@ -14,6 +14,7 @@ use serde_json::json;
 use super::instances::indexed;
 use super::{App, AppError, AppResult};
 use crate::dicom::{STORABLE_SOP_CLASSES, read_header};
+use crate::error_code::ErrorCode;
 use crate::jobs::model::{IndexedInstance, NewInstance};
 use crate::storage::{InstanceId, InstanceOwner, UploadId};
 
@@ -48,6 +49,8 @@ pub struct StowOutcome {
     /// `None` when stored; the failure reason otherwise.
     pub failure: Option<u16>,
     pub why: String,
+    /// The catalogue code of a part refused for what it holds (a malformed UID, an unreadable header).
+    pub code: Option<&'static str>,
 }
 
 impl StowOutcome {
@@ -59,6 +62,7 @@ impl StowOutcome {
             series_uid: None,
             failure: Some(reason),
             why: why.into(),
+            code: None,
         }
     }
 }
@@ -174,10 +178,9 @@ fn check(
     let h = match read_header(&path, max) {
         Ok(h) => h,
         Err(e) => {
-            return (
-                StowOutcome::failed(reason::CANNOT_UNDERSTAND, e.to_string()),
-                None,
-            );
+            let mut o = StowOutcome::failed(reason::CANNOT_UNDERSTAND, e.to_string());
+            o.code = Some(ErrorCode::from(&e).code());
+            return (o, None);
         }
     };
     let mut o = StowOutcome {
@@ -187,6 +190,7 @@ fn check(
         series_uid: Some(h.series_uid.clone()),
         failure: None,
         why: String::new(),
+        code: None,
     };
     if !STORABLE_SOP_CLASSES.contains(&h.sop_class_uid.as_str()) {
         o.failure = Some(reason::SOP_CLASS_NOT_SUPPORTED);

@@ -37,6 +37,7 @@ mod pixels;
 mod read;
 mod scan;
 mod transcode;
+mod uid;
 mod unzip;
 mod upload;
 mod web;
@@ -49,11 +50,12 @@ pub use error::DicomError;
 pub use fuzz::fuzz_zip_entry;
 pub use header::{
     IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
-    decodable_transfer_syntaxes, header_of, is_valid_uid, part10_prefix, read_header, read_part10,
+    decodable_transfer_syntaxes, header_of, part10_prefix, read_header, read_part10,
 };
 pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use transcode::{data_set_as, le_interchangeable};
+pub use uid::{MAX_UID_CHARS, check_uid, is_valid_uid, uid_defect, value_summary};
 pub use unzip::{Unpacked, UploadFile, read_upload_file, read_upload_files, unpack_file};
 pub use upload::{
     Rejected, SeriesGroup, SeriesReport, Upload, ZipLimits, group_series, read_upload, unpack,
