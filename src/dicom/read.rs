@@ -11,7 +11,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 use super::error::DicomError;
 use super::framing::{self, FramingError};
 use super::pixels;
-use super::uid::{check_uid, check_uids, uid_value};
+use super::uid::{check_meta_uids, check_uid, check_uids, uid_value};
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -186,6 +186,8 @@ pub(super) fn open<'a>(
     if !ts_entry.can_decode_dataset() {
         return Err(unsupported_ts(ts_entry.name()));
     }
+    // dicom-rs refuses a meta group with a malformed UID as unreadable: name it as the UID it is.
+    check_meta_uids(label, &framed.bytes)?;
     let parse = || {
         let options = OpenFileOptions::new().read_preamble(ReadPreamble::Never);
         let options = match until {

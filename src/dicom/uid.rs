@@ -112,6 +112,27 @@ pub(super) fn check_uids(label: &str, obj: &InMemDicomObject) -> Result<(), Dico
     Ok(())
 }
 
+/// Check the SOP Class and SOP Instance UIDs of the file meta group of `framed` (a framed file: `DICM`, then
+/// the group opening with its group length), which dicom-rs would refuse as an unreadable group.
+pub(super) fn check_meta_uids(label: &str, framed: &[u8]) -> Result<(), DicomError> {
+    let Some(len) = framed.get(12..16) else {
+        return Ok(());
+    };
+    let end = 16usize.saturating_add(u32::from_le_bytes([len[0], len[1], len[2], len[3]]) as usize);
+    let group = framed.get(4..end.min(framed.len())).unwrap_or_default();
+    for (tag, element) in super::scan::meta_elements(group) {
+        let attribute = match tag {
+            (0x0002, 0x0002) => "Media Storage SOP Class UID (0002,0002)",
+            (0x0002, 0x0003) => "Media Storage SOP Instance UID (0002,0003)",
+            _ => continue,
+        };
+        let value = String::from_utf8_lossy(element.get(8..).unwrap_or_default());
+        let value = value.trim_end_matches(['\0', ' ']);
+        check_uid(label, attribute, (!value.is_empty()).then_some(value))?;
+    }
+    Ok(())
+}
+
 /// `meta` as a derived series may carry it: a malformed study or frame of reference UID (a series stored before
 /// every door checked UIDs) is replaced by a new one and a malformed source series is not referenced, each
 /// with a warning; `meta` itself when every UID it holds is well-formed.
@@ -217,5 +238,20 @@ mod tests {
         let written = super::super::write_ct_series(&vol, &hostile).unwrap();
         assert!(is_valid_uid(&written.study_uid), "{}", written.study_uid);
         assert!(is_valid_uid(&written.frame_of_reference_uid));
+
+        // A malformed UID in the file meta group is refused as such, not as an unreadable group.
+        let good = &written.files[0].1;
+        let mut obj = dicom_object::from_reader(&good[128..]).unwrap();
+        obj.meta_mut().media_storage_sop_instance_uid = "../../../tmp/pwned".into();
+        obj.meta_mut().update_information_group_length();
+        let mut bad = Vec::new();
+        obj.write_all(&mut bad).unwrap();
+        let e = super::super::read_bytes("x.dcm", &bad, &Default::default()).unwrap_err();
+        assert!(
+            matches!(e, DicomError::InvalidUid { attribute, .. } if attribute.contains("(0002,0003)")),
+            "{e:?}"
+        );
+        let e = super::super::header_of("x.dcm", &bad).unwrap_err();
+        assert_eq!(e.code(), "dicom_invalid_uid", "{e:?}");
     }
 }
