@@ -13,3 +13,5 @@ mod dimse_node;
 mod dimse_pull;
 mod dimse_query;
 mod dimse_rules;
+mod hostile_uids;
+mod resent_instances;
