@@ -16,6 +16,8 @@
 //! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model, and in explicit
 //!   VR little endian with native pixel data, compressed ones decoded by the reader's decoders (DICOMweb);
 //!   [`multipart`]: streamed `multipart/related` bodies (pure).
+//! - [`is_valid_uid`] / [`check_uid`]: the UID check every door applies to what it receives (PS3.5 §9.1), the
+//!   refusal ([`DicomError::InvalidUid`]) showing a hostile value only shortened and escaped.
 //! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
 //! - [`data_set_as`]: a stored data set re-encoded between explicit and implicit VR little endian (C-STORE to
 //!   a peer that accepted only the other).

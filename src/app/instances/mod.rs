@@ -13,7 +13,7 @@
 //! this file holds the index row of an instance and the queries and sweep over the index.
 
 mod received;
-pub(crate) mod resent;
+pub mod resent;
 mod results;
 
 use std::collections::HashSet;

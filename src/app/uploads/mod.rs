@@ -5,7 +5,8 @@
 //! Received files are decoded on the worker pool, split by SeriesInstanceUID and assembled into HU volumes;
 //! a file or member that cannot be read is listed as rejected with its reason and the others go on.
 //! Volumes are renamed into place only after their rows are committed, and the instances of a recorded
-//! upload are indexed. Open uploads (instances appended one by one, completed or deleted later) are in
+//! upload are indexed. A series stored already with the same content is answered as that series, and an
+//! instance the index holds already is not kept again ([`super::recognised`]). Open uploads (instances appended one by one, completed or deleted later) are in
 //! [`open`].
 
 mod open;
