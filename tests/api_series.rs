@@ -275,11 +275,34 @@ async fn two_series_in_one_zip_are_split_and_a_missing_slice_is_refused_or_resam
     );
     let other = write_zip(&a).unwrap();
     assert_problem(send(other).await.unwrap(), 422, "idempotency_key_reused").await;
+    // The same files again (a new upload) are answered with the series stored already, not stored twice.
+    let ids = |v: &Value| {
+        let mut ids: Vec<String> = v["series"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["series"]["id"].as_str().unwrap().to_string())
+            .collect();
+        ids.sort();
+        ids
+    };
+    assert_ne!(first["upload"]["id"], v["upload"]["id"]);
+    assert_eq!(ids(&first), ids(&v));
+    assert!(
+        first["series"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .all(|s| s["report"]["warnings"]
+                .to_string()
+                .contains("series_already_stored")),
+        "{first}"
+    );
     assert_eq!(
         std::fs::read_dir(app.dir.path().join("series"))
             .unwrap()
             .count(),
-        4
+        2
     );
 
     // Slice 11 of 40 missing: refused with a message naming the gap, or resampled with a warning.

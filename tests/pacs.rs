@@ -15,3 +15,5 @@ mod dimse_pull;
 mod dimse_query;
 mod dimse_rules;
 mod hostile_memory;
+mod hostile_uids;
+mod resent_instances;

@@ -22,6 +22,7 @@ pub mod matching;
 pub mod peers;
 pub mod protocols;
 pub mod query;
+pub mod recognised;
 pub mod rules;
 pub mod series;
 pub mod stow;

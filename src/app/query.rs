@@ -256,6 +256,7 @@ mod tests {
                 bytes: 10,
                 ..IndexedInstance::default()
             },
+            sha256: None,
         }
     }
 

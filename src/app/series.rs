@@ -173,7 +173,8 @@ impl App {
     }
 
     /// Assemble a complete set of received instances and record it as one completed upload, its series
-    /// stored like uploaded ones (rows first, then the volumes in place). An upload none of whose series
+    /// stored like uploaded ones (rows first, then the volumes in place; a series stored already with the
+    /// same content is answered as stored, [`App::recognise_series`]). An upload none of whose series
     /// could be assembled is recorded too, so `GET /v1/uploads/{id}` says why.
     pub async fn ingest_received(&self, files: Vec<UploadFile>, bytes: u64) -> AppResult<Received> {
         self.ingest_received_from(files, bytes, None).await
@@ -197,9 +198,15 @@ impl App {
     /// a job's input is that job's, not an arrival that rules act on.
     pub async fn record_received(&self, files: Vec<UploadFile>, bytes: u64) -> AppResult<Received> {
         let id = UploadId::generate();
-        let (ingested, staged) = self.ingest_files(id, files, None).await?;
+        let (mut ingested, mut staged) = self.ingest_files(id, files, None).await?;
+        // A series stored already with the same content is answered as stored, not made again.
+        let known = self.recognise_series(&mut ingested, &mut staged).await;
         let instances = ingested.files() as u32;
-        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        let records: Vec<SeriesRecord> = ingested
+            .ready()
+            .filter(|s| !known.contains(&s.id))
+            .cloned()
+            .collect();
         let view = outcome_json(id, instances, bytes, &ingested);
         match self
             .db

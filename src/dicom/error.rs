@@ -11,6 +11,14 @@ pub enum DicomError {
     Parse { label: String, reason: String },
     #[error("{label}: required attribute {what} is missing or invalid")]
     MissingAttribute { label: String, what: &'static str },
+    #[error("{label}: {attribute} {value_summary} is not a valid UID: {reason}")]
+    InvalidUid {
+        label: String,
+        attribute: &'static str,
+        /// The refused value, shortened and escaped (never the value itself).
+        value_summary: String,
+        reason: &'static str,
+    },
     #[error("{label}: the file has no pixel data")]
     NoPixelData { label: String },
     #[error("{label}: unsupported {what}")]
@@ -77,6 +85,7 @@ impl DicomError {
             DicomError::NotDicom { .. } => "dicom_not_dicom",
             DicomError::Parse { .. } => "dicom_parse_error",
             DicomError::MissingAttribute { .. } => "dicom_missing_attribute",
+            DicomError::InvalidUid { .. } => "dicom_invalid_uid",
             DicomError::NoPixelData { .. } => "dicom_no_pixel_data",
             DicomError::Unsupported { .. } => "dicom_unsupported",
             DicomError::UnsupportedTransferSyntax { .. } => "dicom_unsupported_transfer_syntax",

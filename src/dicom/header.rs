@@ -12,6 +12,7 @@ use serde::Serialize;
 
 use super::error::DicomError;
 use super::read::{Opened, float, header_inflate_limit, int, open, text};
+use super::uid::{check_uids, uid_value};
 
 /// SOP classes a DICOM node of ctrecon stores: CT Image, Enhanced CT Image, Secondary Capture Image and
 /// Encapsulated STL.
@@ -67,18 +68,6 @@ pub struct InstanceHeader {
     pub study_id: Option<String>,
 }
 
-/// Whether `uid` is a well-formed DICOM UID: 1 to 64 characters of digits and dots, no empty component, no
-/// leading zero in a component of more than one digit (PS3.5 §9.1). Such a UID is safe as a file name.
-pub fn is_valid_uid(uid: &str) -> bool {
-    !uid.is_empty()
-        && uid.len() <= 64
-        && uid.split('.').all(|c| {
-            !c.is_empty()
-                && c.bytes().all(|b| b.is_ascii_digit())
-                && (c == "0" || !c.starts_with('0'))
-        })
-}
-
 /// Read the header of the file at `path`; files over `max_bytes` are refused unread.
 pub fn read_header(path: &Path, max_bytes: u64) -> Result<InstanceHeader, DicomError> {
     let (label, bytes) = read_bounded(path, max_bytes)?;
@@ -115,14 +104,13 @@ pub fn header_of(label: &str, bytes: &[u8]) -> Result<InstanceHeader, DicomError
         header_inflate_limit(bytes.len()),
         Some(tags::PIXEL_DATA),
     )?;
-    let missing = |what| DicomError::MissingAttribute {
-        label: label.to_string(),
-        what,
-    };
+    // A malformed UID is refused as such, wherever it is; an absent required one as missing.
+    check_uids(label, &obj)?;
     let uid = |tag, what| {
-        text(&obj, tag)
-            .filter(|u| is_valid_uid(u))
-            .ok_or_else(|| missing(what))
+        uid_value(&obj, tag).ok_or_else(|| DicomError::MissingAttribute {
+            label: label.to_string(),
+            what,
+        })
     };
     let sop_class_uid = uid(tags::SOP_CLASS_UID, "SOP Class UID (0008,0016)")?;
     let sop_instance_uid = uid(tags::SOP_INSTANCE_UID, "SOP Instance UID (0008,0018)")?;
@@ -154,7 +142,7 @@ pub fn header_of(label: &str, bytes: &[u8]) -> Result<InstanceHeader, DicomError
         body_part: text(&obj, tags::BODY_PART_EXAMINED),
         image_type,
         slice_thickness_mm: float(&obj, tags::SLICE_THICKNESS),
-        frame_of_reference_uid: text(&obj, tags::FRAME_OF_REFERENCE_UID),
+        frame_of_reference_uid: uid_value(&obj, tags::FRAME_OF_REFERENCE_UID),
         patient_birth_date: text(&obj, tags::PATIENT_BIRTH_DATE),
         patient_sex: text(&obj, tags::PATIENT_SEX),
         study_time: text(&obj, tags::STUDY_TIME),
@@ -262,24 +250,6 @@ mod tests {
         assert_eq!(p.sop_instance_uid, "1.2.3.4");
         assert_eq!(p.transfer_syntax, "1.2.840.10008.1.2.1");
         assert_eq!(p.dataset_offset, prefix.len() as u64);
-    }
-
-    #[test]
-    fn uids_are_digits_and_dots_without_leading_zeros() {
-        assert!(is_valid_uid("1.2.840.10008.5.1.4.1.1.2"));
-        assert!(is_valid_uid("1.2.0.3"));
-        for bad in [
-            "",
-            "1..2",
-            "1.2.",
-            ".1",
-            "1.02",
-            "1.2a",
-            "../etc",
-            &"1".repeat(65),
-        ] {
-            assert!(!is_valid_uid(bad), "{bad:?} should be refused");
-        }
     }
 
     #[test]

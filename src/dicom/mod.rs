@@ -18,6 +18,8 @@
 //! - [`instance_json`] / [`explicit_le_bytes`]: a stored instance in the DICOM JSON model, and in explicit
 //!   VR little endian with native pixel data, compressed ones decoded by the reader's decoders (DICOMweb);
 //!   [`multipart`]: streamed `multipart/related` bodies (pure).
+//! - [`is_valid_uid`] / [`check_uid`]: the UID check every door applies to what it receives (PS3.5 §9.1), the
+//!   refusal ([`DicomError::InvalidUid`]) showing a hostile value only shortened and escaped.
 //! - [`read_identifier`] / [`write_identifier`]: the data sets of C-FIND and C-MOVE requests and responses.
 //! - [`data_set_as`]: a stored data set re-encoded between explicit and implicit VR little endian (C-STORE to
 //!   a peer that accepted only the other).
@@ -40,6 +42,7 @@ mod pixels;
 mod read;
 mod scan;
 mod transcode;
+mod uid;
 mod unzip;
 mod upload;
 mod web;
@@ -53,11 +56,12 @@ pub use error::DicomError;
 pub use fuzz::fuzz_zip_entry;
 pub use header::{
     IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
-    decodable_transfer_syntaxes, header_of, is_valid_uid, part10_prefix, read_header, read_part10,
+    decodable_transfer_syntaxes, header_of, part10_prefix, read_header, read_part10,
 };
 pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};
 pub use transcode::{data_set_as, le_interchangeable};
+pub use uid::{MAX_UID_CHARS, check_uid, is_valid_uid, uid_defect, value_summary};
 pub use unzip::{
     Unpacked, UploadFile, is_zip, read_upload_file, read_upload_files, starts_like, unpack_file,
 };

@@ -11,6 +11,7 @@ use dicom_transfer_syntax_registry::{TransferSyntaxIndex, TransferSyntaxRegistry
 use super::error::DicomError;
 use super::framing::{self, FramingError};
 use super::pixels;
+use super::uid::{check_meta_uids, check_uid, check_uids, uid_value};
 use crate::series::{Slice, Warning};
 
 /// Limits checked from the header, before any pixel buffer is allocated.
@@ -185,6 +186,8 @@ pub(super) fn open<'a>(
     if !ts_entry.can_decode_dataset() {
         return Err(unsupported_ts(ts_entry.name()));
     }
+    // dicom-rs refuses a meta group with a malformed UID as unreadable: name it as the UID it is.
+    check_meta_uids(label, &framed.bytes)?;
     let parse = || {
         let options = OpenFileOptions::new().read_preamble(ReadPreamble::Never);
         let options = match until {
@@ -227,11 +230,29 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         label: label_s.clone(),
         what,
     };
-    let sop_class_uid = text(&obj, tags::SOP_CLASS_UID)
-        .unwrap_or_else(|| obj.meta().media_storage_sop_class_uid().to_string());
-    let sop_instance_uid = text(&obj, tags::SOP_INSTANCE_UID)
-        .unwrap_or_else(|| obj.meta().media_storage_sop_instance_uid().to_string());
-    let series_uid = text(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default();
+    // Every UID present is checked before any pixel is decoded: a malformed one refuses the file (an absent
+    // one is not required here; a file without a series UID is grouped with the others that lack one).
+    check_uids(label, &obj)?;
+    let from_meta = |value: &str, attribute| {
+        let value = value.trim_end_matches(['\0', ' ']);
+        check_uid(label, attribute, (!value.is_empty()).then_some(value))
+            .map(|()| value.to_string())
+    };
+    let sop_class_uid = match uid_value(&obj, tags::SOP_CLASS_UID) {
+        Some(uid) => uid,
+        None => from_meta(
+            obj.meta().media_storage_sop_class_uid(),
+            "Media Storage SOP Class UID (0002,0002)",
+        )?,
+    };
+    let sop_instance_uid = match uid_value(&obj, tags::SOP_INSTANCE_UID) {
+        Some(uid) => uid,
+        None => from_meta(
+            obj.meta().media_storage_sop_instance_uid(),
+            "Media Storage SOP Instance UID (0002,0003)",
+        )?,
+    };
+    let series_uid = uid_value(&obj, tags::SERIES_INSTANCE_UID).unwrap_or_default();
 
     let pixels = pixels::decode(&obj, &framed, limits, label)?;
     let (rows, columns, frames) = (
@@ -356,8 +377,8 @@ pub fn read_bytes(label: &str, bytes: &[u8], limits: &ReadLimits) -> Result<Inst
         sop_class_uid,
         sop_instance_uid,
         series_uid,
-        study_uid: text(&obj, tags::STUDY_INSTANCE_UID),
-        frame_of_reference_uid: text(&obj, tags::FRAME_OF_REFERENCE_UID),
+        study_uid: uid_value(&obj, tags::STUDY_INSTANCE_UID),
+        frame_of_reference_uid: uid_value(&obj, tags::FRAME_OF_REFERENCE_UID),
         modality,
         transfer_syntax,
         samples_per_pixel: pixels.samples_per_pixel as u16,

@@ -290,6 +290,7 @@ fn plane_bytes(vol: &Volume, k: usize, slope: f64, intercept: f64) -> Vec<u8> {
 /// position/orientation/spacing from the volume's frame, int16 with a rescale to HU. Slices are encoded in
 /// parallel.
 pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries, DicomError> {
+    let meta = &*super::uid::valid_meta(meta);
     let (nz, ny, nx) = check_volume(vol)?;
     let (slope, intercept) = quantisation(vol)?;
     let study_uid = meta.study_uid.clone().unwrap_or_else(new_uid);
@@ -374,6 +375,7 @@ pub fn write_ct_series(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries,
 /// Write a volume in HU as one multi-frame Enhanced CT file (per-frame plane positions, shared pixel
 /// measures, orientation and rescale).
 pub fn write_enhanced_ct(vol: &Volume, meta: &SeriesMeta) -> Result<DerivedSeries, DicomError> {
+    let meta = &*super::uid::valid_meta(meta);
     let (nz, ny, nx) = check_volume(vol)?;
     let (slope, intercept) = quantisation(vol)?;
     let study_uid = meta.study_uid.clone().unwrap_or_else(new_uid);

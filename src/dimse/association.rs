@@ -13,7 +13,7 @@ use super::inbox::{InstanceSink, SinkError};
 use super::query::{self, Retrieval};
 use super::tracker::{Arrival, Tracker};
 use super::wire::{self, Incoming, Pdv};
-use crate::dicom::{header_of, part10_prefix, read_header};
+use crate::dicom::{DicomError, check_uid, header_of, part10_prefix, read_header};
 
 /// What this association may do, and the limits it runs under.
 #[derive(Debug, Clone)]
@@ -204,11 +204,12 @@ async fn on_command(
                     status::SOP_CLASS_NOT_SUPPORTED,
                     "SOP class differs from the presentation context".into(),
                 ))
-            } else if !crate::dicom::is_valid_uid(&cmd.sop_instance_uid) {
-                Some((
-                    status::CANNOT_UNDERSTAND,
-                    "invalid Affected SOP Instance UID".into(),
-                ))
+            } else if let Err(e) = check_uid(
+                "the request",
+                "Affected SOP Instance UID (0000,1000)",
+                Some(&cmd.sop_instance_uid),
+            ) {
+                Some((status::CANNOT_UNDERSTAND, error_comment(&e)))
             } else {
                 None
             };
@@ -411,7 +412,7 @@ async fn file(
         };
         let header = match header {
             Ok(h) => h,
-            Err(e) => return (status::CANNOT_UNDERSTAND, e.to_string()),
+            Err(e) => return (status::CANNOT_UNDERSTAND, error_comment(&e)),
         };
         if header.sop_instance_uid != cmd.sop_instance_uid
             || header.sop_class_uid != cmd.sop_class_uid
@@ -441,4 +442,15 @@ async fn file(
     })
     .await;
     checked.unwrap_or_else(|_| (status::CANNOT_UNDERSTAND, "malformed data set".into()))
+}
+
+/// The Error Comment of a refused data set: the catalogue code first, since the comment is cut at 64
+/// characters; a malformed UID is named by its attribute and defect (never its value).
+fn error_comment(e: &DicomError) -> String {
+    match e {
+        DicomError::InvalidUid {
+            attribute, reason, ..
+        } => format!("{}: {attribute}: {reason}", e.code()),
+        _ => format!("{}: {e}", e.code()),
+    }
 }

@@ -1,6 +1,7 @@
-//! The node as a front door of the application: every series it completes is assembled and recorded
-//! through [`App::ingest_received`], exactly like an uploaded one, and its instances are kept in the
-//! instance index ([`App::index_received`]) that C-FIND and C-MOVE answer from.
+//! The node as a front door of the application: every series it completes goes to
+//! [`App::receive_series`], which assembles and records it exactly like an uploaded one (or nothing, when
+//! it was sent again unchanged) and keeps its instances in the instance index that C-FIND and C-MOVE answer
+//! from.
 
 use std::net::SocketAddr;
 use std::path::{Path, PathBuf};
@@ -85,20 +86,16 @@ async fn assemble(app: &App, done: CompletedSeries) {
             return;
         }
     };
-    let paths: Vec<PathBuf> = files.iter().map(|f| f.path.clone()).collect();
     let keep = match app
-        .ingest_received_from(files, done.bytes, Some(done.calling_ae.as_str()))
+        .receive_series(&done.series_uid, files, Some(done.calling_ae.as_str()))
         .await
     {
-        Ok(r) => {
+        Ok(Some(r)) => {
             let ready = r.ingested.ready().count();
             tracing::info!(upload_id = %r.upload_id, series_uid = %done.series_uid, instances = done.instances, ready, refused = r.ingested.series.len() - ready, "received series recorded");
-            let records: Vec<_> = r.ingested.ready().cloned().collect();
-            if let Err(e) = app.index_received(r.upload_id, paths, &records).await {
-                tracing::error!(upload_id = %r.upload_id, error = %e, "received instances not indexed");
-            }
             false
         }
+        Ok(None) => false,
         Err(AppError::Refused(p)) => {
             tracing::warn!(series_uid = %done.series_uid, code = p.code.code(), detail = %p.detail, "received series refused");
             false

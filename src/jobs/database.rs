@@ -240,6 +240,11 @@ impl Database {
         on!(self, db => db.get_series(id).await)
     }
 
+    /// The stored series of Series Instance UID `series_uid`, newest first.
+    pub async fn series_with_uid(&self, series_uid: &str) -> Result<Vec<SeriesRecord>, DbError> {
+        on!(self, db => db.series_with_uid(series_uid).await)
+    }
+
     pub async fn counts(&self) -> Result<Vec<(JobStatus, i64)>, DbError> {
         on!(self, db => db.counts().await)
     }

@@ -153,6 +153,12 @@ impl Staged {
         Ok(())
     }
 
+    /// Take the staged volume of series `id` out (a series found stored already): it is not committed.
+    pub fn take(&mut self, id: SeriesId) -> Option<TempBlob> {
+        let at = self.0.iter().position(|(s, _)| *s == id)?;
+        Some(self.0.remove(at).1)
+    }
+
     /// Remove the staged volumes (the rows were not recorded).
     pub async fn discard(self) {
         for (_, temp) in self.0 {

@@ -8,10 +8,12 @@
 //! Files are named by generated ids ([`InstanceId`]), never by DICOM attributes. Every indexed attribute
 //! is read from the file itself (`dicom::read_header`), so the index says what a C-MOVE sends.
 //!
-//! `received` keeps and indexes what was received, `results` indexes the DICOM results of volume jobs;
+//! `received` keeps and indexes what was received (one copy per SOP Instance UID: `resent` says what
+//! becomes of an instance sent again), `results` indexes the DICOM results of volume jobs;
 //! this file holds the index row of an instance and the queries and sweep over the index.
 
 mod received;
+pub mod resent;
 mod results;
 
 use std::collections::HashSet;

@@ -5,9 +5,10 @@
 use std::collections::HashMap;
 use std::path::PathBuf;
 
-use super::{indexed, storage};
+use super::resent::Sorted;
+use super::storage;
 use crate::app::{App, AppResult};
-use crate::dicom::{Unpacked, UploadFile, read_header, unpack_file};
+use crate::dicom::{Unpacked, UploadFile, unpack_file};
 use crate::jobs::SeriesRecord;
 use crate::jobs::model::NewInstance;
 use crate::storage::{InstanceId, InstanceOwner, ScratchDir, SeriesId, UploadId};
@@ -32,55 +33,65 @@ impl StagedInstances {
 
 impl App {
     /// Keep the received instances `files` of upload `upload` and index them (each with its assembled series
-    /// among `series`, when it has one): rows first, then the files are moved under
-    /// `instances/<upload>/`. A file whose header cannot be read is left where it is. Returns the count.
+    /// among `series`, when it has one), by the rule of [`resent`](super::resent): a copy the index holds
+    /// already is not kept again (its row is linked to its series, when one was made now); the others get
+    /// their rows first, replacing earlier copies, then are moved under `instances/<upload>/`. A file whose
+    /// header cannot be read is left where it is. Returns the count of instances kept.
     pub async fn index_received(
         &self,
         upload: UploadId,
         files: Vec<PathBuf>,
         series: &[SeriesRecord],
     ) -> AppResult<usize> {
-        let max = self
-            .settings
-            .dicom
-            .max_instance_bytes
-            .saturating_add(64 << 10);
+        let arrived = self.read_arrived(files).await?;
+        let sorted = self.sort_arrived(arrived).await?;
+        self.index_sorted(upload, sorted, series).await
+    }
+
+    /// [`index_received`](Self::index_received) of instances already read and sorted.
+    pub(crate) async fn index_sorted(
+        &self,
+        upload: UploadId,
+        sorted: Sorted,
+        series: &[SeriesRecord],
+    ) -> AppResult<usize> {
         let by_uid: HashMap<String, SeriesId> = series
             .iter()
             .map(|s| (s.series_uid.clone(), s.id))
             .collect();
-        let read = tokio::task::spawn_blocking(move || {
-            files
-                .into_iter()
-                .filter_map(|f| {
-                    let bytes = std::fs::metadata(&f).ok()?.len();
-                    match read_header(&f, max) {
-                        Ok(h) => Some((f, indexed(&h, bytes))),
-                        Err(e) => {
-                            tracing::warn!(error = %e, "a received instance is not indexed");
-                            None
-                        }
-                    }
-                })
-                .collect::<Vec<_>>()
-        })
-        .await
-        .map_err(|e| storage("reading received headers failed", std::io::Error::other(e)))?;
+        let mut relink: HashMap<SeriesId, Vec<InstanceId>> = HashMap::new();
+        for (a, row) in &sorted.recognised {
+            if let Some(&s) = by_uid.get(&a.instance.series_uid)
+                && row.series_id != Some(s)
+            {
+                relink.entry(s).or_default().push(row.id);
+            }
+        }
+        for (s, ids) in relink {
+            self.db.settle_instances(&ids, Some(s)).await?;
+        }
+        let (recognised, repeated) = (sorted.recognised.len(), sorted.repeated.len());
+        let read = sorted.fresh;
         let owner = InstanceOwner::Upload(upload);
         let rows: Vec<NewInstance> = read
             .iter()
-            .map(|(_, i)| NewInstance {
+            .map(|a| NewInstance {
                 id: InstanceId::generate(),
-                series_id: by_uid.get(&i.series_uid).copied(),
-                instance: i.clone(),
+                series_id: by_uid.get(&a.instance.series_uid).copied(),
+                instance: a.instance.clone(),
+                sha256: Some(a.sha256.clone()),
             })
             .collect();
-        self.db.insert_instances(owner, &rows).await?;
+        if rows.is_empty() {
+            tracing::info!(upload_id = %upload, recognised, repeated, "received instances were all indexed already");
+            return Ok(0);
+        }
+        let replaced = self.db.insert_received(upload, &rows, false).await?;
         let store = self.store.clone();
         let moves: Vec<(PathBuf, PathBuf)> = read
             .into_iter()
             .zip(&rows)
-            .map(|((from, _), r)| (from, store.instance_path(owner, r.id)))
+            .map(|(a, r)| (a.path, store.instance_path(owner, r.id)))
             .collect();
         let n = moves.len();
         tokio::task::spawn_blocking(move || -> std::io::Result<()> {
@@ -101,7 +112,9 @@ impl App {
             )
         })?
         .map_err(|e| storage("keeping received instances failed", e))?;
-        tracing::info!(upload_id = %upload, instances = n, "received instances indexed");
+        let replaced_n = replaced.len();
+        self.remove_replaced(replaced).await;
+        tracing::info!(upload_id = %upload, instances = n, replaced = replaced_n, recognised, repeated, "received instances indexed");
         Ok(n)
     }
 

@@ -132,6 +132,7 @@ impl App {
                                 id: InstanceId::generate(),
                                 series_id: None,
                                 instance: indexed(&h, bytes),
+                                sha256: None,
                             },
                         )),
                         Err(e) => {
@@ -215,6 +216,7 @@ impl App {
                         id: InstanceId::generate(),
                         series_id: None,
                         instance: indexed(&h, bytes.len() as u64),
+                        sha256: None,
                     };
                     out.push((row, temp));
                 }

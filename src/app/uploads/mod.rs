@@ -5,7 +5,8 @@
 //! Received files are decoded on the worker pool, split by SeriesInstanceUID and assembled into HU volumes;
 //! a file or member that cannot be read is listed as rejected with its reason and the others go on.
 //! Volumes are renamed into place only after their rows are committed, and the instances of a recorded
-//! upload are indexed. Open uploads (instances appended one by one, completed or deleted later) are in
+//! upload are indexed. A series stored already with the same content is answered as that series, and an
+//! instance the index holds already is not kept again ([`super::recognised`]). Open uploads (instances appended one by one, completed or deleted later) are in
 //! [`open`].
 
 mod open;
@@ -192,17 +193,24 @@ impl App {
             _ => None,
         };
         discard(files).await;
-        let (ingested, staged) = match outcome? {
+        let (mut ingested, mut staged) = match outcome? {
             Ok(done) => done,
             Err(replayed) => return Ok(UploadAnswer::Replayed(replayed)),
         };
+        // A series stored already with the same content is answered as stored, not made again.
+        let known = self.recognise_series(&mut ingested, &mut staged).await;
         // Instances (ZIP entries included), not request parts.
         let instances = ingested.files() as u32;
-        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
-        if records.is_empty() {
+        let ready: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        if ready.is_empty() {
             staged.discard().await;
             return Err(ingested.failure().into());
         }
+        let records: Vec<SeriesRecord> = ready
+            .iter()
+            .filter(|s| !known.contains(&s.id))
+            .cloned()
+            .collect();
         let view = outcome_json(id, instances, bytes, &ingested);
         let recorded = self
             .record_upload(id, (instances, bytes), &view, &records, key.as_ref())
@@ -211,10 +219,10 @@ impl App {
             return Ok(UploadAnswer::Replayed(winner));
         }
         if let Some(kept) = kept {
-            self.index_upload(id, kept, &records).await;
+            self.index_upload(id, kept, &ready).await;
         }
         self.fire_rules(&ingested, None).await;
-        tracing::info!(upload_id = %id, series = records.len(), rejected = ingested.rejected.len(), "upload completed");
+        tracing::info!(upload_id = %id, series = records.len(), stored_already = known.len(), rejected = ingested.rejected.len(), "upload completed");
         Ok(UploadAnswer::Created { id, view })
     }
 

@@ -179,13 +179,20 @@ impl App {
             bytes += tokio::fs::metadata(&path).await?.len();
             files.push(UploadFile { label: name, path });
         }
-        let (ingested, staged) = self.ingest_files(id, files.clone(), uneven).await?;
-        let records: Vec<SeriesRecord> = ingested.ready().cloned().collect();
-        if records.is_empty() {
+        let (mut ingested, mut staged) = self.ingest_files(id, files.clone(), uneven).await?;
+        // A series stored already with the same content is answered as stored, not made again.
+        let known = self.recognise_series(&mut ingested, &mut staged).await;
+        let ready: Vec<SeriesRecord> = ingested.ready().cloned().collect();
+        if ready.is_empty() {
             // The upload stays open: a missing instance can still be appended.
             staged.discard().await;
             return Err(ingested.failure().into());
         }
+        let records: Vec<SeriesRecord> = ready
+            .iter()
+            .filter(|s| !known.contains(&s.id))
+            .cloned()
+            .collect();
         let view = outcome_json(id, instances, bytes, &ingested);
         let recorded = match self
             .db
@@ -205,7 +212,7 @@ impl App {
         };
         self.commit_series(staged, recorded).await?;
         if let Ok(kept) = self.stage_uploaded(&files, &ingested.rejected).await {
-            self.index_upload(id, kept, &records).await;
+            self.index_upload(id, kept, &ready).await;
         }
         self.fire_rules(&ingested, None).await;
         self.remove_instances_of(id).await;

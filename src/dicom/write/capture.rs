@@ -52,6 +52,7 @@ pub fn write_secondary_capture_frame(
     instance_number: usize,
     orientation: Option<&ScOrientation>,
 ) -> Result<(String, Vec<u8>), DicomError> {
+    let meta = &*crate::dicom::uid::valid_meta(meta);
     let (h, w) = img.dim();
     if h == 0 || w == 0 || h > 65535 || w > 65535 {
         return Err(DicomError::Write(format!(
@@ -118,6 +119,7 @@ pub fn write_encapsulated_stl(
     meta: &SeriesMeta,
     title: &str,
 ) -> Result<(String, Vec<u8>), DicomError> {
+    let meta = &*crate::dicom::uid::valid_meta(meta);
     if stl.len() < 84 {
         return Err(DicomError::Write("an STL has at least 84 bytes".into()));
     }

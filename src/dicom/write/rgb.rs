@@ -28,6 +28,7 @@ pub fn write_secondary_capture_rgb(
     derivation: &str,
     sides: Option<&ScreenSides>,
 ) -> Result<(String, Vec<u8>), DicomError> {
+    let meta = &*crate::dicom::uid::valid_meta(meta);
     let (h, w, n) = (img.rows, img.columns, img.frames.len());
     if h == 0 || w == 0 || h > 65535 || w > 65535 || n == 0 || n > 10_000 {
         return Err(DicomError::Write(format!(

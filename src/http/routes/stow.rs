@@ -6,13 +6,14 @@
 //! `Content-Length` is already over it). The parts are then stored through
 //! the same receive path as C-STORE ([`crate::app::App::stow`]). The answer is the PS3.18 response in
 //! `application/dicom+json`: ReferencedSOPSequence (0008,1199) with a RetrieveURL per stored instance,
-//! FailedSOPSequence (0008,1198) with a FailureReason (0008,1197) per refused part; 200 when all were stored,
+//! FailedSOPSequence (0008,1198) with a FailureReason (0008,1197) per refused part, and a `Warning: 299` header
+//! field with the catalogue code (`dicom_invalid_uid`, …) of each part refused for what it holds; 200 when all were stored,
 //! 202 when some were, 409 when none. A body that is not `multipart/related` of DICOM is 415; a missing or
 //! wrong boundary, or a body that is not multipart, is 400; in both cases nothing is stored.
 
 use axum::body::Body;
 use axum::extract::{Path, State};
-use axum::http::{HeaderMap, StatusCode, header};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::Response;
 use futures_util::StreamExt;
 use serde_json::{Value, json};
@@ -230,7 +231,7 @@ async fn stow(
     let outcomes = state.stow(parts, study.as_deref()).await?;
     drop(temps); // what was not kept
     for o in outcomes.iter().filter(|o| o.failure.is_some()) {
-        tracing::warn!(sop_instance_uid = ?o.sop_instance_uid, reason = format!("{:04X}", o.failure.unwrap_or_default()), why = %o.why, "STOW-RS part refused");
+        tracing::warn!(sop_instance_uid = ?o.sop_instance_uid, reason = format!("{:04X}", o.failure.unwrap_or_default()), code = o.code.unwrap_or_default(), why = %o.why, "STOW-RS part refused");
     }
     let stored = outcomes.iter().filter(|o| o.failure.is_none()).count();
     let status = match stored {
@@ -240,7 +241,38 @@ async fn stow(
     };
     tracing::info!(parts = outcomes.len(), stored, "STOW-RS request answered");
     let json = response_json(&outcomes, study.as_deref(), &base_url(&headers));
-    Ok(dicom_json_response(status, &json))
+    let mut response = dicom_json_response(status, &json);
+    for value in warnings(&outcomes) {
+        response.headers_mut().append(header::WARNING, value);
+    }
+    Ok(response)
+}
+
+/// Most `Warning` header fields of one answer.
+const MAX_WARNINGS: usize = 16;
+
+/// A `Warning` header field (PS3.18 §10.5.3: `299`, a miscellaneous persistent warning) per part refused
+/// for what it holds: its catalogue code and why, so that a client sees the code the other doors answer.
+fn warnings(outcomes: &[StowOutcome]) -> Vec<HeaderValue> {
+    outcomes
+        .iter()
+        .enumerate()
+        .filter_map(|(k, o)| {
+            let code = o.code.filter(|_| o.failure.is_some())?;
+            let why: String = o
+                .why
+                .chars()
+                .map(|c| match c {
+                    '"' | '\\' => '\'',
+                    c if c.is_ascii_graphic() || c == ' ' => c,
+                    _ => '?',
+                })
+                .take(300)
+                .collect();
+            HeaderValue::from_str(&format!("299 ctrecon \"part {}: {code}: {why}\"", k + 1)).ok()
+        })
+        .take(MAX_WARNINGS)
+        .collect()
 }
 
 #[tracing::instrument(skip_all)]

@@ -20,7 +20,7 @@ use crate::jobs::deliveries::{
     Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, NewRun, RuleRun, RunState,
 };
 use crate::jobs::model::JobStatus;
-use crate::jobs::model::{IndexScope, NewInstance, StoredInstance, now_us};
+use crate::jobs::model::{IndexScope, NewInstance, ReplacedCopy, StoredInstance, now_us};
 use crate::jobs::rules::{RuleSource, RuleSpec, StoredRule};
 use crate::jobs::store::DbError;
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
@@ -209,13 +209,24 @@ impl Database {
         on!(self, db => db.insert_instances(owner, rows).await)
     }
 
-    /// Index received `rows` of upload `owner` whose series is still to be assembled (STOW-RS).
-    pub async fn insert_pending_instances(
+    /// Index received `rows` of upload `upload` (pending assembly when `pending`), each replacing the
+    /// received copies of its SOP Instance UID indexed before; the copies replaced (their files are the
+    /// caller's to remove).
+    pub async fn insert_received(
         &self,
-        owner: InstanceOwner,
+        upload: UploadId,
         rows: &[NewInstance],
-    ) -> Result<(), DbError> {
-        on!(self, db => db.insert_pending_instances(owner, rows).await)
+        pending: bool,
+    ) -> Result<Vec<ReplacedCopy>, DbError> {
+        on!(self, db => db.insert_received(upload, rows, pending).await)
+    }
+
+    /// The received copies of the SOP Instance UIDs `sop_uids`, newest first.
+    pub async fn received_copies(
+        &self,
+        sop_uids: &[String],
+    ) -> Result<Vec<StoredInstance>, DbError> {
+        on!(self, db => db.received_copies(sop_uids).await)
     }
 
     /// The indexed instances in `scope`, newest first.

@@ -1,7 +1,7 @@
 //! The instance index's rows as both job database adapters read and write them: an indexed DICOM instance
 //! with the attributes queries match, where it is stored and what owns it, and the narrowing of a read.
 
-use crate::storage::{InstanceId, InstanceOwner, SeriesId};
+use crate::storage::{InstanceId, InstanceOwner, SeriesId, UploadId};
 
 /// One indexed instance: its identity, the attributes of its patient, study, series and itself, and where
 /// its file is.
@@ -40,14 +40,25 @@ pub struct StoredInstance {
     pub series_id: Option<SeriesId>,
     pub created_us: i64,
     pub instance: IndexedInstance,
+    /// SHA-256 of its file (hex) for a received instance; `None` for rows indexed before it was kept.
+    pub sha256: Option<String>,
 }
 
-/// A row to insert: the instance, its new id and its series.
+/// A row to insert: the instance, its new id, its series and the SHA-256 of its file (hex).
 #[derive(Debug, Clone)]
 pub struct NewInstance {
     pub id: InstanceId,
     pub series_id: Option<SeriesId>,
     pub instance: IndexedInstance,
+    pub sha256: Option<String>,
+}
+
+/// A received copy that indexing a newer copy of the same SOP Instance UID replaced: its row is gone, its
+/// file (`instances/<upload>/<id>.dcm`) is the caller's to remove.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ReplacedCopy {
+    pub upload: UploadId,
+    pub id: InstanceId,
 }
 
 /// Narrowing of an index read by exact UIDs (taken from single-valued unique keys of a query).

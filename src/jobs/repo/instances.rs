@@ -5,8 +5,8 @@
 use sqlx::Row;
 
 use super::{Db, DbError, corrupt};
-use crate::jobs::model::{IndexScope, NewInstance, StoredInstance, now_us};
-use crate::jobs::store::rows::{INSTANCE_COLUMNS, stored_instance};
+use crate::jobs::model::{IndexScope, NewInstance, ReplacedCopy, StoredInstance, now_us};
+use crate::jobs::store::rows::{INSTANCE_COLUMNS, replaced_copy, stored_instance};
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
 
 impl Db {
@@ -17,16 +17,47 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
     ) -> Result<bool, DbError> {
-        self.insert_rows(owner, rows, false).await
+        Ok(self.insert_rows(owner, rows, false).await?.is_some())
     }
 
-    /// Index received `rows` of upload `owner` whose series is still to be assembled (STOW-RS).
-    pub async fn insert_pending_instances(
+    /// Index received `rows` of upload `upload` (pending assembly when `pending`: STOW-RS), in one
+    /// transaction, each replacing the received copies of its SOP Instance UID indexed before, so that the
+    /// index holds one received copy per SOP Instance UID; the copies replaced, whose files are the caller's
+    /// to remove.
+    pub async fn insert_received(
         &self,
-        owner: InstanceOwner,
+        upload: UploadId,
         rows: &[NewInstance],
-    ) -> Result<(), DbError> {
-        self.insert_rows(owner, rows, true).await.map(|_| ())
+        pending: bool,
+    ) -> Result<Vec<ReplacedCopy>, DbError> {
+        Ok(self
+            .insert_rows(InstanceOwner::Upload(upload), rows, pending)
+            .await?
+            .unwrap_or_default())
+    }
+
+    /// The received copies (rows owned by an upload) of the SOP Instance UIDs `sop_uids`, newest first.
+    pub async fn received_copies(
+        &self,
+        sop_uids: &[String],
+    ) -> Result<Vec<StoredInstance>, DbError> {
+        let mut out = Vec::new();
+        for chunk in sop_uids.chunks(500) {
+            let sql = format!(
+                "SELECT {INSTANCE_COLUMNS} FROM instances
+                 WHERE upload_id IS NOT NULL AND sop_instance_uid IN (SELECT value FROM json_each(?))
+                 ORDER BY created_us DESC, id DESC"
+            );
+            let rows = sqlx::query(sqlx::AssertSqlSafe(sql))
+                .bind(serde_json::Value::from(chunk.to_vec()).to_string())
+                .fetch_all(&self.pool)
+                .await?;
+            for r in &rows {
+                out.push(stored_instance(r)?);
+            }
+        }
+        out.sort_by_key(|r| std::cmp::Reverse(r.created_us));
+        Ok(out)
     }
 
     async fn insert_rows(
@@ -34,7 +65,7 @@ impl Db {
         owner: InstanceOwner,
         rows: &[NewInstance],
         pending: bool,
-    ) -> Result<bool, DbError> {
+    ) -> Result<Option<Vec<ReplacedCopy>>, DbError> {
         let mut tx = self.write_tx().await?;
         let (upload, job) = match owner {
             InstanceOwner::Upload(u) => (Some(u.to_string()), None),
@@ -52,18 +83,31 @@ impl Db {
             .execute(&mut *tx)
             .await?;
             if r.rows_affected() != 1 {
-                return Ok(false);
+                return Ok(None);
             }
         }
+        let mut replaced = Vec::new();
         for r in rows {
             let i = &r.instance;
+            if upload.is_some() {
+                let gone = sqlx::query(
+                    "DELETE FROM instances WHERE sop_instance_uid = ? AND upload_id IS NOT NULL
+                     RETURNING id, upload_id",
+                )
+                .bind(&i.sop_instance_uid)
+                .fetch_all(&mut *tx)
+                .await?;
+                for g in &gone {
+                    replaced.push(replaced_copy(g)?);
+                }
+            }
             sqlx::query(
                 "INSERT INTO instances (id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid,
                  transfer_syntax, study_uid, series_uid, patient_id, patient_name, patient_birth_date,
                  patient_sex, study_date, study_time, accession_number, study_description,
                  referring_physician, study_id, modality, series_number, series_description, body_part,
-                 instance_number, bytes, created_us, pending)
-                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+                 instance_number, bytes, created_us, pending, sha256)
+                 VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
             )
             .bind(r.id.to_string())
             .bind(&upload)
@@ -92,11 +136,12 @@ impl Db {
             .bind(i.bytes as i64)
             .bind(now)
             .bind(pending as i64)
+            .bind(&r.sha256)
             .execute(&mut *tx)
             .await?;
         }
         tx.commit().await?;
-        Ok(true)
+        Ok(Some(replaced))
     }
 
     /// The indexed instances in `scope`, newest first.

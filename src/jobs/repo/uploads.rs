@@ -236,4 +236,21 @@ impl Db {
         })
         .transpose()
     }
+
+    /// The stored series of Series Instance UID `series_uid`, newest first.
+    pub async fn series_with_uid(&self, series_uid: &str) -> Result<Vec<SeriesRecord>, DbError> {
+        let rows = sqlx::query(
+            "SELECT record, created_us FROM series WHERE series_uid = ? ORDER BY created_us DESC, id DESC",
+        )
+        .bind(series_uid)
+        .fetch_all(&self.pool)
+        .await?;
+        rows.iter()
+            .map(|row| {
+                let mut r: SeriesRecord = json_col(row, "record", "series")?;
+                r.created_us = row.try_get("created_us")?;
+                Ok(r)
+            })
+            .collect()
+    }
 }

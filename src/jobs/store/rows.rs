@@ -6,14 +6,14 @@ use sqlx::{ColumnIndex, Decode, Row, Type};
 
 use super::{DbError, corrupt};
 use crate::jobs::deliveries::{Delivery, DeliveryInstance, DeliveryState, InstanceState};
-use crate::jobs::model::{IndexedInstance, StoredInstance};
+use crate::jobs::model::{IndexedInstance, ReplacedCopy, StoredInstance};
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
 
 /// The columns of `instances` that [`stored_instance`] reads.
 pub(crate) const INSTANCE_COLUMNS: &str = "id, upload_id, series_id, job_id, sop_class_uid, sop_instance_uid, transfer_syntax, \
      study_uid, series_uid, patient_id, patient_name, patient_birth_date, patient_sex, study_date, \
      study_time, accession_number, study_description, referring_physician, study_id, modality, \
-     series_number, series_description, body_part, instance_number, bytes, created_us";
+     series_number, series_description, body_part, instance_number, bytes, created_us, sha256";
 
 /// An indexed instance (a row of `instances` with [`INSTANCE_COLUMNS`]).
 pub(crate) fn stored_instance<'r, R>(row: &'r R) -> Result<StoredInstance, DbError>
@@ -66,6 +66,23 @@ where
             instance_number: row.try_get("instance_number")?,
             bytes: bytes.max(0) as u64,
         },
+        sha256: row.try_get("sha256")?,
+    })
+}
+
+/// A received copy replaced by a newer one (the `id` and `upload_id` of a deleted row of `instances`).
+pub(crate) fn replaced_copy<'r, R>(row: &'r R) -> Result<ReplacedCopy, DbError>
+where
+    R: Row,
+    for<'a> &'a str: ColumnIndex<R>,
+    String: Decode<'r, R::Database> + Type<R::Database>,
+{
+    let bad = |e: crate::storage::BadId| corrupt("instances", e);
+    let id: String = row.try_get("id")?;
+    let upload: String = row.try_get("upload_id")?;
+    Ok(ReplacedCopy {
+        upload: UploadId::parse(&upload).map_err(bad)?,
+        id: InstanceId::parse(&id).map_err(bad)?,
     })
 }
 

@@ -1,8 +1,10 @@
-//! The instance index: received instances read by scope, a job's results indexed once, and the received
-//! instances pending assembly claimed once and settled.
+//! The instance index: received instances read by scope, one received copy per SOP Instance UID, a job's
+//! results indexed once, and the received instances pending assembly claimed once and settled.
 
 use super::{Database, finished, sample_job, succeeded, volume_job};
-use crate::jobs::model::{IndexScope, IndexedInstance, Inserted, NewInstance, now_us};
+use crate::jobs::model::{
+    IndexScope, IndexedInstance, Inserted, NewInstance, ReplacedCopy, now_us,
+};
 use crate::storage::{InstanceId, InstanceOwner, UploadId};
 
 const MINUTE_US: i64 = 60_000_000;
@@ -34,6 +36,7 @@ fn row(study: &str, series: &str, n: i64) -> NewInstance {
             instance_number: Some(n),
             bytes: 1000 + n as u64,
         },
+        sha256: Some(format!("{n:064x}")),
     }
 }
 
@@ -116,6 +119,59 @@ pub async fn received_instances_are_indexed_and_read_by_scope(db: &Database) {
     assert_eq!(db.uploads_with_instances().await.ok(), Some(vec![u]));
 }
 
+/// A received copy of a SOP Instance UID replaces the copies indexed before, whichever upload holds them
+/// (they are answered for their files to be removed), and is found by its SOP Instance UID with its hash;
+/// a job's result with the same UID is not a received copy and stays.
+pub async fn a_received_copy_replaces_the_one_indexed_before(db: &Database) {
+    let (a, b) = (upload(db).await, upload(db).await);
+    let first = vec![row("3.1", "3.1.1", 1), row("3.1", "3.1.1", 2)];
+    assert_eq!(
+        db.insert_received(a, &first, false).await.ok(),
+        Some(vec![])
+    );
+    let job = finished(db, volume_job(), succeeded()).await;
+    assert_eq!(
+        db.insert_instances(InstanceOwner::Job(job), &[row("3.1", "3.1.1", 2)])
+            .await
+            .ok(),
+        Some(true)
+    );
+    let mut again = row("3.1", "3.1.1", 2);
+    again.sha256 = Some("f".repeat(64));
+    assert_eq!(
+        db.insert_received(b, std::slice::from_ref(&again), false)
+            .await
+            .ok(),
+        Some(vec![ReplacedCopy {
+            upload: a,
+            id: first[1].id
+        }])
+    );
+    let uids = vec![
+        "3.1.1.1".to_string(),
+        "3.1.1.2".to_string(),
+        "9.9".to_string(),
+    ];
+    let copies = db.received_copies(&uids).await.expect("copies");
+    let mut got: Vec<(String, InstanceId, Option<String>)> = copies
+        .into_iter()
+        .map(|r| (r.instance.sop_instance_uid, r.id, r.sha256))
+        .collect();
+    got.sort();
+    assert_eq!(
+        got,
+        vec![
+            ("3.1.1.1".into(), first[0].id, first[0].sha256.clone()),
+            ("3.1.1.2".into(), again.id, again.sha256.clone()),
+        ]
+    );
+    assert_eq!(
+        read(db, None, Some("3.1.1")).await.len(),
+        3,
+        "two received, one result"
+    );
+}
+
 /// Succeeded volume jobs are to index until their results are; indexing a job's results twice, even at
 /// once, writes them once (the later call answers false); a job without instances is marked once.
 pub async fn a_jobs_results_are_indexed_once(db: &Database) {
@@ -159,16 +215,16 @@ pub async fn pending_instances_are_claimed_once_and_settled(db: &Database) {
     let u = upload(db).await;
     let p = vec![row("1.1", "1.1.1", 1), row("1.1", "1.1.1", 2)];
     assert!(
-        db.insert_pending_instances(InstanceOwner::Upload(u), &p)
+        db.insert_received(u, &p, true)
             .await
-            .is_ok()
+            .is_ok_and(|replaced| replaced.is_empty())
     );
     tokio::time::sleep(std::time::Duration::from_millis(2)).await;
     let q = vec![row("1.1", "1.1.2", 1)];
     assert!(
-        db.insert_pending_instances(InstanceOwner::Upload(u), &q)
+        db.insert_received(u, &q, true)
             .await
-            .is_ok()
+            .is_ok_and(|replaced| replaced.is_empty())
     );
     let series = |v: &[(&str, &str)]| {
         v.iter()

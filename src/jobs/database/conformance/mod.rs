@@ -319,6 +319,7 @@ macro_rules! node_tables_conformance {
             instance_statuses_are_recorded_and_retry_resends_the_failed,
             only_expired_claims_are_requeued,
             received_instances_are_indexed_and_read_by_scope,
+            a_received_copy_replaces_the_one_indexed_before,
             a_jobs_results_are_indexed_once,
             pending_instances_are_claimed_once_and_settled,
         );
