@@ -309,7 +309,7 @@ async fn a_64_mb_upload_streams_to_disk_and_a_too_large_one_is_refused_while_str
     );
     assert!(peak < 16 * MIB, "a 64 MB form peaked at {} MiB", peak / MIB);
 
-    // The same body raw (not a ZIP: one file, refused from its first bytes).
+    // The same body raw, sent as a ZIP that it is not: refused from its first bytes.
     let (r, peak) = peak_delta(post(
         &app,
         "/v1/series",
@@ -317,7 +317,13 @@ async fn a_64_mb_upload_streams_to_disk_and_a_too_large_one_is_refused_while_str
         stream_of(size, 0),
     ))
     .await;
-    assert_problem(r, 422, "dicom_not_dicom").await;
+    let p = assert_problem(r, 415, "unsupported_media_type").await;
+    assert!(
+        p["detail"]
+            .as_str()
+            .is_some_and(|d| d.contains("is not a ZIP archive")),
+        "{p}"
+    );
     eprintln!(
         "64 MiB ZIP body: allocation peak {:.2} MiB",
         peak as f64 / MIB as f64
