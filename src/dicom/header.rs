@@ -75,7 +75,7 @@ pub fn read_header(path: &Path, max_bytes: u64) -> Result<InstanceHeader, DicomE
 }
 
 /// The file at `path` whole, labelled by its name; files over `max_bytes` are refused unread.
-pub(super) fn read_bounded(path: &Path, max_bytes: u64) -> Result<(String, Vec<u8>), DicomError> {
+pub fn read_bounded(path: &Path, max_bytes: u64) -> Result<(String, Vec<u8>), DicomError> {
     let label = path
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())

@@ -56,7 +56,7 @@ pub use error::DicomError;
 pub use fuzz::fuzz_zip_entry;
 pub use header::{
     IMPLEMENTATION_CLASS_UID, IMPLEMENTATION_VERSION, InstanceHeader, Part10, STORABLE_SOP_CLASSES,
-    decodable_transfer_syntaxes, header_of, part10_prefix, read_header, read_part10,
+    decodable_transfer_syntaxes, header_of, part10_prefix, read_bounded, read_header, read_part10,
 };
 pub use identifier::{IdentifierElement, MAX_IDENTIFIER_BYTES, read_identifier, write_identifier};
 pub use read::{Instance, ReadLimits, fuzz_entry, read_bytes, read_path};

@@ -17,7 +17,7 @@ use sha2::{Digest, Sha256};
 
 use super::{indexed, storage};
 use crate::app::{App, AppResult};
-use crate::dicom::{DicomError, InstanceHeader, header_of};
+use crate::dicom::{DicomError, InstanceHeader, header_of, read_bounded};
 use crate::jobs::model::{IndexedInstance, ReplacedCopy, StoredInstance};
 use crate::storage::InstanceOwner;
 use crate::storage::npy::hex;
@@ -46,23 +46,7 @@ pub fn read_arrived_at(
     path: &Path,
     max_bytes: u64,
 ) -> Result<(InstanceHeader, String), DicomError> {
-    let label = path
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "file".into());
-    let io = |e: std::io::Error| DicomError::Parse {
-        label: label.clone(),
-        reason: e.to_string(),
-    };
-    let size = std::fs::metadata(path).map_err(io)?.len();
-    if size > max_bytes {
-        return Err(DicomError::TooLarge {
-            label,
-            detail: format!("{size} bytes"),
-            limit: format!("{max_bytes} bytes"),
-        });
-    }
-    let bytes = std::fs::read(path).map_err(io)?;
+    let (label, bytes) = read_bounded(path, max_bytes)?;
     let header = header_of(&label, &bytes)?;
     Ok((header, hex(&Sha256::digest(&bytes))))
 }
