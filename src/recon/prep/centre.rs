@@ -12,8 +12,13 @@
 //! 2. Coarse: each pair's row sums, mirrored, compared at every integer shift by a normalised squared
 //!    difference over their overlap (so that an offset, half-object detector works), summed over pairs;
 //!    the minimum refined by a parabola through its neighbours.
-//! 3. Fine: Gauss–Newton on `(a, θ)` of `Σ (B(P) − A(reflect(P)))²` over every kept pixel of every pair,
-//!    A sampled bilinearly; the step is halved while the mean squared mismatch grows.
+//! 3. Fine: Gauss–Newton on `(a, θ)` of `Σ (B(P) − A(reflect(P)))²` over a fixed set of pixels of every
+//!    pair (the rows of each band but 4 at its edges, the columns whose mirror lies inside the panel),
+//!    A sampled bilinearly; the step is halved while the squared mismatch grows.
+//!
+//! Measured on exact projections of the 3D Shepp–Logan phantom (`centre_tests`): the offset is found
+//! within 0.04 px, but the tilt of a panel rolled by 0.4° comes out near 0.08°: the tilt estimate is not
+//! yet reliable (an ignored test records it) and should be pinned by the user where it matters.
 //!
 //! The residual is the RMS mismatch relative to the RMS of the data: about 0 for consistent noise-free
 //! data, large where the pairs do not match (a moving sample, a wrong pairing).
@@ -447,9 +452,4 @@ pub fn find_centre(
         method: CentreMethod::OppositeViews,
         views_used: pairs.len(),
     })
-}
-
-/// A view buffer for [`ViewSource`] readers: `[nv][nu]` zeros.
-pub fn view_buffer(views: &Views3) -> Array2<f32> {
-    Array2::zeros((views.detector.nv, views.detector.nu))
 }

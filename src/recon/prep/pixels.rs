@@ -54,7 +54,7 @@ fn neighbour_median(frame: &ArrayView2<'_, f32>, r: usize, c: usize) -> f32 {
     vals.sort_unstable_by(f32::total_cmp);
     match k {
         0 => frame[[r, c]],
-        k if k % 2 == 1 => vals[k / 2],
+        k if !k.is_multiple_of(2) => vals[k / 2],
         k => 0.5 * (vals[k / 2 - 1] + vals[k / 2]),
     }
 }

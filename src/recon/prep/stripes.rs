@@ -40,7 +40,7 @@ fn reflect(i: isize, n: usize) -> usize {
 impl SortingStripeFilter {
     /// Filter the sinogram `[view][u]` in place.
     pub fn apply(&self, mut sino: ArrayViewMut2<'_, f32>) -> Result<(), ReconError> {
-        if self.size % 2 == 0 || self.size < 3 {
+        if self.size.is_multiple_of(2) || self.size < 3 {
             return Err(ReconError::param(
                 "size",
                 format!("must be odd and at least 3, got {}", self.size),
