@@ -28,6 +28,7 @@ pub mod metrics;
 #[cfg(target_arch = "x86_64")]
 mod pairs;
 pub mod phantom;
+pub mod prep;
 pub mod projector;
 pub(crate) mod team;
 
