@@ -445,7 +445,38 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
         unattended(),
     )
     .expect("fdk");
-    // Centroid of the voxels above half the peak.
+    assert_ball_at(&vol, &grid, centre);
+
+    // The same through the CLI: `ctrecon recon --input ball.xtekct --algorithm fdk --size 40 --pixel-mm 0.1`.
+    let out = dir.path().join("v.npy");
+    let args = ctrecon::cli::recon::ReconArgs {
+        input: xfile.clone(),
+        geometry: None,
+        algorithm: "fdk".into(),
+        filter: None,
+        cutoff: None,
+        params: None,
+        size: 40,
+        pixel_mm: 0.1,
+        grid: None,
+        max_bytes: 1 << 30,
+        output: out.clone(),
+        png: None,
+        slice: None,
+        ww: None,
+        wl: None,
+    };
+    ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.xtekct");
+    let vol: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
+    assert_ball_at(&vol, &grid, centre);
+}
+
+/// The centroid of the voxels above half the peak lies within half a voxel of `centre` (mm).
+fn assert_ball_at(
+    vol: &ndarray::Array3<f32>,
+    grid: &ctrecon::recon::grid::VolumeGrid,
+    centre: [f64; 3],
+) {
     let peak = vol.iter().copied().fold(f32::MIN, f32::max);
     let (mut w, mut c) = (0.0, [0.0; 3]);
     for ((k, j, i), &v) in vol.indexed_iter() {
