@@ -6,7 +6,7 @@
 # fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
 #   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, s3,
-#                                       netns, vtk, scans, schemathesis)
+#                                       netns, vtk, scans, schemathesis, ts-client)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -135,5 +135,22 @@ if want schemathesis; then
         "$venv/bin/pip" install --quiet --disable-pip-version-check --no-input -r "$req"
         printf '%s' "$want_stamp" > "$stamp"
         echo "schemathesis: installed ($("$venv/bin/schemathesis" --version))"
+    fi
+fi
+
+# --- A client generated from openapi.yaml (tests/generated_client.rs): openapi-typescript, openapi-fetch and
+# typescript from the npm registry, pinned by tests/peers/ts-client/package-lock.json, into its node_modules/.
+if want ts-client; then
+    echo "== peer: ts-client"
+    dir="$root/tests/peers/ts-client"
+    if ! command -v npm >/dev/null; then
+        apt_install nodejs npm
+    fi
+    if [ -f "$dir/node_modules/.package-lock.json" ] && cmp -s "$dir/package-lock.json" "$dir/node_modules/.ctrecon-lock"; then
+        echo "ts-client: already installed"
+    else
+        (cd "$dir" && npm ci --no-audit --no-fund --loglevel=error)
+        cp "$dir/package-lock.json" "$dir/node_modules/.ctrecon-lock"
+        echo "ts-client: installed (node $(node --version))"
     fi
 fi

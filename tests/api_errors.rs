@@ -626,7 +626,15 @@ fn declared_routes() -> Vec<(String, String)> {
 
 /// `(method, path)` of every operation in the OpenAPI document (2-space path keys, 4-space methods).
 fn documented_routes(yaml: &str) -> Vec<(String, String)> {
-    let mut out = Vec::new();
+    operations(yaml)
+        .into_iter()
+        .map(|(route, _)| route)
+        .collect()
+}
+
+/// Every operation of the OpenAPI document with its `operationId` (`None` where it has none).
+fn operations(yaml: &str) -> Vec<((String, String), Option<String>)> {
+    let mut out: Vec<((String, String), Option<String>)> = Vec::new();
     let mut in_paths = false;
     let mut path = None;
     for line in yaml.lines() {
@@ -648,7 +656,11 @@ fn documented_routes(yaml: &str) -> Vec<(String, String)> {
             && ["get", "post", "delete", "put", "patch"].contains(&m)
             && let Some(p) = &path
         {
-            out.push((m.to_string(), p.clone()));
+            out.push(((m.to_string(), p.clone()), None));
+        } else if let Some(id) = line.strip_prefix("      operationId: ")
+            && let Some((_, slot)) = out.last_mut()
+        {
+            *slot = Some(id.trim().to_string());
         }
     }
     out
@@ -683,4 +695,32 @@ async fn the_openapi_document_describes_every_route_and_every_error_code() {
     let app = spawn_app().await;
     let served = app.get("/openapi.yaml").await.text().await.unwrap();
     assert_eq!(served, yaml);
+}
+
+/// Client generators name their functions by `operationId` (openapi-typescript's `operations`, progenitor,
+/// openapi-generator): every operation has one, unique, in lowerCamelCase, so that a new route without one
+/// fails here.
+#[test]
+fn every_operation_has_a_stable_unique_operation_id() {
+    let yaml = include_str!("../openapi.yaml");
+    let ops = operations(yaml);
+    assert!(ops.len() >= 50, "{} operations", ops.len());
+    let mut seen = std::collections::HashSet::new();
+    for ((method, path), id) in &ops {
+        let Some(id) = id else {
+            panic!("{method} {path} has no operationId in openapi.yaml");
+        };
+        assert!(
+            id.starts_with(|c: char| c.is_ascii_lowercase())
+                && id.chars().all(|c| c.is_ascii_alphanumeric()),
+            "{method} {path}: operationId {id:?} is not lowerCamelCase"
+        );
+        assert!(seen.insert(id.clone()), "operationId {id} is used twice");
+    }
+    for route in declared_routes() {
+        assert!(
+            ops.iter().any(|(r, id)| *r == route && id.is_some()),
+            "{route:?} has no documented operation with an operationId"
+        );
+    }
 }

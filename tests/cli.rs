@@ -242,3 +242,43 @@ fn mesh_refuses_bad_input_with_a_message_and_writes_nothing() {
         refused(args, &out);
     }
 }
+
+/// The geometries under docs/geometries/ ship inside the binary: `--geometry fan_arc` works from any
+/// folder, gives the file's geometry, and an unknown name says which names exist.
+#[test]
+fn built_in_geometries_work_from_any_folder() {
+    let dir = tempfile::tempdir().unwrap();
+    for name in ["parallel", "fan_arc", "cone"] {
+        let run = Command::new(env!("CARGO_BIN_EXE_ctrecon"))
+            .args(["phantom", "--geometry", name, "--out", "p.npy"])
+            .current_dir(dir.path())
+            .output()
+            .expect("run ctrecon");
+        assert!(
+            run.status.success(),
+            "{name}: {}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let written: Geometry = serde_json::from_str(
+            &std::fs::read_to_string(dir.path().join("p.json")).expect("sidecar"),
+        )
+        .expect("geometry");
+        let file = format!("{}/docs/geometries/{name}.json", env!("CARGO_MANIFEST_DIR"));
+        let shipped: Geometry =
+            serde_json::from_str(&std::fs::read_to_string(file).expect("docs file")).expect("json");
+        assert_eq!(written, shipped, "{name}");
+        let views = written.to_views().expect("views");
+        assert_eq!(read(&dir.path().join("p.npy")).shape(), views.data_shape());
+    }
+    let run = Command::new(env!("CARGO_BIN_EXE_ctrecon"))
+        .args(["phantom", "--geometry", "fan_flat", "--out", "p.npy"])
+        .current_dir(dir.path())
+        .output()
+        .expect("run ctrecon");
+    assert!(!run.status.success());
+    let err = String::from_utf8_lossy(&run.stderr);
+    assert!(
+        err.contains("fan_flat") && err.contains("parallel, fan_arc, cone"),
+        "{err}"
+    );
+}

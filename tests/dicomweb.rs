@@ -812,12 +812,16 @@ async fn the_readme_orthanc_dicomweb_client_example_runs_as_written() {
             .replace("localhost:8080", app.base.trim_start_matches("http://"))
             .replace("localhost:8042", &format!("127.0.0.1:{}", o.http_port))
     );
-    let dir = root.to_path_buf();
+    // From a folder of its own, with the series where the README says (`$SERIES`).
+    let work = tempfile::tempdir().unwrap();
+    let dir = work.path().to_path_buf();
+    let series = root.join(".testdata/lidc");
     let out = tokio::task::spawn_blocking(move || {
         std::process::Command::new("timeout")
             .args(["120", "bash", "-c"])
             .arg(&script)
             .current_dir(dir)
+            .env("SERIES", series)
             .output()
             .unwrap()
     })

@@ -480,21 +480,19 @@ async fn qido_finds_an_http_upload_and_a_jobs_derived_ct_sc_and_stl_results_with
                                      {"type": "mesh", "iso": 300}]}))
         .await;
     let job_id = job["id"].as_str().unwrap().to_string();
-    let done = app
-        .wait_until(&job_id, 120, |j| {
-            matches!(j["status"].as_str(), Some("succeeded" | "failed"))
-        })
-        .await;
+    // The `final` event means everything the job made is findable: one QIDO-RS query right after it
+    // finds every result, with no waiting.
+    let mut events = crate::sse::Sse::open(
+        &app.client,
+        &app.url(&format!("/v1/jobs/{job_id}/events")),
+        None,
+    )
+    .await;
+    let evs = events.until(120, |e| e.name == "final").await;
+    let done = &evs.last().expect("a final event").data;
     assert_eq!(done["status"], "succeeded", "{done}");
-    let deadline = Instant::now() + Duration::from_secs(60);
-    let all = loop {
-        let all = qido_instances(&app, &study).await;
-        if all.len() >= 12 + 14 {
-            break all;
-        }
-        assert!(Instant::now() < deadline, "{all:?}");
-        tokio::time::sleep(Duration::from_millis(100)).await;
-    };
+    let all = qido_instances(&app, &study).await;
+    assert_eq!(all.len(), 12 + 14, "{all:?}");
     // The source, the volume as a derived CT series (900), the MIP (901, Secondary Capture), the mesh
     // (902, Encapsulated STL).
     let mut by_series: BTreeMap<(i64, String), usize> = BTreeMap::new();

@@ -5,6 +5,8 @@ mod common;
 mod dw;
 #[path = "common/orthanc.rs"]
 mod orthanc;
+#[path = "common/sse.rs"]
+mod sse;
 
 mod dicomweb;
 mod dicomweb_client;

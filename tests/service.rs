@@ -23,8 +23,10 @@ mod api_viewer;
 mod blob_store;
 mod cli;
 mod contract_schemathesis;
+mod docs_console;
 mod docs_examples;
 mod fuzz_replay;
+mod generated_client;
 mod hostile_http;
 mod job_store;
 #[path = "mesh_honest/main.rs"]

@@ -14,9 +14,39 @@ pub fn sidecar(data: &Path) -> PathBuf {
     data.with_extension("json")
 }
 
+/// The geometries that ship with ctrecon, by name: the files under `docs/geometries/`, so that
+/// `--geometry fan_arc` works from any folder.
+pub const BUILT_IN_GEOMETRIES: [(&str, &str); 3] = [
+    (
+        "parallel",
+        include_str!("../../docs/geometries/parallel.json"),
+    ),
+    (
+        "fan_arc",
+        include_str!("../../docs/geometries/fan_arc.json"),
+    ),
+    ("cone", include_str!("../../docs/geometries/cone.json")),
+];
+
+/// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`) when no file
+/// of that name exists.
 pub fn read_geometry(path: &Path) -> CliResult<Geometry> {
-    let text =
-        std::fs::read_to_string(path).map_err(|e| format!("reading {}: {e}", path.display()))?;
+    if !path.exists()
+        && let Some((_, text)) = BUILT_IN_GEOMETRIES
+            .iter()
+            .find(|(name, _)| path.as_os_str() == *name)
+    {
+        return serde_json::from_str(text)
+            .map_err(|e| format!("built-in geometry {}: {e}", path.display()).into());
+    }
+    let text = std::fs::read_to_string(path).map_err(|e| {
+        let names: Vec<&str> = BUILT_IN_GEOMETRIES.iter().map(|(n, _)| *n).collect();
+        format!(
+            "reading {}: {e} (a geometry JSON file, or a built-in geometry: {})",
+            path.display(),
+            names.join(", ")
+        )
+    })?;
     serde_json::from_str(&text).map_err(|e| format!("geometry {}: {e}", path.display()).into())
 }
 

@@ -41,7 +41,8 @@ pub struct PhantomArgs {
     /// Field of view (mm) spanned by the phantom's [−1, 1] (ignored with --spec).
     #[arg(long, default_value_t = 256.0)]
     pub fov_mm: f64,
-    /// Write the exact projections for this geometry JSON instead of an image.
+    /// Write the exact projections for this geometry instead of an image: a geometry JSON file, or a
+    /// built-in geometry by name (`parallel`, `fan_arc`, `cone`: the files of docs/geometries/).
     #[arg(long)]
     pub geometry: Option<PathBuf>,
     /// Image side in pixels (image output).

@@ -62,12 +62,36 @@ pub fn from_value<T: DeserializeOwned>(v: serde_json::Value) -> ApiResult<T> {
     Ok(crate::app::error::parse_body(v)?)
 }
 
-/// Parse JSON text: syntax errors are `malformed_json`, schema errors `invalid_request`.
+/// Parse JSON text: syntax errors are `malformed_json`, schema errors `invalid_request`. A number with no
+/// fraction is an integer whatever its spelling (`4.0`, `4e0`), as JSON Schema's `integer` says: counts
+/// typed as integers accept it, and the fingerprint does not tell the spellings apart.
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> ApiResult<(T, String)> {
-    let v: serde_json::Value = serde_json::from_slice(bytes)
+    let mut v: serde_json::Value = serde_json::from_slice(bytes)
         .map_err(|e| api_error(ErrorCode::MalformedJson, e.to_string()))?;
+    integral_numbers(&mut v);
     let fp = fingerprint(&v);
     Ok((from_value(v)?, fp))
+}
+
+/// Write every number whose value is a whole number within the 64-bit integer range as an integer.
+pub fn integral_numbers(v: &mut serde_json::Value) {
+    match v {
+        serde_json::Value::Number(n) if n.is_f64() => {
+            if let Some(f) = n.as_f64()
+                && f.fract() == 0.0
+            {
+                // Exact bounds: 2^63 and 2^64 are representable, so `<` keeps every cast in range.
+                if f >= 0.0 && f < 18_446_744_073_709_551_616.0 {
+                    *v = serde_json::Value::from(f as u64);
+                } else if f < 0.0 && f >= -9_223_372_036_854_775_808.0 {
+                    *v = serde_json::Value::from(f as i64);
+                }
+            }
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(integral_numbers),
+        serde_json::Value::Object(map) => map.values_mut().for_each(integral_numbers),
+        _ => {}
+    }
 }
 
 /// The media type of the body (lowercase, without parameters); empty when absent.
@@ -165,5 +189,32 @@ mod tests {
             serde_json::from_str(r#"{"a":"s","b":[1,{"x":1,"y":3}]}"#).unwrap();
         assert_eq!(fingerprint(&a), fingerprint(&b));
         assert_ne!(fingerprint(&a), fingerprint(&c));
+    }
+
+    #[test]
+    fn whole_numbers_spelt_as_floats_read_as_integers() {
+        let (v, fp): (serde_json::Value, String) = parse_json(
+            br#"{"nv": 4.0, "big": 1e3, "neg": -2.0, "half": 0.5, "deep": [{"n": 6E0}]}"#,
+        )
+        .expect("json");
+        assert_eq!(v["nv"].as_u64(), Some(4));
+        assert_eq!(v["big"].as_u64(), Some(1000));
+        assert_eq!(v["neg"].as_i64(), Some(-2));
+        assert_eq!(v["half"].as_f64(), Some(0.5));
+        assert!(v["half"].is_f64());
+        assert_eq!(v["deep"][0]["n"].as_u64(), Some(6));
+        let (_, same): (serde_json::Value, String) =
+            parse_json(br#"{"deep": [{"n": 6}], "half": 0.5, "neg": -2, "big": 1000, "nv": 4}"#)
+                .expect("json");
+        assert_eq!(fp, same);
+        // Out of the integer range or not finite as f64: left as they are.
+        let (v, _): (serde_json::Value, String) = parse_json(br#"{"x": 1e300}"#).expect("json");
+        assert!(v["x"].is_f64());
+        #[derive(serde::Deserialize)]
+        struct Counts {
+            nv: usize,
+        }
+        let (c, _): (Counts, String) = parse_json(br#"{"nv": 4.0}"#).expect("an integral float");
+        assert_eq!(c.nv, 4);
     }
 }

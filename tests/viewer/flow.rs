@@ -31,10 +31,13 @@ pub async fn token_and_server_down(token: &str) {
     b.goto(&app.url("/")).await;
     let err = b.wait_for("#page-error", 20).await;
     let text = err.text().await.expect("text");
+    // Before any token was entered the page asks for one; it does not say a token was refused.
     assert!(
-        text.contains("Token needed") && text.contains("Token refused"),
+        text.contains("Token needed") && text.contains("needs an API token"),
         "{text}"
     );
+    assert!(!text.contains("Token refused"), "{text}");
+    b.shot("error-token-needed").await;
 
     enter_token(&b, "not-the-token").await;
     b.until("document.querySelector('#banner:not([hidden]) .error-title')?.textContent === 'Token refused'", 20)
@@ -43,13 +46,51 @@ pub async fn token_and_server_down(token: &str) {
 
     enter_token(&b, token).await;
     b.wait_for("#jobs-table", 20).await;
-    // The list is filled once its event stream is open: wait for the answer, not for the table.
+    // The table is never empty: "Loading jobs…" from the moment it is drawn until its event stream is
+    // open and the first page is in, then the empty state with the way to start a job.
+    let rows = b
+        .js(
+            "return [...document.querySelectorAll('#jobs-table tbody tr')].map((r) => r.className);",
+            vec![],
+        )
+        .await;
+    let rows: Vec<String> = serde_json::from_value(rows).expect("classes");
+    assert!(
+        rows == ["loading"] || rows == ["empty"],
+        "rows when the table appears: {rows:?}"
+    );
     b.until(
-        "document.querySelector('#jobs-table tbody')?.textContent.trim() === 'No jobs.'",
+        "return document.querySelector('#jobs-table tbody tr.empty') !== null",
         20,
     )
     .await;
-    assert_eq!(b.text("#jobs-table tbody").await, "No jobs.");
+    let empty = b.text("#jobs-table tbody").await;
+    assert!(empty.starts_with("No jobs yet."), "{empty}");
+    assert_eq!(
+        b.attr("#jobs-table tbody tr.empty a", "href")
+            .await
+            .as_deref(),
+        Some("#/send")
+    );
+    b.shot("jobs-empty").await;
+    // Filtered to a status no job has: the empty state says so.
+    b.js(
+        "const s = document.getElementById('filter-status'); s.value = 'failed';
+         s.dispatchEvent(new Event('change'));",
+        vec![],
+    )
+    .await;
+    b.until(
+        "return document.querySelector('#jobs-table tbody')?.textContent.trim() === 'No jobs match these filters.'",
+        20,
+    )
+    .await;
+    b.js(
+        "const s = document.getElementById('filter-status'); s.value = '';
+         s.dispatchEvent(new Event('change'));",
+        vec![],
+    )
+    .await;
     assert!(
         b.find("#banner")
             .await

@@ -30,6 +30,7 @@ mod presets;
 mod renders;
 mod stacks;
 mod ui;
+mod window;
 
 use common::spawn_app_with;
 
@@ -188,6 +189,11 @@ async fn the_pages_files_are_sent_gzipped_to_clients_that_take_it_with_an_etag_p
 #[tokio::test]
 async fn a_wrong_token_and_a_stopped_server_show_the_pages_messages() {
     flow::token_and_server_down(TOKEN).await;
+}
+
+#[tokio::test]
+async fn the_default_window_is_a_preset_chosen_from_the_data() {
+    window::default_window_from_the_data().await;
 }
 
 #[tokio::test]

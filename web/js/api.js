@@ -32,6 +32,16 @@ export function unreachable() {
     `The ctrecon server at ${location.origin} does not answer. Is it running?`, 'unreachable');
 }
 
+/** A 401: "Token needed" while no token was entered in this tab, "Token refused" once one was. */
+export function unauthorized(p) {
+  if (!token()) {
+    return new ApiError(401, 'Token needed',
+      'This server needs an API token. Enter it above; it is kept for this tab only.', 'unauthorized', p);
+  }
+  return new ApiError(401, 'Token refused',
+    'The server refused the API token (401). Enter a valid token.', 'unauthorized', p);
+}
+
 function authHeaders(extra) {
   const h = new Headers(extra || {});
   const t = token();
@@ -46,10 +56,7 @@ async function problemOf(resp) {
   } catch {
     p = null;
   }
-  if (resp.status === 401) {
-    return new ApiError(401, 'Token refused',
-      'The server refused the API token (401). Enter a valid token.', 'unauthorized', p);
-  }
+  if (resp.status === 401) return unauthorized(p);
   const title = (p && p.title) || resp.statusText || 'Request failed';
   const detail = (p && p.detail) || `HTTP ${resp.status}`;
   return new ApiError(resp.status, title, detail, p && p.code, p);
@@ -193,8 +200,7 @@ export function upload(path, body, contentType, onProgress) {
       }
       if (x.status >= 200 && x.status < 300) resolve(p);
       else if (x.status === 401) {
-        reject(new ApiError(401, 'Token refused',
-          'The server refused the API token (401). Enter a valid token.', 'unauthorized', p));
+        reject(unauthorized(p));
       } else {
         reject(new ApiError(x.status, (p && p.title) || 'Upload failed',
           (p && p.detail) || `HTTP ${x.status}`, p && p.code, p));

@@ -54,6 +54,15 @@ export async function showJobs(main, signal) {
       h('a.button', { href: '#/send' }, 'Send work'))),
     msg, h('div.scroll', table), more));
 
+  // Never an empty table: "Loading jobs…" until the first page is in, then the jobs, "No jobs yet" (with
+  // the way to start one) or, when filtered, "No jobs match"; an error row when they cannot be loaded.
+  const stateRow = (cls, ...content) => h(`tr.${cls}`, h('td', { colspan: '7' }, ...content));
+  const emptyRow = () => (status.value || kind.value
+    ? stateRow('empty', 'No jobs match these filters.')
+    : stateRow('empty', 'No jobs yet. ', h('a', { href: '#/send' }, 'Send work'),
+      ' to start one: a DICOM series, or a sinogram with its geometry.'));
+  body.append(stateRow('loading', h('span.spinner', { 'aria-hidden': 'true' }), 'Loading jobs…'));
+
   let cursor = null;
   const actions = (job) => {
     if (!TERMINAL.has(job.status)) {
@@ -91,7 +100,7 @@ export async function showJobs(main, signal) {
     for (const job of page.jobs) {
       if (!body.querySelector(`tr[data-id="${job.id}"]`)) body.append(row(job, actions));
     }
-    if (!body.children.length) body.append(h('tr.empty', h('td', { colspan: '7' }, 'No jobs.')));
+    if (!body.children.length) body.append(emptyRow());
     cursor = page.next_cursor;
     more.hidden = !cursor;
   };
@@ -156,6 +165,13 @@ export async function showJobs(main, signal) {
     }
   };
   run();
-  await first;
-  await load(true);
+  try {
+    await first;
+    await load(true);
+  } catch (e) {
+    if (e.name !== 'AbortError') {
+      clear(body).append(stateRow('error', `Could not load the jobs: ${e.title || e.message}.`));
+    }
+    throw e;
+  }
 }

@@ -13,6 +13,43 @@ export const PRESETS = {
 };
 const MU_WATER = 0.0192; // the API's default μ of water, 1/mm
 
+/**
+ * The preset a clinical viewer opens CT data with, chosen from the values of a slice in HU: mostly bone
+ * (little soft tissue) → bone; much lung parenchyma → lung; bone around soft tissue with almost no fat or
+ * lung (a head) → brain; any other body → soft tissue. Fractions are of the voxels above −950 HU (the
+ * object, not the air around it). Returns [name, reason].
+ */
+export function presetFor(hu) {
+  let n = 0; let lung = 0; let bone = 0; let soft = 0; let fat = 0;
+  const step = Math.max(1, Math.floor(hu.length / 40000));
+  for (let x = 0; x < hu.length; x += step) {
+    const v = hu[x];
+    if (!(v > -950)) continue;
+    n += 1;
+    if (v < -500) lung += 1;
+    else if (v > 300) bone += 1;
+    else if (v >= -150 && v <= -50) fat += 1;
+    if (v >= -200 && v <= 200) soft += 1;
+  }
+  if (n === 0) return ['soft_tissue', 'no tissue in the slice'];
+  const f = (c) => c / n;
+  if (f(bone) > 0.3 && f(soft) < 0.2) return ['bone', `${Math.round(100 * f(bone))} % bone`];
+  if (f(lung) > 0.25) return ['lung', `${Math.round(100 * f(lung))} % lung`];
+  if (f(bone) > 0.05 && f(fat) < 0.05 && f(lung) < 0.02) return ['brain', 'bone around soft tissue, no fat'];
+  return ['soft_tissue', 'soft tissue'];
+}
+
+/** Whether values in 1/mm read as a CT of real matter: air near −1000 HU, the rest below 4000 HU. */
+function looksLikeHu(hu) {
+  const sample = [];
+  const step = Math.max(1, Math.floor(hu.length / 20000));
+  for (let x = 0; x < hu.length; x += step) sample.push(hu[x]);
+  sample.sort((a, b) => a - b);
+  const lo = sample[Math.floor(sample.length * 0.005)];
+  const hi = sample[Math.floor(sample.length * 0.995)];
+  return lo > -1100 && lo < -850 && hi < 4000;
+}
+
 export class SliceViewer {
   /** opts: {url, frame (LPS) or null, units ('hu' | 'mu_per_mm'), grid} */
   constructor(root, opts) {
@@ -65,7 +102,7 @@ export class SliceViewer {
       await this.loadAxial(this.cursor[2]);
     }
     const first = this.slices.get(this.cursor[2]);
-    this.autoWindow(first);
+    this.defaultWindow(first);
     this.redraw();
     // Since the page's navigation started (performance.now's origin), and since the viewer started.
     this.root.dataset.firstSliceMs = performance.now().toFixed(1);
@@ -168,6 +205,33 @@ export class SliceViewer {
     return this.units === 'hu' ? 1000 : MU_WATER;
   }
 
+  /**
+   * The window the viewer opens with: on CT values (HU, or 1/mm that read as HU) a preset chosen from the
+   * data (`presetFor`), as clinical viewers do; otherwise (simulations, phantoms in arbitrary units) the
+   * 0.5–99.5 % range of the slice. The choice is shown in the preset menu and as `data-preset`.
+   */
+  defaultWindow(data) {
+    if (!data || !data.length) return;
+    const hu = this.units === 'hu' ? data : Float32Array.from(data, (v) => 1000 * (v - MU_WATER) / MU_WATER);
+    if (this.units === 'hu' || looksLikeHu(hu)) {
+      const [name, reason] = presetFor(hu);
+      this.applyPreset(name, true);
+      this.root.dataset.preset = name;
+      this.root.dataset.presetReason = reason;
+      this.presetMenu.value = name;
+      this.presetMenu.title = `chosen from the data: ${reason}`;
+    } else {
+      this.autoWindow(data);
+      this.root.dataset.preset = 'auto';
+      this.presetMenu.value = 'auto';
+    }
+  }
+
+  applyPreset(name, quiet) {
+    const p = PRESETS[name];
+    if (p) this.setWindow(this.toUnits(p[0]) - (this.units === 'hu' ? 0 : MU_WATER), this.toUnits(p[1]), quiet);
+  }
+
   autoWindow(data) {
     if (!data || !data.length) return;
     const sample = [];
@@ -233,11 +297,12 @@ export class SliceViewer {
       Object.keys(PRESETS).map((p) => h('option', { value: p }, p.replace('_', ' '))),
       h('option', { value: 'auto' }, 'auto (0.5–99.5 %)'));
     presets.addEventListener('change', () => {
-      const p = PRESETS[presets.value];
-      if (p) this.setWindow(this.toUnits(p[0]) - (this.units === 'hu' ? 0 : MU_WATER), this.toUnits(p[1]));
+      if (PRESETS[presets.value]) this.applyPreset(presets.value);
       else if (presets.value === 'auto') this.autoWindow(this.sliceData('axial'));
+      this.root.dataset.preset = presets.value;
       this.redraw();
     });
+    this.presetMenu = presets;
     this.wwInput = h('input#wl-width', { type: 'number', step: 'any', 'aria-label': 'window width' });
     this.wlInput = h('input#wl-level', { type: 'number', step: 'any', 'aria-label': 'window level' });
     const apply = () => {

@@ -1,6 +1,7 @@
 //! `GET /v1/jobs/{id}/events`: Server-Sent Events. The stream opens with a `progress` event holding the
 //! job's current state, sends a `progress` event at each change of status, whole percent or stage, and
-//! ends with one `final` event holding the whole job once it is terminal.
+//! ends with one `final` event holding the whole job once it is terminal and, for a volume job, once its
+//! DICOM results are indexed.
 
 use std::convert::Infallible;
 use std::time::Duration;
@@ -15,7 +16,8 @@ use super::super::extract::job_id;
 use super::super::problem::{ApiResult, api_error};
 use super::jobs::job_json;
 use crate::error_code::ErrorCode;
-use crate::jobs::{Job, JobEvent};
+use crate::jobs::model::KIND_VOLUME;
+use crate::jobs::{Job, JobEvent, JobStatus};
 use crate::storage::JobId;
 
 /// How long a stream of a job on a shared database waits without an event before reading the job again.
@@ -26,6 +28,19 @@ fn progress_event(e: &JobEvent) -> Event {
         .event("progress")
         .json_data(e)
         .unwrap_or_default()
+}
+
+/// The job's `final` event, once everything it made is findable: a succeeded volume job's DICOM results
+/// are indexed first (QIDO-RS and C-FIND answer them when a client acts on the event). Indexing is
+/// idempotent and safe against the result indexer doing the same job at the same time.
+async fn final_event_when_findable(st: &AppState, job: &Job) -> Event {
+    if job.status == JobStatus::Succeeded
+        && job.kind == KIND_VOLUME
+        && let Err(e) = st.index_job(job.id).await
+    {
+        tracing::error!(job_id = %job.id, error = %e, "indexing job results before the final event failed");
+    }
+    final_event(job)
 }
 
 fn final_event(job: &Job) -> Event {
@@ -66,7 +81,7 @@ async fn follow(
     tx: mpsc::Sender<Event>,
 ) {
     if job.status.is_terminal() {
-        let _ = tx.send(final_event(&job)).await;
+        let _ = tx.send(final_event_when_findable(&st, &job).await).await;
         return;
     }
     let mut last = snapshot(&job);
@@ -106,7 +121,7 @@ async fn follow(
         if reread {
             match st.db.get_job(id).await {
                 Ok(Some(job)) if job.status.is_terminal() => {
-                    let _ = tx.send(final_event(&job)).await;
+                    let _ = tx.send(final_event_when_findable(&st, &job).await).await;
                     return;
                 }
                 Ok(Some(job)) => {
