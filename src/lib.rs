@@ -8,6 +8,7 @@
 //! - [`mesh`]: pure surface extraction, clipping and STL;
 //! - [`render`]: pure volume rendering, shaded surfaces and cut-away views;
 //! - [`series`]: pure assembly of image slices into a volume; [`dicom`]: DICOM reading and writing;
+//! - [`scans`]: scanner formats (TIFF stacks, Nikon `.xtekct`, Bruker SkyScan `.log`) read view by view;
 //! - [`storage`]: blob store (and its port, [`storage::port::Blobs`]); [`jobs`]: job model, lifecycle, the
 //!   `JobStore` port and its SQLite adapter, the engine and the job kinds;
 //! - [`app`]: the application layer (commands and queries every front door calls);
@@ -27,6 +28,7 @@ pub mod jobs;
 pub mod mesh;
 pub mod recon;
 pub mod render;
+pub mod scans;
 pub mod series;
 pub mod storage;
 pub mod telemetry;

@@ -338,6 +338,7 @@ fn adapters_and_lower_layers_import_no_front_door_and_the_stores_not_each_other(
     let graph = module_graph(Path::new(env!("CARGO_MANIFEST_DIR")));
     for lower in [
         "jobs", "storage", "dicom", "series", "recon", "volume", "mesh", "render", "app", "config",
+        "scans",
     ] {
         for front in ["http", "dimse", "cli"] {
             assert!(

@@ -1,11 +1,13 @@
-//! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, write the
-//! result as float32 `.npy` and optionally a PNG of one slice with window/level. Admission, the
-//! reconstruction and its errors are the application's (`app::local`), as for a job submitted to the API.
+//! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, or a scanner's
+//! scan (`.xtekct`, SkyScan `.log`, TIFF stack: geometry from its metadata, converted to line integrals by
+//! `scans::line_integrals`), write the result as float32 `.npy` and optionally a PNG of one slice with
+//! window/level. Admission, the reconstruction and its errors are the application's (`app::local`), as for a
+//! job submitted to the API.
 
 use std::path::{Path, PathBuf};
 
 use clap::ValueEnum;
-use ndarray::{ArrayView2, Axis, Ix2};
+use ndarray::{ArrayD, ArrayView2, Axis, Ix2};
 use serde_json::{Map, Value};
 
 use super::files::{CliResult, read_geometry, read_npy, sidecar, write_npy};
@@ -14,6 +16,7 @@ use crate::app::local::{DEFAULT_BUDGET_BYTES, Local, Reconstruction};
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window};
 use crate::recon::control::Cancel;
 use crate::recon::geometry::Geometry;
+use crate::scans::{self, Scan};
 
 /// Ramp-filter windows (FBP and FDK).
 #[derive(Debug, Clone, Copy, ValueEnum)]
@@ -40,10 +43,11 @@ impl From<Filter> for Window {
 /// Options of `ctrecon recon`.
 #[derive(Debug, clap::Args)]
 pub struct ReconArgs {
-    /// Sinogram `[view][u]` or projections `[view][v][u]` (float32 or float64 `.npy`, line integrals).
+    /// Sinogram `[view][u]` or projections `[view][v][u]` (float32 or float64 `.npy`, line integrals), or a
+    /// scan: `.xtekct` (Nikon), `.log` (Bruker SkyScan), `.tif` stack, or a folder holding one.
     #[arg(long, visible_alias = "data")]
     pub input: PathBuf,
-    /// Geometry JSON (default: the sidecar `<input>.json` written by `ctrecon phantom`).
+    /// Geometry JSON (default: the sidecar `<input>.json` written by `ctrecon phantom`, or the scan's own).
     #[arg(long)]
     pub geometry: Option<PathBuf>,
     /// `fbp` (2D parallel/fan) or `fdk` (cone); iterative: art, sart, os_sart, sirt, cgls, mlem, tv.
@@ -121,12 +125,57 @@ fn output_grid(args: &ReconArgs, local: &Local, geometry: &Geometry) -> CliResul
     Ok(local.square_grid(geometry, args.size, args.pixel_mm)?)
 }
 
+/// Whether `--input` names a scanner's scan (`.xtekct`, SkyScan `.log`, `.tif`/`.tiff`, or a folder) rather
+/// than a `.npy`.
+fn is_scan(input: &Path) -> bool {
+    let ext = input
+        .extension()
+        .and_then(|e| e.to_str())
+        .map(str::to_ascii_lowercase);
+    input.is_dir() || matches!(ext.as_deref(), Some("xtekct" | "log" | "tif" | "tiff"))
+}
+
+/// Open a scan and say what was read from where.
+fn open_scan(input: &Path) -> CliResult<Scan> {
+    let scan = scans::open(input)?;
+    let (nv, nu) = scan.views.shape();
+    eprintln!(
+        "scan {}: {} views of {nu} × {nv} ({})",
+        scan.format,
+        scan.views.view_count(),
+        input.display()
+    );
+    for p in &scan.provenance {
+        eprintln!("  {} = {} ({})", p.key, p.value, p.origin);
+    }
+    for n in &scan.notes {
+        eprintln!("  note: {n}");
+    }
+    Ok(scan)
+}
+
+/// The projections of a scan as line integrals (the minimal conversion of `scans::convert`).
+fn scan_data(scan: &mut Scan, max_bytes: u64) -> CliResult<ArrayD<f32>> {
+    let li = scans::line_integrals(scan, max_bytes)?;
+    eprintln!(
+        "line integrals: {} pixels clamped at transmission {}",
+        li.clamped,
+        scans::TRANSMISSION_FLOOR
+    );
+    Ok(li.projections.into_dyn())
+}
+
 pub fn run(args: ReconArgs) -> CliResult<()> {
-    let geometry_path = args
-        .geometry
-        .clone()
-        .unwrap_or_else(|| sidecar(&args.input));
-    let geometry = read_geometry(&geometry_path)?;
+    let mut scan = if is_scan(&args.input) {
+        Some(open_scan(&args.input)?)
+    } else {
+        None
+    };
+    let geometry = match (&args.geometry, &scan) {
+        (Some(path), _) => read_geometry(path)?,
+        (None, Some(scan)) => scan.geometry.clone(),
+        (None, None) => read_geometry(&sidecar(&args.input))?,
+    };
     let local = Local::new(args.max_bytes);
     let grid = output_grid(&args, &local, &geometry)?;
     let algorithm = algorithm_spec(&args)?;
@@ -135,7 +184,10 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
         algorithm,
         grid,
     })?;
-    let data = read_npy(&args.input)?;
+    let data = match &mut scan {
+        Some(scan) => scan_data(scan, args.max_bytes)?,
+        None => read_npy(&args.input)?,
+    };
     let cancel = Cancel::new();
     let bar = Bar::new();
     let out = super::on_pool(|| local.reconstruct(&admitted, data.view(), &bar, &cancel));
