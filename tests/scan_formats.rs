@@ -448,27 +448,60 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
     assert_ball_at(&vol, &grid, centre);
 
     // The same through the CLI: `ctrecon recon --input ball.xtekct --algorithm fdk --size 40 --pixel-mm 0.1`.
-    let out = dir.path().join("v.npy");
-    let args = ctrecon::cli::recon::ReconArgs {
-        input: xfile.clone(),
-        geometry: None,
-        algorithm: "fdk".into(),
-        filter: None,
-        cutoff: None,
-        params: None,
-        size: 40,
-        pixel_mm: 0.1,
-        grid: None,
-        max_bytes: 1 << 30,
-        output: out.clone(),
-        png: None,
-        slice: None,
-        ww: None,
-        wl: None,
+    // The .xtekct states no calibrated centre, so the centre is found from the views (the default).
+    let recon = |centre: &str| {
+        let out = dir.path().join(format!("v-{centre}.npy"));
+        let args = ctrecon::cli::recon::ReconArgs {
+            input: xfile.clone(),
+            geometry: None,
+            algorithm: "fdk".into(),
+            filter: None,
+            cutoff: None,
+            params: None,
+            size: 40,
+            pixel_mm: 0.1,
+            grid: None,
+            max_bytes: 1 << 30,
+            output: out.clone(),
+            png: None,
+            centre: centre.into(),
+            slice: None,
+            ww: None,
+            wl: None,
+        };
+        ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.xtekct");
+        let vol: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
+        vol
     };
-    ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.xtekct");
-    let vol: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
-    assert_ball_at(&vol, &grid, centre);
+    let rms = |a: &ndarray::Array3<f32>, b: &ndarray::Array3<f32>| {
+        let s: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum();
+        (s / a.len() as f64).sqrt()
+    };
+    let found = recon("auto");
+    assert_ball_at(&found, &grid, centre);
+    let stated = recon("read");
+    assert_ball_at(&stated, &grid, centre);
+
+    // A file that leaves out its offsets (ObjectOffsetX, DetectorOffsetX: the axis projects 1.5 px off the
+    // panel's centre): read as it is, the ball is smeared into a ring; found from the views, it is sharp
+    // and in place again, as with the stated offsets.
+    let bare = text
+        .replace("ObjectOffsetX=0.2\n", "")
+        .replace("DetectorOffsetX=0.15\n", "");
+    std::fs::write(&xfile, bare).expect("xtekct");
+    let found = recon("auto");
+    assert_ball_at(&found, &grid, centre);
+    let wrong = recon("read");
+    let (e_found, e_wrong) = (rms(&found, &stated), rms(&wrong, &stated));
+    println!("RMS from the stated-offset volume: found {e_found:.2e}, as read {e_wrong:.2e}");
+    assert!(
+        e_found < 0.1 * e_wrong,
+        "RMS difference from the reconstruction with the stated offsets: {e_found} with the centre \
+         found, {e_wrong} with the centre as read"
+    );
+    // Pinned by the user: the stated value gives the ball back as well.
+    let pinned = recon("0.45");
+    assert_ball_at(&pinned, &grid, centre);
 }
 
 /// The centroid of the voxels above half the peak lies within half a voxel of `centre` (mm).

@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 
 use clap::ValueEnum;
-use ndarray::{ArrayD, ArrayView2, Axis, Ix2};
+use ndarray::{ArrayD, ArrayView2, Axis, Ix2, Ix3};
 use serde_json::{Map, Value};
 
 use super::files::{CliResult, read_geometry, read_npy, sidecar, write_npy};
@@ -16,6 +16,7 @@ use crate::app::local::{DEFAULT_BUDGET_BYTES, Local, Reconstruction};
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window};
 use crate::recon::control::Cancel;
 use crate::recon::geometry::Geometry;
+use crate::scans::calibrate::{CentrePolicy, calibrate};
 use crate::scans::{self, Scan};
 
 /// Ramp-filter windows (FBP and FDK).
@@ -81,6 +82,10 @@ pub struct ReconArgs {
     /// Also write an 8-bit grey PNG of one slice.
     #[arg(long)]
     pub png: Option<PathBuf>,
+    /// Centre of rotation of a scan: `auto` (found from the views unless the scan's metadata states a
+    /// calibrated centre), `find`, `read` (as the metadata gives it), or a detector u offset in mm.
+    #[arg(long, default_value = "auto")]
+    pub centre: String,
     /// Axial slice of a volume for the PNG (default: the middle one).
     #[arg(long)]
     pub slice: Option<usize>,
@@ -165,29 +170,73 @@ fn scan_data(scan: &mut Scan, max_bytes: u64) -> CliResult<ArrayD<f32>> {
     Ok(li.projections.into_dyn())
 }
 
+/// `--centre`: `auto` (found from the views unless the scan states a calibrated centre, or `--geometry`
+/// gives one), `find`, `read`, or a u offset in mm.
+fn centre_policy(args: &ReconArgs) -> CliResult<CentrePolicy> {
+    Ok(match args.centre.as_str() {
+        "auto" if args.geometry.is_some() => CentrePolicy::Read,
+        "auto" => CentrePolicy::Auto,
+        "find" => CentrePolicy::Find,
+        "read" => CentrePolicy::Read,
+        other => match other.parse::<f64>() {
+            Ok(mm) if mm.is_finite() => CentrePolicy::Pinned(mm),
+            _ => {
+                return Err(format!(
+                    "--centre {other:?}: give auto, find, read or a detector u offset in mm"
+                )
+                .into());
+            }
+        },
+    })
+}
+
 pub fn run(args: ReconArgs) -> CliResult<()> {
     let mut scan = if is_scan(&args.input) {
         Some(open_scan(&args.input)?)
     } else {
         None
     };
-    let geometry = match (&args.geometry, &scan) {
+    let mut geometry = match (&args.geometry, &scan) {
         (Some(path), _) => read_geometry(path)?,
         (None, Some(scan)) => scan.geometry.clone(),
         (None, None) => read_geometry(&sidecar(&args.input))?,
     };
+    let policy = centre_policy(&args)?;
     let local = Local::new(args.max_bytes);
     let grid = output_grid(&args, &local, &geometry)?;
     let algorithm = algorithm_spec(&args)?;
-    let admitted = local.admit_reconstruction(Reconstruction {
-        geometry,
-        algorithm,
+    // What cannot fit is refused before anything is read.
+    let mut admitted = local.admit_reconstruction(Reconstruction {
+        geometry: geometry.clone(),
+        algorithm: algorithm.clone(),
         grid,
     })?;
     let data = match &mut scan {
         Some(scan) => scan_data(scan, args.max_bytes)?,
         None => read_npy(&args.input)?,
     };
+    if let Some(scan) = &scan {
+        let projections = data
+            .view()
+            .into_dimensionality::<Ix3>()
+            .map_err(|e| format!("a scan's projections are [view][v][u]: {e}"))?;
+        let c = calibrate(&mut geometry, projections, &scan.provenance, policy)?;
+        match &c.estimate {
+            Some(e) => eprintln!(
+                "centre of rotation: found, detector offset_u_mm = {:.4} ({:.2} px, {:?}, {} views, residual {:.2e})",
+                c.offset_u_mm, e.offset_u_px, e.method, e.views_used, e.residual
+            ),
+            None => eprintln!(
+                "centre of rotation: {}, detector offset_u_mm = {:.4}",
+                c.centre, c.offset_u_mm
+            ),
+        }
+        admitted = local.admit_reconstruction(Reconstruction {
+            geometry,
+            algorithm,
+            grid,
+        })?;
+    }
     let cancel = Cancel::new();
     let bar = Bar::new();
     let out = super::on_pool(|| local.reconstruct(&admitted, data.view(), &bar, &cancel));

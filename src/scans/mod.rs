@@ -14,6 +14,7 @@
 //!   from; values read but not used are listed in [`Scan::notes`].
 
 pub mod bruker;
+pub mod calibrate;
 pub mod convert;
 pub mod detect;
 pub mod ini;
