@@ -34,5 +34,6 @@ mod mesh_honest;
 mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
+mod scan_formats;
 #[path = "viewer/main.rs"]
 mod viewer;
