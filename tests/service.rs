@@ -35,5 +35,6 @@ mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
 mod scan_formats;
+mod scans_http;
 #[path = "viewer/main.rs"]
 mod viewer;
