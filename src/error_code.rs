@@ -5,6 +5,9 @@
 //! status and title live here too, so that nothing else decides them. `openapi.yaml` lists every code
 //! (a test checks it).
 
+mod pointer;
+pub use pointer::{field_pointer, json_pointer};
+
 macro_rules! catalogue {
     ($($variant:ident = ($code:literal, $status:literal, $title:literal)),* $(,)?) => {
         /// A stable API error code.
@@ -84,6 +87,10 @@ catalogue! {
     InvalidClip = ("invalid_clip", 422, "A clip plane has a zero normal or a clip box is degenerate"),
     CameraInsideVolume = ("camera_inside_volume", 422, "An orthographic camera cannot sit inside the volume"),
     InvalidRenderSize = ("invalid_render_size", 422, "The image size is zero or above the configured limit"),
+    // Scans as scanners write them (the codes of `ScanError`).
+    ScanInvalid = ("scan_invalid", 422, "A scan's files are malformed or contradict each other"),
+    ScanNotRecognised = ("scan_not_recognised", 422, "Nothing in the upload is a scan format ctrecon reads"),
+    ScanUnsupported = ("scan_unsupported", 422, "A scan uses a feature ctrecon does not read"),
     // DICOM uploads and series (the codes of `DicomError` and `SeriesError`).
     UploadNotFound = ("upload_not_found", 404, "No such upload"),
     UploadClosed = ("upload_closed", 409, "The upload is completed: no more instances"),
@@ -181,38 +188,6 @@ pub struct Problem {
 pub struct FieldError {
     pub pointer: String,
     pub detail: String,
-}
-
-/// The JSON Pointer of `segments` under `base` (a pointer itself), each segment escaped (`~` → `~0`,
-/// `/` → `~1`).
-pub fn json_pointer<'a>(base: &str, segments: impl IntoIterator<Item = &'a str>) -> String {
-    let mut out = base.to_string();
-    for s in segments {
-        out.push('/');
-        out.push_str(&s.replace('~', "~0").replace('/', "~1"));
-    }
-    out
-}
-
-/// The JSON Pointer of a field path as the validators name fields (`detector.nu`, `centre_mm[0]`,
-/// `angles.degrees[3]`) under `base`.
-pub fn field_pointer(base: &str, path: &str) -> String {
-    let mut segments = Vec::new();
-    for part in path.split('.').filter(|p| !p.is_empty()) {
-        let mut rest = part;
-        if let Some(open) = rest.find('[') {
-            segments.push(&rest[..open]);
-            rest = &rest[open..];
-            while let Some(tail) = rest.strip_prefix('[') {
-                let Some(close) = tail.find(']') else { break };
-                segments.push(&tail[..close]);
-                rest = &tail[close + 1..];
-            }
-        } else {
-            segments.push(rest);
-        }
-    }
-    json_pointer(base, segments.into_iter().filter(|s| !s.is_empty()))
 }
 
 impl Problem {

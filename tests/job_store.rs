@@ -364,3 +364,59 @@ impl JobStore for MemoryStore {
         async move { Ok(finished) }.boxed()
     }
 }
+
+/// A dataset of kind `scan` (migration 20261211000001 in both dialects) and its import record.
+fn scan_dataset() -> ctrecon::jobs::Dataset {
+    use ctrecon::jobs::model::{ScanRecord, ScanValue};
+    let geometry = serde_json::from_value(common_cone()).expect("geometry");
+    ctrecon::jobs::Dataset {
+        id: ctrecon::storage::DatasetId::generate(),
+        kind: ctrecon::jobs::DatasetKind::Scan,
+        geometry,
+        shape: vec![4, 5, 7],
+        dtype: "float32".into(),
+        bytes: 688,
+        sha256: "00".repeat(32),
+        phantom: None,
+        noise: None,
+        scan: Some(ScanRecord {
+            format: "nikon_xtek".into(),
+            provenance: vec![ScanValue {
+                key: "SrcToObject".into(),
+                value: "100".into(),
+                origin: "ball.xtekct [XTekCT] SrcToObject".into(),
+            }],
+            notes: vec!["a note".into()],
+            preprocessing: vec![serde_json::json!({"step": "minus_log", "clamped_pixels": 3})],
+        }),
+        created_us: now_us(),
+    }
+}
+
+fn common_cone() -> serde_json::Value {
+    crate::common::cone_geometry(4, 7)
+}
+
+#[tokio::test]
+async fn a_scan_dataset_reads_back_from_sqlite_and_postgresql() {
+    let d = scan_dataset();
+    let dir = tempfile::tempdir().expect("temp dir");
+    let db = Db::open(&dir.path().join("ctrecon.sqlite"))
+        .await
+        .expect("database");
+    assert!(matches!(
+        db.insert_dataset(&d, None).await,
+        Ok(Inserted::New)
+    ));
+    assert_eq!(db.get_dataset(d.id).await.expect("get"), Some(d.clone()));
+    if let Some(url) = cluster::database_url("job_store::scan_dataset") {
+        let pg = ctrecon::jobs::PgDb::open(&url, std::time::Duration::from_secs(10))
+            .await
+            .expect("database");
+        assert!(matches!(
+            pg.insert_dataset(&d, None).await,
+            Ok(Inserted::New)
+        ));
+        assert_eq!(pg.get_dataset(d.id).await.expect("get"), Some(d));
+    }
+}

@@ -14,7 +14,7 @@ use serde_json::json;
 
 /// The Python that has tifffile: `.venv-scans/bin/python`, else `python3`; `None` (after one skip line, or
 /// a panic under CTRECON_REQUIRE_PEERS=1) when neither imports it.
-fn python() -> Option<PathBuf> {
+pub(crate) fn python() -> Option<PathBuf> {
     let venv = Path::new(env!("CARGO_MANIFEST_DIR")).join(".venv-scans/bin/python");
     let found = [venv, PathBuf::from("python3")].into_iter().find(|py| {
         Command::new(py)
@@ -67,7 +67,7 @@ fn expected(job: &serde_json::Value, i: usize, r: usize, c: usize) -> f32 {
 }
 
 /// A writer job with defaults: `layout` "files" (path has `{}` for the number) or "pages".
-fn job(
+pub(crate) fn job(
     path: &Path,
     layout: &str,
     dtype: &str,
@@ -86,7 +86,7 @@ fn job(
            "first": 1})
 }
 
-fn write(py: &Path, jobs: &[serde_json::Value]) {
+pub(crate) fn write(py: &Path, jobs: &[serde_json::Value]) {
     let mut child = Command::new(py)
         .args(["-c", WRITER])
         .stdin(Stdio::piped())
@@ -130,7 +130,7 @@ fn assert_views_equal(scan: &mut scans::Scan, job: &serde_json::Value) {
     }
 }
 
-fn xtekct(name: &str, projections: usize, nx: usize, ny: usize) -> String {
+pub(crate) fn xtekct(name: &str, projections: usize, nx: usize, ny: usize) -> String {
     format!(
         "[XTekCT]\nName={name}\nInputFolderName=\nUnits=mm\nVoxelsX=8\nProjections={projections}\n\
          DetectorPixelsX={nx}\nDetectorPixelsY={ny}\nDetectorPixelSizeX=0.2\nDetectorPixelSizeY=0.2\n\
@@ -369,67 +369,10 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
     use ctrecon::recon::control::unattended;
     use ctrecon::recon::geometry::Views;
     use ctrecon::recon::grid::VolumeGrid;
-    use ctrecon::recon::projector::forward_3d;
-    use ctrecon::scans::{Orientation, ini::Ini, nikon};
-    use ndarray::Array3;
 
     let Some(py) = python() else { return };
     let dir = tempfile::tempdir().expect("tempdir");
-    let text = "[XTekCT]\nName=ball\nUnits=mm\nProjections=120\nDetectorPixelsX=40\nDetectorPixelsY=36\n\
-                DetectorPixelSizeX=0.3\nDetectorPixelSizeY=0.3\nSrcToObject=100\nSrcToDetector=300\n\
-                InitialAngle=10\nAngularStep=3\nObjectOffsetX=0.2\nDetectorOffsetX=0.15\n\
-                DetectorOffsetY=0.3\nWhiteLevel=60000\n";
-    let xfile = dir.path().join("ball.xtekct");
-    std::fs::write(&xfile, text).expect("xtekct");
-    let x = nikon::parse(&mut Ini::parse(&xfile, text)).expect("parse");
-    let Ok(Views::D3(views)) = nikon::geometry(&x, None).to_views() else {
-        panic!("cone views")
-    };
-
-    // The ball: radius 0.45 mm at (0.7, −0.5, 0.4) mm, μ = 0.5/mm, on a fine grid (4× supersampled edges).
-    let centre = [0.7, -0.5, 0.4];
-    let fine = VolumeGrid::cube(64, 0.05);
-    let ball = Array3::from_shape_fn((64, 64, 64), |(k, j, i)| {
-        let mut inside = 0;
-        for s in 0..64 {
-            let o = |t: usize| (t as f64 + 0.5) / 4.0 - 0.5;
-            let p = [
-                fine.x(i) + o(s % 4) * 0.05,
-                fine.y(j) + o((s / 4) % 4) * 0.05,
-                fine.z(k) + o(s / 16) * 0.05,
-            ];
-            let d2: f64 = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum();
-            inside += (d2 < 0.45f64.powi(2)) as u32;
-        }
-        0.5 * inside as f32 / 64.0
-    });
-    let p = forward_3d(&views, ball.view(), &fine);
-    let (nv, nu) = (36, 40);
-    let mut stored = ndarray::Array3::<u16>::zeros((120, nv, nu));
-    for i in 0..120 {
-        for r in 0..nv {
-            for c in 0..nu {
-                let (ir, ic) = Orientation::TURNED.image_index(r, c, nv, nu);
-                stored[[i, ir, ic]] = (60000.0 * (-p[[i, r, c]]).exp()).round() as u16;
-            }
-        }
-    }
-    let npy = dir.path().join("views.npy");
-    ndarray_npy::write_npy(&npy, &stored).expect("npy");
-    let script = "import sys, numpy as np, tifffile\na = np.load(sys.argv[1])\n\
-                  for i in range(len(a)):\n    tifffile.imwrite(sys.argv[2].format(i + 1), a[i], photometric='minisblack')\n";
-    let pattern = dir.path().join("ball_{:04d}.tif");
-    let status = Command::new(&py)
-        .args([
-            "-c",
-            script,
-            &npy.to_string_lossy(),
-            &pattern.to_string_lossy(),
-        ])
-        .status()
-        .expect("python");
-    assert!(status.success());
-
+    let (xfile, centre) = write_ball_scan(&py, dir.path());
     let mut scan = scans::open(&xfile).expect("open");
     let li = scans::line_integrals(&mut scan, 1 << 30).expect("line integrals");
     assert_eq!(li.clamped, 0);
@@ -504,8 +447,77 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
     assert_ball_at(&pinned, &grid, centre);
 }
 
+/// Write the Nikon scan of [`fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was`] into `dir`
+/// (`ball.xtekct` + 120 uint16 TIFFs of 40 × 36, the views simulated by ctrecon's projector and written by
+/// tifffile); answers the `.xtekct` and the ball's centre (mm).
+pub(crate) fn write_ball_scan(py: &Path, dir: &Path) -> (PathBuf, [f64; 3]) {
+    use ctrecon::recon::geometry::Views;
+    use ctrecon::recon::grid::VolumeGrid;
+    use ctrecon::recon::projector::forward_3d;
+    use ctrecon::scans::{Orientation, ini::Ini, nikon};
+    use ndarray::Array3;
+
+    let text = "[XTekCT]\nName=ball\nUnits=mm\nProjections=120\nDetectorPixelsX=40\nDetectorPixelsY=36\n\
+                DetectorPixelSizeX=0.3\nDetectorPixelSizeY=0.3\nSrcToObject=100\nSrcToDetector=300\n\
+                InitialAngle=10\nAngularStep=3\nObjectOffsetX=0.2\nDetectorOffsetX=0.15\n\
+                DetectorOffsetY=0.3\nWhiteLevel=60000\n";
+    let xfile = dir.join("ball.xtekct");
+    std::fs::write(&xfile, text).expect("xtekct");
+    let x = nikon::parse(&mut Ini::parse(&xfile, text)).expect("parse");
+    let Ok(Views::D3(views)) = nikon::geometry(&x, None).to_views() else {
+        panic!("cone views")
+    };
+
+    // The ball: radius 0.45 mm at (0.7, −0.5, 0.4) mm, μ = 0.5/mm, on a fine grid (4× supersampled edges).
+    let centre = [0.7, -0.5, 0.4];
+    let fine = VolumeGrid::cube(64, 0.05);
+    let ball = Array3::from_shape_fn((64, 64, 64), |(k, j, i)| {
+        let mut inside = 0;
+        for s in 0..64 {
+            let o = |t: usize| (t as f64 + 0.5) / 4.0 - 0.5;
+            let p = [
+                fine.x(i) + o(s % 4) * 0.05,
+                fine.y(j) + o((s / 4) % 4) * 0.05,
+                fine.z(k) + o(s / 16) * 0.05,
+            ];
+            let d2: f64 = (0..3).map(|a| (p[a] - centre[a]).powi(2)).sum();
+            inside += (d2 < 0.45f64.powi(2)) as u32;
+        }
+        0.5 * inside as f32 / 64.0
+    });
+    let p = forward_3d(&views, ball.view(), &fine);
+    let (nv, nu) = (36, 40);
+    let mut stored = ndarray::Array3::<u16>::zeros((120, nv, nu));
+    for i in 0..120 {
+        for r in 0..nv {
+            for c in 0..nu {
+                let (ir, ic) = Orientation::TURNED.image_index(r, c, nv, nu);
+                stored[[i, ir, ic]] = (60000.0 * (-p[[i, r, c]]).exp()).round() as u16;
+            }
+        }
+    }
+    let npy = dir.join("views.npy");
+    ndarray_npy::write_npy(&npy, &stored).expect("npy");
+    let script = "import sys, numpy as np, tifffile\na = np.load(sys.argv[1])\n\
+                  for i in range(len(a)):\n    tifffile.imwrite(sys.argv[2].format(i + 1), a[i], photometric='minisblack')\n";
+    let pattern = dir.join("ball_{:04d}.tif");
+    let status = Command::new(py)
+        .args([
+            "-c",
+            script,
+            &npy.to_string_lossy(),
+            &pattern.to_string_lossy(),
+        ])
+        .status()
+        .expect("python");
+    assert!(status.success());
+
+    std::fs::remove_file(&npy).expect("remove views.npy");
+    (xfile, centre)
+}
+
 /// The centroid of the voxels above half the peak lies within half a voxel of `centre` (mm).
-fn assert_ball_at(
+pub(crate) fn assert_ball_at(
     vol: &ndarray::Array3<f32>,
     grid: &ctrecon::recon::grid::VolumeGrid,
     centre: [f64; 3],

@@ -34,5 +34,7 @@ mod mesh_honest;
 mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
+mod scan_formats;
+mod scans_http;
 #[path = "viewer/main.rs"]
 mod viewer;

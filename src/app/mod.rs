@@ -24,6 +24,7 @@ pub mod protocols;
 pub mod query;
 pub mod recognised;
 pub mod rules;
+pub mod scans;
 pub mod series;
 pub mod stow;
 pub mod stow_client;

@@ -81,9 +81,9 @@ pub fn integral_numbers(v: &mut serde_json::Value) {
                 && f.fract() == 0.0
             {
                 // Exact bounds: 2^63 and 2^64 are representable, so `<` keeps every cast in range.
-                if f >= 0.0 && f < 18_446_744_073_709_551_616.0 {
+                if (0.0..18_446_744_073_709_551_616.0).contains(&f) {
                     *v = serde_json::Value::from(f as u64);
-                } else if f < 0.0 && f >= -9_223_372_036_854_775_808.0 {
+                } else if (-9_223_372_036_854_775_808.0..0.0).contains(&f) {
                     *v = serde_json::Value::from(f as i64);
                 }
             }

@@ -52,7 +52,8 @@ use crate::jobs::Engine;
 use crate::telemetry::{metrics_handle, names};
 use problem::{ApiError, api_error, problem_response};
 use routes::{
-    datasets, dicomweb, events, feed, health, jobs, limits, results, rules, series, stow, uploads,
+    datasets, dicomweb, events, feed, health, jobs, limits, results, rules, scans, series, stow,
+    uploads,
 };
 
 /// What every handler can reach: the application (and, through it, `db`, `store`, `engine`, `settings`)
@@ -308,6 +309,7 @@ pub fn router(state: AppState, tokens: auth::Tokens) -> Router {
         .layer(timeout(upload_timeout));
     let uploads = Router::new()
         .route("/v1/sinograms", post(datasets::post_sinogram))
+        .route("/v1/scans", post(scans::post_scan))
         .route("/v1/series", post(uploads::post_series))
         .route("/v1/uploads/{id}/complete", post(uploads::complete_upload))
         .route("/dicom-web/studies", post(stow::store_instances))

@@ -180,8 +180,8 @@ impl PgDb {
             Err(existing) => return Ok(existing),
         };
         sqlx::query(
-            "INSERT INTO datasets (id, kind, geometry, shape, dtype, bytes, sha256, phantom, noise, created_us)
-             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10)",
+            "INSERT INTO datasets (id, kind, geometry, shape, dtype, bytes, sha256, phantom, noise, scan, created_us)
+             VALUES ($1, $2, $3, $4, $5, $6, $7, $8, $9, $10, $11)",
         )
         .bind(d.id.to_string())
         .bind(d.kind.as_str())
@@ -192,6 +192,7 @@ impl PgDb {
         .bind(&d.sha256)
         .bind(d.phantom.as_ref().map(to_json))
         .bind(d.noise.as_ref().map(to_json))
+        .bind(d.scan.as_ref().map(to_json))
         .bind(d.created_us)
         .execute(&mut *tx)
         .await?;

@@ -154,8 +154,8 @@ impl Db {
             Err(existing) => return Ok(existing),
         };
         sqlx::query(
-            "INSERT INTO datasets (id, kind, geometry, shape, dtype, bytes, sha256, phantom, noise, created_us)
-             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
+            "INSERT INTO datasets (id, kind, geometry, shape, dtype, bytes, sha256, phantom, noise, scan, created_us)
+             VALUES (?, ?, ?, ?, ?, ?, ?, ?, ?, ?, ?)",
         )
         .bind(d.id.to_string())
         .bind(d.kind.as_str())
@@ -166,6 +166,7 @@ impl Db {
         .bind(&d.sha256)
         .bind(d.phantom.as_ref().map(to_json))
         .bind(d.noise.as_ref().map(to_json))
+        .bind(d.scan.as_ref().map(to_json))
         .bind(d.created_us)
         .execute(&mut *tx)
         .await?;

@@ -1,8 +1,9 @@
 //! The minimal conversion of a scan's views into ctrecon's projections: line integrals
 //! `p = −ln((I − D)/(F − D))` with the scan's dark `D` and flat `F` when it has both, else
 //! `p = −ln(I / white level)` (DESIGN.md §11), the transmission clamped to [`TRANSMISSION_FLOOR`] (clamped
-//! pixels counted), oriented into ctrecon's detector order. One function, to be replaced by the full
-//! preprocessing chain.
+//! pixels counted), oriented into ctrecon's detector order: [`ViewConverter`] one view at a time (what an
+//! import streams), [`line_integrals`] the whole stack (the CLI). To be replaced by the full preprocessing
+//! chain.
 
 use ndarray::Array3;
 
@@ -35,29 +36,93 @@ pub fn line_integrals(scan: &mut Scan, max_bytes: u64) -> Result<LineIntegrals, 
             ),
         });
     }
-    let white = match scan.intensity {
-        Intensity::FlatCorrected { white_level } | Intensity::Raw { white_level } => {
-            white_level as f32
-        }
-        Intensity::Transmission => 1.0,
-    };
-    let refs = match (&scan.dark, &scan.flat) {
-        (Some(d), Some(f)) if d.len() == nv * nu && f.len() == nv * nu => {
-            Some((d.clone(), f.clone()))
-        }
-        (None, Some(f)) if f.len() == nv * nu => Some((vec![0.0; nv * nu], f.clone())),
-        _ => None,
-    };
+    let mut conv = ViewConverter::new(scan);
     let mut out = Array3::<f32>::zeros((n, nv, nu));
-    let mut image = vec![0f32; nv * nu];
-    let mut line = vec![0f32; nv * nu];
-    let mut clamped = 0u64;
     for (i, mut view) in out.outer_iter_mut().enumerate() {
-        scan.views.read_view(i, &mut image)?;
-        for (k, p) in line.iter_mut().enumerate() {
-            let t = match &refs {
-                Some((d, f)) => (image[k] - d[k]) / (f[k] - d[k]),
-                None => image[k] / white,
+        let Some(dst) = view.as_slice_mut() else {
+            unreachable!("a fresh array is contiguous")
+        };
+        conv.convert(scan, i, dst)?;
+    }
+    let clamped = conv.clamped;
+    Ok(LineIntegrals {
+        projections: out,
+        clamped,
+    })
+}
+
+/// How a view's values become transmissions.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Normalisation {
+    /// `(I − D)/(F − D)` with the scan's dark and flat.
+    DarkFlat,
+    /// `I / F` with the scan's flat (no dark).
+    Flat,
+    /// `I / white_level` (1 for transmissions).
+    WhiteLevel(f64),
+}
+
+/// Converts a scan's views to line integrals one at a time, holding one view of its own (the image as read,
+/// converted in place) besides the caller's output view; counts the clamped pixels.
+#[derive(Debug)]
+pub struct ViewConverter {
+    nv: usize,
+    nu: usize,
+    normalisation: Normalisation,
+    image: Vec<f32>,
+    /// Pixels clamped to [`TRANSMISSION_FLOOR`] so far.
+    pub clamped: u64,
+}
+
+impl ViewConverter {
+    /// The converter of `scan`'s views (allocates one view: the readers refuse views over
+    /// [`super::MAX_VIEW_PIXELS`]).
+    pub fn new(scan: &Scan) -> Self {
+        let (nv, nu) = scan.views.shape();
+        let fits = |r: &Option<Vec<f32>>| r.as_ref().is_some_and(|r| r.len() == nv * nu);
+        let normalisation = match (fits(&scan.dark), fits(&scan.flat)) {
+            (true, true) => Normalisation::DarkFlat,
+            (false, true) if scan.dark.is_none() => Normalisation::Flat,
+            _ => Normalisation::WhiteLevel(match scan.intensity {
+                Intensity::FlatCorrected { white_level } | Intensity::Raw { white_level } => {
+                    white_level
+                }
+                Intensity::Transmission => 1.0,
+            }),
+        };
+        Self {
+            nv,
+            nu,
+            normalisation,
+            image: vec![0f32; nv * nu],
+            clamped: 0,
+        }
+    }
+
+    /// How the values are normalised.
+    pub fn normalisation(&self) -> Normalisation {
+        self.normalisation
+    }
+
+    /// Read view `i` of `scan` and write its line integrals, in ctrecon's detector order, to `out`
+    /// (`nv · nu` values).
+    pub fn convert(&mut self, scan: &mut Scan, i: usize, out: &mut [f32]) -> Result<(), ScanError> {
+        scan.views.read_view(i, &mut self.image)?;
+        let empty: &[f32] = &[];
+        let (dark, flat) = (
+            scan.dark.as_deref().unwrap_or(empty),
+            scan.flat.as_deref().unwrap_or(empty),
+        );
+        let white = match self.normalisation {
+            Normalisation::WhiteLevel(w) => w as f32,
+            _ => 1.0,
+        };
+        let mut clamped = 0u64;
+        for (k, p) in self.image.iter_mut().enumerate() {
+            let t = match self.normalisation {
+                Normalisation::DarkFlat => (*p - dark[k]) / (flat[k] - dark[k]),
+                Normalisation::Flat => *p / flat[k],
+                Normalisation::WhiteLevel(_) => *p / white,
             };
             let t = if t.is_finite() && t >= TRANSMISSION_FLOOR {
                 t
@@ -67,13 +132,8 @@ pub fn line_integrals(scan: &mut Scan, max_bytes: u64) -> Result<LineIntegrals, 
             };
             *p = -t.ln();
         }
-        let Some(dst) = view.as_slice_mut() else {
-            unreachable!("a fresh array is contiguous")
-        };
-        scan.orientation.apply(&line, nv, nu, dst);
+        self.clamped += clamped;
+        scan.orientation.apply(&self.image, self.nv, self.nu, out);
+        Ok(())
     }
-    Ok(LineIntegrals {
-        projections: out,
-        clamped,
-    })
 }

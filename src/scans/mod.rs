@@ -30,7 +30,9 @@ use std::path::{Path, PathBuf};
 
 use crate::recon::geometry::Geometry;
 
-pub use convert::{LineIntegrals, TRANSMISSION_FLOOR, line_integrals};
+pub use convert::{
+    LineIntegrals, Normalisation, TRANSMISSION_FLOOR, ViewConverter, line_integrals,
+};
 pub use detect::open;
 pub use tiff_views::{TiffFiles, TiffPages};
 

@@ -123,7 +123,9 @@ pub async fn default_window_from_the_data() {
         vec![json!(super::TOKEN)],
     )
     .await;
-    let cases: [(&str, fn(f64, f64) -> f32, &str, f64, f64); 4] = [
+    // (series, HU of a voxel, preset expected, window width, window level)
+    type Case = (&'static str, fn(f64, f64) -> f32, &'static str, f64, f64);
+    let cases: [Case; 4] = [
         ("chest", chest, "lung", 1500.0, -600.0),
         ("head", head, "brain", 80.0, 40.0),
         ("abdomen", abdomen, "soft_tissue", 400.0, 40.0),

@@ -42,6 +42,9 @@ pub fn dataset_json(d: &Dataset) -> serde_json::Value {
             "links".into(),
             serde_json::json!({ "self": format!("/v1/datasets/{}", d.id) }),
         );
+        if let Some(scan) = &d.scan {
+            map.insert("format".into(), scan.format.clone().into());
+        }
     }
     v
 }
@@ -63,7 +66,7 @@ async fn replay(st: &AppState, key: Option<&IdempotencyKey>) -> ApiResult<Option
     }
 }
 
-async fn existing(st: &AppState, id: &str) -> ApiResult<Response> {
+pub(super) async fn existing(st: &AppState, id: &str) -> ApiResult<Response> {
     let id = dataset_id(id)?;
     match st.db.get_dataset(id).await? {
         Some(d) => Ok(created(&d)),
@@ -76,7 +79,7 @@ async fn existing(st: &AppState, id: &str) -> ApiResult<Response> {
 
 /// Insert `d` under the Idempotency-Key, then move its file (`temp`, synced) into place: temporary file →
 /// row → rename, so a crash never leaves a file without its row. On a lost race, answer the winner.
-async fn insert(
+pub(super) async fn insert(
     st: &AppState,
     d: Dataset,
     key: Option<IdempotencyKey>,
@@ -165,6 +168,7 @@ pub async fn post_simulation(
         sha256,
         phantom: Some(req.phantom),
         noise: req.noise,
+        scan: None,
         created_us: now_us(),
     };
     insert(&st, d, key, temp).await
@@ -250,6 +254,7 @@ pub async fn post_sinogram(
         sha256: upload.sha256,
         phantom: None,
         noise: None,
+        scan: None,
         created_us: now_us(),
     };
     insert(&st, d, key, upload.temp).await

@@ -9,6 +9,7 @@ pub mod jobs;
 pub mod limits;
 pub mod results;
 pub mod rules;
+pub mod scans;
 pub mod series;
 pub mod stow;
 pub mod uploads;

@@ -60,7 +60,7 @@ fn label(name: Option<&str>, fallback: String) -> String {
     }
 }
 
-fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
+pub(super) fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
     let limit = st.settings.max_upload_bytes;
     match declared_length(headers) {
         Some(n) if n > limit.saturating_add(64 << 10) => Err(too_large(limit)),
@@ -69,9 +69,9 @@ fn check_length(st: &AppState, headers: &HeaderMap) -> ApiResult<()> {
 }
 
 /// A file of the upload, streamed to `tmp/`, with the name the client gave it.
-struct Received {
-    label: String,
-    file: Spooled,
+pub(super) struct Received {
+    pub(super) label: String,
+    pub(super) file: Spooled,
 }
 
 /// Remove the temporary files of a request.
@@ -82,7 +82,7 @@ async fn discard_received(files: Vec<Received>) {
 }
 
 /// The whole body, streamed to a temporary file and refused beyond the upload limit.
-async fn read_body(st: &AppState, req: Request) -> ApiResult<Spooled> {
+pub(super) async fn read_body(st: &AppState, req: Request) -> ApiResult<Spooled> {
     let body = req.into_body().into_data_stream();
     let mut spent = 0;
     spool(&st.store, body, &mut spent, st.settings.max_upload_bytes).await
@@ -90,7 +90,7 @@ async fn read_body(st: &AppState, req: Request) -> ApiResult<Spooled> {
 
 /// Every part of a multipart form is a file (a DICOM instance or a ZIP of them), each streamed to its own
 /// temporary file; the limit is on the sum.
-async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>> {
+pub(super) async fn read_multipart(st: &AppState, req: Request) -> ApiResult<Vec<Received>> {
     let limit = st.settings.max_upload_bytes;
     let bad = |m: String| api_error(ErrorCode::InvalidMultipart, m);
     let mut form = Multipart::from_request(paced(req), st)

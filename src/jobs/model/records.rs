@@ -55,6 +55,8 @@ pub struct UploadRecord {
 pub enum DatasetKind {
     Upload,
     Simulation,
+    /// Imported from a scanner's files (`POST /v1/scans`).
+    Scan,
 }
 
 impl DatasetKind {
@@ -62,6 +64,7 @@ impl DatasetKind {
         match self {
             DatasetKind::Upload => "upload",
             DatasetKind::Simulation => "simulation",
+            DatasetKind::Scan => "scan",
         }
     }
 }
@@ -100,8 +103,35 @@ pub struct Dataset {
     pub phantom: Option<PhantomSpec>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub noise: Option<NoiseSpec>,
+    /// An imported scan: where its values came from and what was done to its views.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub scan: Option<ScanRecord>,
     #[serde(skip)]
     pub created_us: i64,
+}
+
+/// What an imported scan's dataset records of its origin.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanRecord {
+    /// `nikon_xtek`, `bruker_skyscan` or `tiff_stack`.
+    pub format: String,
+    /// Every value taken from the scanner's files, with the file and key it came from.
+    pub provenance: Vec<ScanValue>,
+    /// Values read but not applied.
+    pub notes: Vec<String>,
+    /// The steps applied to the views, in order, each with its parameters (`{"step": "minus_log", …}`).
+    pub preprocessing: Vec<serde_json::Value>,
+}
+
+/// One value read from a scanner's file.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ScanValue {
+    pub key: String,
+    pub value: String,
+    /// `file [section] key`.
+    pub origin: String,
 }
 
 /// Microseconds since the Unix epoch, now.

@@ -37,6 +37,7 @@ pub(super) fn dataset_from_row(row: &PgRow) -> Result<Dataset, DbError> {
         kind: match kind.as_str() {
             "upload" => DatasetKind::Upload,
             "simulation" => DatasetKind::Simulation,
+            "scan" => DatasetKind::Scan,
             other => return Err(corrupt("datasets", format!("kind {other}"))),
         },
         geometry: json_col(row, "geometry", "datasets")?,
@@ -46,6 +47,7 @@ pub(super) fn dataset_from_row(row: &PgRow) -> Result<Dataset, DbError> {
         sha256: row.try_get("sha256")?,
         phantom: opt_json_col(row, "phantom", "datasets")?,
         noise: opt_json_col(row, "noise", "datasets")?,
+        scan: opt_json_col(row, "scan", "datasets")?,
         created_us: row.try_get("created_us")?,
     })
 }

@@ -31,7 +31,7 @@ pub fn decode_f32(bytes: &[u8]) -> Result<ArrayD<f32>, NpyError> {
 
 /// The header of a little-endian float32 `.npy` of `shape` (format 1.0, C order), padded so that the data
 /// start on a 64-byte boundary.
-fn f32_header(shape: &[usize]) -> Vec<u8> {
+pub fn f32_header(shape: &[usize]) -> Vec<u8> {
     let dims: Vec<String> = shape.iter().map(|n| n.to_string()).collect();
     let shape = match dims.len() {
         1 => format!("({},)", dims[0]),

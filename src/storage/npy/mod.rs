@@ -9,7 +9,7 @@ mod header;
 mod literal;
 mod stream;
 
-pub use array::{decode_f32, encode_f32, write_f32};
+pub use array::{decode_f32, encode_f32, f32_header, write_f32};
 pub use header::{Dtype, MAX_HEADER_LEN, NpyError, NpyHeader, parse_header};
 pub use stream::{NpyStream, StreamError, StreamLimits};
 

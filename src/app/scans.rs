@@ -1,0 +1,323 @@
+//! Importing a scan as the scanner wrote it (`POST /v1/scans`): the received files (ZIPs inflated member by
+//! member under the ZIP caps, names sanitised) are laid out in a scratch folder under the data directory,
+//! opened by [`crate::scans::open`] (the format detected as the CLI does), and converted view by view into a
+//! float32 `.npy` (`[view][v][u]`, line integrals in ctrecon's detector order) written as a stream: the header
+//! with the known shape, then each view as it is converted. At most two views are held at once (the one read
+//! and converted in place, the one oriented for writing) besides the scan's dark and flat. Nothing is left
+//! behind on failure: the scratch folder and the partial file are removed.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde_json::json;
+use sha2::{Digest, Sha256};
+
+use super::App;
+use super::uploads::ReceivedFile;
+use crate::dicom::{Unpacked, UploadFile, ZipLimits, is_zip, unpack_file};
+use crate::error_code::{ErrorCode, Problem};
+use crate::jobs::model::{ScanRecord, ScanValue};
+use crate::recon::geometry::Geometry;
+use crate::scans::{
+    Normalisation, Scan, ScanError, TRANSMISSION_FLOOR, ViewConverter, convert::Normalisation as N,
+};
+use crate::storage::npy::hex;
+use crate::storage::{BlobStore, TempBlob};
+
+/// Most files one scan may have once unpacked.
+pub const MAX_SCAN_FILES: usize = 20_000;
+
+/// A scan converted to a dataset file still in `tmp/`, with what its dataset row records.
+#[derive(Debug)]
+pub struct ImportedScan {
+    pub temp: TempBlob,
+    pub bytes: u64,
+    pub sha256: String,
+    pub shape: Vec<usize>,
+    pub geometry: Geometry,
+    pub record: ScanRecord,
+}
+
+fn invalid(detail: impl Into<String>) -> Problem {
+    Problem::new(ErrorCode::ScanInvalid, detail)
+}
+
+/// The relative path a client's file name is laid out at: `/` and `\` separate folders, empty and `.`
+/// components are dropped, control characters replaced; `None` for a name with a `..` component or nothing
+/// left (never an absolute path: a leading `/` or drive is dropped with the empty component).
+pub fn sanitise(name: &str) -> Option<PathBuf> {
+    let mut out = PathBuf::new();
+    for part in name.split(['/', '\\']) {
+        let part: String = part
+            .chars()
+            .map(|c| if c.is_control() || c == ':' { '_' } else { c })
+            .take(200)
+            .collect();
+        match part.as_str() {
+            "" | "." => {}
+            ".." => return None,
+            p => out.push(p),
+        }
+    }
+    (!out.as_os_str().is_empty()).then_some(out)
+}
+
+/// Move `from` to `root/<sanitised label>`, refusing unsafe or repeated names.
+fn place(root: &Path, label: &str, from: &Path) -> Result<(), Problem> {
+    let rel = sanitise(label)
+        .ok_or_else(|| invalid(format!("{label:?}: not a file name a scan may use")))?;
+    let dest = root.join(&rel);
+    if dest.exists() {
+        return Err(invalid(format!(
+            "{label:?}: the upload has this file twice"
+        )));
+    }
+    if let Some(parent) = dest.parent() {
+        std::fs::create_dir_all(parent).map_err(|e| {
+            // A component that is already a file: the client's names collide.
+            invalid(format!("{label:?}: cannot be laid out ({e})"))
+        })?;
+    }
+    std::fs::rename(from, &dest).map_err(|e| {
+        tracing::error!(error = %e, "moving a scan file into its scratch folder failed");
+        Problem::internal()
+    })
+}
+
+/// The folder to open: `root`, or the one folder it holds when it holds nothing else (a ZIP of a folder).
+fn scan_root(mut root: PathBuf) -> PathBuf {
+    loop {
+        let Ok(entries) = std::fs::read_dir(&root) else {
+            return root;
+        };
+        let entries: Vec<PathBuf> = entries.filter_map(|e| e.ok().map(|e| e.path())).collect();
+        match entries.as_slice() {
+            [only] if only.is_dir() => root = only.clone(),
+            _ => return root,
+        }
+    }
+}
+
+/// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.log`, `.tif`, `.tiff`).
+fn recognisable(root: &Path) -> bool {
+    std::fs::read_dir(root).is_ok_and(|entries| {
+        entries.filter_map(Result::ok).any(|e| {
+            let name = e.file_name().to_string_lossy().to_ascii_lowercase();
+            [".xtekct", ".log", ".tif", ".tiff"]
+                .iter()
+                .any(|x| name.ends_with(x))
+        })
+    })
+}
+
+/// The problem of a scan that cannot be read, its paths given relative to the uploaded folder.
+fn scan_problem(e: &ScanError, root: &Path) -> Problem {
+    let code = match e {
+        ScanError::NotAScan { .. } => ErrorCode::ScanNotRecognised,
+        ScanError::Unsupported { .. } => ErrorCode::ScanUnsupported,
+        ScanError::Limit { .. } => ErrorCode::ArrayTooLarge,
+        _ => ErrorCode::ScanInvalid,
+    };
+    let text = e.to_string();
+    let prefix = format!("{}{}", root.display(), std::path::MAIN_SEPARATOR);
+    let text = text
+        .replace(&prefix, "")
+        .replace(&root.display().to_string(), "the upload");
+    Problem::new(code, text)
+}
+
+fn normalise_step(n: Normalisation) -> serde_json::Value {
+    match n {
+        N::DarkFlat => json!({"step": "normalise", "dark": true, "flat": true}),
+        N::Flat => json!({"step": "normalise", "dark": false, "flat": true}),
+        N::WhiteLevel(w) => json!({"step": "normalise", "white_level": w}),
+    }
+}
+
+/// Lay `files` out in `folder`: ZIPs inflated (under `limits`), other files moved as they are.
+fn lay_out(
+    files: Vec<ReceivedFile>,
+    folder: &Path,
+    scratch: &Path,
+    limits: &ZipLimits,
+) -> Result<(), Problem> {
+    let internal = |e: &dyn std::fmt::Display| {
+        tracing::error!(error = %e, "unpacking a scan failed");
+        Problem::internal()
+    };
+    let mut unpacked = Unpacked::default();
+    for f in files {
+        let zip = is_zip(f.temp.path()).map_err(|e| internal(&e))?;
+        if !zip {
+            place(folder, &f.label, f.temp.path())?;
+            continue;
+        }
+        let file = UploadFile {
+            label: f.label.clone(),
+            path: f.temp.path().to_path_buf(),
+        };
+        let first = unpacked.files.len();
+        unpack_file(file, limits, scratch, &mut unpacked).map_err(|e| internal(&e))?;
+        if let Some(r) = unpacked.rejected.first() {
+            return Err(Problem::new(
+                ErrorCode::from(&r.error),
+                format!("{}: {}", r.label, r.error),
+            ));
+        }
+        if unpacked.files.len() > MAX_SCAN_FILES {
+            return Err(invalid(format!(
+                "more than {MAX_SCAN_FILES} files in the upload"
+            )));
+        }
+        for m in &unpacked.files[first..] {
+            place(folder, &m.label, &m.path)?;
+        }
+    }
+    Ok(())
+}
+
+impl App {
+    /// Import the scan in `files` (on disk; ZIPs or the scan's own files) as a float32 dataset file in
+    /// `tmp/`, on the compute pool. Bad input is a 4xx problem naming the file (and key).
+    pub async fn import_scan(&self, files: Vec<ReceivedFile>) -> Result<ImportedScan, Problem> {
+        let store = self.store.clone();
+        let s = &self.settings;
+        let limits = ZipLimits {
+            max_total_bytes: s.zip_max_total_bytes,
+            max_ratio: s.zip_max_ratio,
+            max_member_bytes: s.zip_max_member_bytes,
+            max_entries: MAX_SCAN_FILES,
+        };
+        let max_values = super::limits::max_array_values(s).min(s.max_upload_bytes / 4);
+        self.engine
+            .compute(move || import(&store, files, &limits, max_values))
+            .await
+    }
+}
+
+/// [`App::import_scan`], blocking.
+pub fn import(
+    store: &BlobStore,
+    files: Vec<ReceivedFile>,
+    limits: &ZipLimits,
+    max_values: u64,
+) -> Result<ImportedScan, Problem> {
+    let internal = |e: std::io::Error| {
+        tracing::error!(error = %e, "importing a scan failed");
+        Problem::internal()
+    };
+    let scratch = store.scratch().map_err(internal)?;
+    let folder = scratch.path().join("scan");
+    let members = scratch.path().join("zip");
+    std::fs::create_dir(&folder).map_err(internal)?;
+    std::fs::create_dir(&members).map_err(internal)?;
+    lay_out(files, &folder, &members, limits)?;
+    let root = scan_root(folder.clone());
+    if !recognisable(&root) {
+        return Err(Problem::new(
+            ErrorCode::ScanNotRecognised,
+            "no .xtekct (Nikon), .log (SkyScan) or .tif/.tiff file in the upload's folder",
+        ));
+    }
+    let mut scan = crate::scans::open(&root).map_err(|e| scan_problem(&e, &folder))?;
+    let (nv, nu) = scan.views.shape();
+    let n = scan.views.view_count();
+    let values = (n as u64)
+        .saturating_mul(nv as u64)
+        .saturating_mul(nu as u64);
+    if values > max_values {
+        return Err(Problem::new(
+            ErrorCode::ArrayTooLarge,
+            format!("{n} views of {nu} × {nv} are {values} values, the limit is {max_values}"),
+        ));
+    }
+    let shape = vec![n, nv, nu];
+    let expected = scan
+        .geometry
+        .to_views()
+        .map(|v| v.data_shape())
+        .map_err(|e| invalid(format!("the scan's geometry: {e}")))?;
+    if expected != shape {
+        return Err(invalid(format!(
+            "the geometry expects projections {expected:?}, the images are {shape:?}"
+        )));
+    }
+    let temp = store.temp();
+    let (bytes, sha256, clamped, normalisation) = write_views(&mut scan, temp.path(), &shape)
+        .map_err(|e| match e {
+            Written::Scan(e) => scan_problem(&e, &folder),
+            Written::Io(e) => internal(e),
+        })?;
+    let record = ScanRecord {
+        format: scan.format.to_string(),
+        provenance: scan
+            .provenance
+            .iter()
+            .map(|p| ScanValue {
+                key: p.key.clone(),
+                value: p.value.clone(),
+                origin: p.origin.clone(),
+            })
+            .collect(),
+        notes: scan.notes.clone(),
+        preprocessing: vec![
+            normalise_step(normalisation),
+            json!({"step": "minus_log", "floor": TRANSMISSION_FLOOR, "clamped_pixels": clamped}),
+            json!({"step": "orient", "flip_rows": scan.orientation.flip_rows,
+                   "flip_cols": scan.orientation.flip_cols}),
+        ],
+    };
+    Ok(ImportedScan {
+        temp,
+        bytes,
+        sha256,
+        shape,
+        geometry: scan.geometry.clone(),
+        record,
+    })
+}
+
+enum Written {
+    Scan(ScanError),
+    Io(std::io::Error),
+}
+
+/// Stream `scan`'s views as a float32 `.npy` of `shape` to `path` (synced); answers its size, SHA-256, the
+/// clamped pixel count and the normalisation used.
+fn write_views(
+    scan: &mut Scan,
+    path: &Path,
+    shape: &[usize],
+) -> Result<(u64, String, u64, Normalisation), Written> {
+    let io = Written::Io;
+    let file = std::fs::File::create(path).map_err(io)?;
+    let mut out = std::io::BufWriter::with_capacity(64 << 10, file);
+    let mut hash = Sha256::new();
+    let header = crate::storage::npy::f32_header(shape);
+    hash.update(&header);
+    out.write_all(&header).map_err(io)?;
+    let mut written = header.len() as u64;
+    let mut conv = ViewConverter::new(scan);
+    let mut view = vec![0f32; shape[1] * shape[2]];
+    let mut bytes = Vec::with_capacity(64 << 10);
+    for i in 0..shape[0] {
+        conv.convert(scan, i, &mut view).map_err(Written::Scan)?;
+        for chunk in view.chunks(16 << 10) {
+            bytes.clear();
+            for v in chunk {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            hash.update(&bytes);
+            out.write_all(&bytes).map_err(io)?;
+            written += bytes.len() as u64;
+        }
+    }
+    let file = out.into_inner().map_err(|e| Written::Io(e.into_error()))?;
+    file.sync_all().map_err(io)?;
+    Ok((
+        written,
+        hex(&hash.finalize()),
+        conv.clamped,
+        conv.normalisation(),
+    ))
+}
