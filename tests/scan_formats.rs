@@ -392,7 +392,7 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
 
     // The same through the CLI: `ctrecon recon --input ball.xtekct --algorithm fdk --size 40 --pixel-mm 0.1`.
     // The .xtekct states no calibrated centre, so the centre is found from the views (the default).
-    let recon = |centre: &str| {
+    let recon = |centre: &str| -> ndarray::Array3<f32> {
         let out = dir.path().join(format!("v-{centre}.npy"));
         let args = ctrecon::cli::recon::ReconArgs {
             input: xfile.clone(),
@@ -413,8 +413,7 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
             wl: None,
         };
         ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.xtekct");
-        let vol: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
-        vol
+        ndarray_npy::read_npy(&out).expect("read v.npy")
     };
     let rms = |a: &ndarray::Array3<f32>, b: &ndarray::Array3<f32>| {
         let s: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum();
@@ -428,6 +427,7 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
     // A file that leaves out its offsets (ObjectOffsetX, DetectorOffsetX: the axis projects 1.5 px off the
     // panel's centre): read as it is, the ball is smeared into a ring; found from the views, it is sharp
     // and in place again, as with the stated offsets.
+    let text = std::fs::read_to_string(&xfile).expect("xtekct");
     let bare = text
         .replace("ObjectOffsetX=0.2\n", "")
         .replace("DetectorOffsetX=0.15\n", "");
