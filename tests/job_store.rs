@@ -388,6 +388,12 @@ fn scan_dataset() -> ctrecon::jobs::Dataset {
             }],
             notes: vec!["a note".into()],
             preprocessing: vec![serde_json::json!({"step": "minus_log", "clamped_pixels": 3})],
+            calibration: Some(ctrecon::scans::calibrate::Calibration {
+                offset_u_mm: 0.45,
+                centre: "read".into(),
+                estimate: None,
+                note: Some("a note".into()),
+            }),
         }),
         created_us: now_us(),
     }

@@ -125,6 +125,14 @@ async fn a_nikon_scan_as_zip_or_form_imports_and_fdk_puts_the_ball_where_it_was(
     );
     assert_eq!(steps[1]["step"], "minus_log");
     assert_eq!(steps[1]["clamped_pixels"], 0);
+    // The .xtekct states no calibrated centre: it was found from the views (0.45 mm as the file's
+    // ObjectOffsetX and DetectorOffsetX give it) and is the dataset's geometry.
+    let cal = &d["scan"]["calibration"];
+    assert_eq!(cal["centre"], "found", "{d}");
+    let found = cal["offset_u_mm"].as_f64().expect("offset");
+    assert!((found - 0.45).abs() < 0.01, "{cal}");
+    assert_eq!(d["geometry"]["detector"]["offset_u_mm"], cal["offset_u_mm"]);
+    assert_eq!(cal["estimate"]["method"], "opposite_views", "{cal}");
     let id = d["id"].as_str().expect("id").to_string();
     let got: Value = app
         .get(&format!("/v1/datasets/{id}"))
@@ -141,6 +149,56 @@ async fn a_nikon_scan_as_zip_or_form_imports_and_fdk_puts_the_ball_where_it_was(
     let f: Value = r.json().await.expect("json");
     assert_eq!(f["sha256"], d["sha256"]);
     assert_eq!(f["scan"], d["scan"]);
+
+    // The file with its offsets left out: found again from the views by default; as read (`centre=read`)
+    // the geometry keeps the file's (absent) offset; pinned, the client's value.
+    let bare: Vec<(String, Vec<u8>)> = files
+        .iter()
+        .map(|(n, b)| {
+            if n.ends_with(".xtekct") {
+                let text = String::from_utf8_lossy(b)
+                    .replace("ObjectOffsetX=0.2\n", "")
+                    .replace("DetectorOffsetX=0.15\n", "");
+                (n.clone(), text.into_bytes())
+            } else {
+                (n.clone(), b.clone())
+            }
+        })
+        .collect();
+    let r = post_zip(&app, zip_of(&bare)).await;
+    assert_eq!(r.status(), 201);
+    let b: Value = r.json().await.expect("json");
+    let again = b["scan"]["calibration"]["offset_u_mm"]
+        .as_f64()
+        .expect("offset");
+    assert!((again - 0.45).abs() < 0.01, "{b}");
+    for (query, centre, offset) in [("read", "read", 0.0), ("0.45", "pinned", 0.45)] {
+        let r = app
+            .client
+            .post(app.url(&format!("/v1/scans?centre={query}")))
+            .header("content-type", "application/zip")
+            .body(zip_of(&bare))
+            .send()
+            .await
+            .expect("post");
+        assert_eq!(r.status(), 201);
+        let v: Value = r.json().await.expect("json");
+        assert_eq!(v["scan"]["calibration"]["centre"], centre, "{v}");
+        assert_eq!(
+            v["geometry"]["detector"]["offset_u_mm"],
+            json!(offset),
+            "{v}"
+        );
+    }
+    let r = app
+        .client
+        .post(app.url("/v1/scans?centre=middle"))
+        .header("content-type", "application/zip")
+        .body(zip_of(&bare))
+        .send()
+        .await
+        .expect("post");
+    crate::common::assert_problem(r, 400, "invalid_query").await;
 }
 
 #[tokio::test]

@@ -18,6 +18,7 @@ use crate::dicom::{Unpacked, UploadFile, ZipLimits, is_zip, unpack_file};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::{ScanRecord, ScanValue};
 use crate::recon::geometry::Geometry;
+use crate::scans::calibrate::{CentrePolicy, NpyViews, calibrate};
 use crate::scans::{
     Normalisation, Scan, ScanError, TRANSMISSION_FLOOR, ViewConverter, convert::Normalisation as N,
 };
@@ -179,7 +180,11 @@ fn lay_out(
 impl App {
     /// Import the scan in `files` (on disk; ZIPs or the scan's own files) as a float32 dataset file in
     /// `tmp/`, on the compute pool. Bad input is a 4xx problem naming the file (and key).
-    pub async fn import_scan(&self, files: Vec<ReceivedFile>) -> Result<ImportedScan, Problem> {
+    pub async fn import_scan(
+        &self,
+        files: Vec<ReceivedFile>,
+        centre: CentrePolicy,
+    ) -> Result<ImportedScan, Problem> {
         let store = self.store.clone();
         let s = &self.settings;
         let limits = ZipLimits {
@@ -190,7 +195,7 @@ impl App {
         };
         let max_values = super::limits::max_array_values(s).min(s.max_upload_bytes / 4);
         self.engine
-            .compute(move || import(&store, files, &limits, max_values))
+            .compute(move || import(&store, files, &limits, max_values, centre))
             .await
     }
 }
@@ -201,6 +206,7 @@ pub fn import(
     files: Vec<ReceivedFile>,
     limits: &ZipLimits,
     max_values: u64,
+    centre: CentrePolicy,
 ) -> Result<ImportedScan, Problem> {
     let internal = |e: std::io::Error| {
         tracing::error!(error = %e, "importing a scan failed");
@@ -248,6 +254,13 @@ pub fn import(
             Written::Scan(e) => scan_problem(&e, &folder),
             Written::Io(e) => internal(e),
         })?;
+    // The centre of rotation, from the views just written (read back one at a time where needed).
+    let views = std::fs::File::open(temp.path()).map_err(internal)?;
+    let header = crate::storage::npy::f32_header(&shape).len() as u64;
+    let source = NpyViews::new(views, header, [shape[0], shape[1], shape[2]]);
+    let mut geometry = scan.geometry.clone();
+    let calibration = calibrate(&mut geometry, &source, &scan.provenance, centre)
+        .map_err(|e| invalid(format!("calibrating the centre of rotation: {e}")))?;
     let record = ScanRecord {
         format: scan.format.to_string(),
         provenance: scan
@@ -266,13 +279,14 @@ pub fn import(
             json!({"step": "orient", "flip_rows": scan.orientation.flip_rows,
                    "flip_cols": scan.orientation.flip_cols}),
         ],
+        calibration: Some(calibration),
     };
     Ok(ImportedScan {
         temp,
         bytes,
         sha256,
         shape,
-        geometry: scan.geometry.clone(),
+        geometry,
         record,
     })
 }

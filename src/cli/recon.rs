@@ -173,21 +173,15 @@ fn scan_data(scan: &mut Scan, max_bytes: u64) -> CliResult<ArrayD<f32>> {
 /// `--centre`: `auto` (found from the views unless the scan states a calibrated centre, or `--geometry`
 /// gives one), `find`, `read`, or a u offset in mm.
 fn centre_policy(args: &ReconArgs) -> CliResult<CentrePolicy> {
-    Ok(match args.centre.as_str() {
-        "auto" if args.geometry.is_some() => CentrePolicy::Read,
-        "auto" => CentrePolicy::Auto,
-        "find" => CentrePolicy::Find,
-        "read" => CentrePolicy::Read,
-        other => match other.parse::<f64>() {
-            Ok(mm) if mm.is_finite() => CentrePolicy::Pinned(mm),
-            _ => {
-                return Err(format!(
-                    "--centre {other:?}: give auto, find, read or a detector u offset in mm"
-                )
-                .into());
-            }
-        },
-    })
+    match CentrePolicy::parse(&args.centre) {
+        Some(CentrePolicy::Auto) if args.geometry.is_some() => Ok(CentrePolicy::Read),
+        Some(policy) => Ok(policy),
+        None => Err(format!(
+            "--centre {:?}: give auto, find, read or a detector u offset in mm",
+            args.centre
+        )
+        .into()),
+    }
 }
 
 pub fn run(args: ReconArgs) -> CliResult<()> {
@@ -220,7 +214,7 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
             .view()
             .into_dimensionality::<Ix3>()
             .map_err(|e| format!("a scan's projections are [view][v][u]: {e}"))?;
-        let c = calibrate(&mut geometry, projections, &scan.provenance, policy)?;
+        let c = calibrate(&mut geometry, &projections, &scan.provenance, policy)?;
         match &c.estimate {
             Some(e) => eprintln!(
                 "centre of rotation: found, detector offset_u_mm = {:.4} ({:.2} px, {:?}, {} views, residual {:.2e})",

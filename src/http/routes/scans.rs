@@ -18,6 +18,7 @@ use crate::app::uploads::ReceivedFile;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::{Dataset, DatasetKind, IdempotencyKey};
+use crate::scans::calibrate::CentrePolicy;
 use crate::storage::DatasetId;
 use crate::storage::npy::hex;
 
@@ -28,6 +29,9 @@ const ROUTE_SCANS: &str = "POST /v1/scans";
 #[serde(deny_unknown_fields)]
 pub struct ScanQuery {
     pub filename: Option<String>,
+    /// The centre of rotation: `auto` (default: found from the views unless the scan states one), `find`,
+    /// `read`, or a detector u offset in mm.
+    pub centre: Option<String>,
 }
 
 pub async fn post_scan(
@@ -35,6 +39,15 @@ pub async fn post_scan(
     ApiQuery(q): ApiQuery<ScanQuery>,
     req: Request,
 ) -> ApiResult<Response> {
+    let centre = match q.centre.as_deref() {
+        None => CentrePolicy::Auto,
+        Some(text) => CentrePolicy::parse(text).ok_or_else(|| {
+            api_error(
+                ErrorCode::InvalidQuery,
+                format!("centre={text:?}: give auto, find, read or a detector u offset in mm"),
+            )
+        })?,
+    };
     check_length(&st, req.headers())?;
     let key = idempotency_key(req.headers())?;
     let media = media_type(req.headers());
@@ -93,6 +106,7 @@ pub async fn post_scan(
             h.update(f.label.as_bytes());
             h.update(f.file.sha256);
         }
+        h.update(q.centre.as_deref().unwrap_or("auto").as_bytes());
         IdempotencyKey {
             route: ROUTE_SCANS,
             key,
@@ -111,7 +125,7 @@ pub async fn post_scan(
             temp: f.file.temp,
         })
         .collect();
-    let imported = st.import_scan(received).await?;
+    let imported = st.import_scan(received, centre).await?;
     let d = Dataset {
         id: DatasetId::generate(),
         kind: DatasetKind::Scan,

@@ -122,6 +122,10 @@ pub struct ScanRecord {
     pub notes: Vec<String>,
     /// The steps applied to the views, in order, each with its parameters (`{"step": "minus_log", …}`).
     pub preprocessing: Vec<serde_json::Value>,
+    /// The centre of rotation in the dataset's geometry: found from the views, read from the files or
+    /// pinned by the client.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<crate::scans::calibrate::Calibration>,
 }
 
 /// One value read from a scanner's file.
