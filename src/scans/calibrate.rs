@@ -133,7 +133,10 @@ pub fn calibrate(
     let estimate = match found {
         // The tilt estimate misses its goal (recon::prep::centre) and a cone's panel has no roll: not
         // reported, so that nobody takes it for a measured value.
-        Ok(e) => CentreEstimate { tilt_deg: None, ..e },
+        Ok(e) => CentreEstimate {
+            tilt_deg: None,
+            ..e
+        },
         // Asked for by default, not by the user: the value read stands, and the answer says why.
         Err(e) if policy == CentrePolicy::Auto => {
             return Ok(Calibration {
