@@ -200,22 +200,7 @@ fn a_nikon_scan_written_by_tifffile_reads_back_exactly() {
 fn a_skyscan_scan_written_big_endian_reads_back_exactly() {
     let Some(py) = python() else { return };
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut j = job(
-        &dir.path().join("rat_{:08d}.tif"),
-        "files",
-        "uint16",
-        ">",
-        3,
-        6,
-        4,
-    );
-    j["first"] = json!(0);
-    write(&py, std::slice::from_ref(&j));
-    let log = "[System]\nCamera Pixel Size (um)=9.0\n[Acquisition]\nFilename Prefix=rat_\nNumber of Files=3\n\
-               Number of Rows=6\nNumber of Columns=4\nImage Pixel Size (um)=30\nObject to Source (mm)=100\n\
-               Camera to Source (mm)=300\nRotation Step (deg)=120\nUse 360 Rotation=YES\nDepth (bits)=16\n\
-               Flat Field Correction=ON\n";
-    std::fs::write(dir.path().join("rat_.log"), log).expect("log");
+    let j = write_skyscan_scan(&py, dir.path());
     let mut scan = scans::open(dir.path()).expect("open the SkyScan scan");
     assert_eq!(scan.format, Format::BrukerSkyscan);
     let Geometry::Cone(g) = &scan.geometry else {
@@ -540,4 +525,18 @@ pub(crate) fn assert_ball_at(
             "ball centre {got:?} mm, placed at {centre:?} mm (peak μ {peak})"
         );
     }
+}
+
+/// A SkyScan scan in `dir`: `rat_.log` and three big-endian uint16 TIFFs of 4 × 6 written by tifffile;
+/// answers the tifffile job that wrote them (with the pixel values it used).
+pub(crate) fn write_skyscan_scan(py: &Path, dir: &Path) -> serde_json::Value {
+    let mut j = job(&dir.join("rat_{:08d}.tif"), "files", "uint16", ">", 3, 6, 4);
+    j["first"] = json!(0);
+    write(py, std::slice::from_ref(&j));
+    let log = "[System]\nCamera Pixel Size (um)=9.0\n[Acquisition]\nFilename Prefix=rat_\nNumber of Files=3\n\
+               Number of Rows=6\nNumber of Columns=4\nImage Pixel Size (um)=30\nObject to Source (mm)=100\n\
+               Camera to Source (mm)=300\nRotation Step (deg)=120\nUse 360 Rotation=YES\nDepth (bits)=16\n\
+               Flat Field Correction=ON\n";
+    std::fs::write(dir.join("rat_.log"), log).expect("log");
+    j
 }

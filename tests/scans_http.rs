@@ -7,7 +7,9 @@ use std::path::Path;
 use serde_json::{Value, json};
 
 use crate::common::{self, TestApp, assert_problem, spawn_app};
-use crate::scan_formats::{assert_ball_at, job, python, write, write_ball_scan, xtekct};
+use crate::scan_formats::{
+    assert_ball_at, job, python, write, write_ball_scan, write_skyscan_scan, xtekct,
+};
 
 /// Every file of `dir` (recursively) as `(relative name, bytes)`, under `prefix`.
 fn files_of(dir: &Path, prefix: &str) -> Vec<(String, Vec<u8>)> {
@@ -208,22 +210,7 @@ async fn a_skyscan_scan_imports_and_bad_scans_are_refused_naming_file_and_key() 
 
     // SkyScan: `.log` + big-endian TIFFs.
     let dir = tempfile::tempdir().expect("tempdir");
-    let mut j = job(
-        &dir.path().join("rat_{:08d}.tif"),
-        "files",
-        "uint16",
-        ">",
-        3,
-        6,
-        4,
-    );
-    j["first"] = json!(0);
-    write(&py, std::slice::from_ref(&j));
-    let log = "[System]\nCamera Pixel Size (um)=9.0\n[Acquisition]\nFilename Prefix=rat_\nNumber of Files=3\n\
-               Number of Rows=6\nNumber of Columns=4\nImage Pixel Size (um)=30\nObject to Source (mm)=100\n\
-               Camera to Source (mm)=300\nRotation Step (deg)=120\nUse 360 Rotation=YES\nDepth (bits)=16\n\
-               Flat Field Correction=ON\n";
-    std::fs::write(dir.path().join("rat_.log"), log).expect("log");
+    write_skyscan_scan(&py, dir.path());
     let r = post_form(&app, &files_of(dir.path(), "")).await;
     assert_eq!(r.status(), 201, "{}", r.text().await.unwrap_or_default());
     let d: Value = r.json().await.expect("json");
