@@ -143,16 +143,7 @@ pub(crate) fn xtekct(name: &str, projections: usize, nx: usize, ny: usize) -> St
 fn a_nikon_scan_written_by_tifffile_reads_back_exactly() {
     let Some(py) = python() else { return };
     let dir = tempfile::tempdir().expect("tempdir");
-    let j = job(
-        &dir.path().join("ball_{:04d}.tif"),
-        "files",
-        "uint16",
-        "<",
-        4,
-        5,
-        7,
-    );
-    write(&py, std::slice::from_ref(&j));
+    let j = write_nikon_views(&py, dir.path());
     std::fs::write(dir.path().join("ball.xtekct"), xtekct("ball", 4, 7, 5)).expect("xtekct");
     std::fs::write(
         dir.path().join("ball_ctdata.txt"),
@@ -264,16 +255,7 @@ fn error_text(e: ScanError) -> String {
 fn bad_scans_give_errors_that_name_the_file_and_key() {
     let Some(py) = python() else { return };
     let dir = tempfile::tempdir().expect("tempdir");
-    let j = job(
-        &dir.path().join("ball_{:04d}.tif"),
-        "files",
-        "uint16",
-        "<",
-        4,
-        5,
-        7,
-    );
-    write(&py, std::slice::from_ref(&j));
+    write_nikon_views(&py, dir.path());
     let x = dir.path().join("ball.xtekct");
 
     std::fs::write(&x, xtekct("ball", 5, 7, 5)).expect("xtekct");
@@ -538,5 +520,21 @@ pub(crate) fn write_skyscan_scan(py: &Path, dir: &Path) -> serde_json::Value {
                Camera to Source (mm)=300\nRotation Step (deg)=120\nUse 360 Rotation=YES\nDepth (bits)=16\n\
                Flat Field Correction=ON\n";
     std::fs::write(dir.join("rat_.log"), log).expect("log");
+    j
+}
+
+/// Four little-endian uint16 TIFFs of 7 × 5, `ball_0001.tif` …, written by tifffile into `dir` (the views of
+/// the small Nikon scans, beside an [`xtekct`]); answers the tifffile job that wrote them.
+pub(crate) fn write_nikon_views(py: &Path, dir: &Path) -> serde_json::Value {
+    let j = job(
+        &dir.join("ball_{:04d}.tif"),
+        "files",
+        "uint16",
+        "<",
+        4,
+        5,
+        7,
+    );
+    write(py, std::slice::from_ref(&j));
     j
 }

@@ -8,7 +8,7 @@ use serde_json::{Value, json};
 
 use crate::common::{self, TestApp, assert_problem, spawn_app};
 use crate::scan_formats::{
-    assert_ball_at, job, python, write, write_ball_scan, write_skyscan_scan, xtekct,
+    assert_ball_at, python, write_ball_scan, write_nikon_views, write_skyscan_scan, xtekct,
 };
 
 /// Every file of `dir` (recursively) as `(relative name, bytes)`, under `prefix`.
@@ -221,16 +221,7 @@ async fn a_skyscan_scan_imports_and_bad_scans_are_refused_naming_file_and_key() 
 
     // Nikon: 4 TIFFs of 7 × 5.
     let dir = tempfile::tempdir().expect("tempdir");
-    let j = job(
-        &dir.path().join("ball_{:04d}.tif"),
-        "files",
-        "uint16",
-        "<",
-        4,
-        5,
-        7,
-    );
-    write(&py, std::slice::from_ref(&j));
+    write_nikon_views(&py, dir.path());
     let x = dir.path().join("ball.xtekct");
 
     // Projections=5 contradicts the 4 TIFFs.

@@ -102,12 +102,9 @@ fn scan_root(mut root: PathBuf) -> PathBuf {
 /// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.log`, `.tif`, `.tiff`).
 fn recognisable(root: &Path) -> bool {
     std::fs::read_dir(root).is_ok_and(|entries| {
-        entries.filter_map(Result::ok).any(|e| {
-            let name = e.file_name().to_string_lossy().to_ascii_lowercase();
-            [".xtekct", ".log", ".tif", ".tiff"]
-                .iter()
-                .any(|x| name.ends_with(x))
-        })
+        entries
+            .filter_map(Result::ok)
+            .any(|e| crate::scans::detect::is_scan_file(&e.path()))
     })
 }
 

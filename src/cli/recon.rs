@@ -133,11 +133,7 @@ fn output_grid(args: &ReconArgs, local: &Local, geometry: &Geometry) -> CliResul
 /// Whether `--input` names a scanner's scan (`.xtekct`, SkyScan `.log`, `.tif`/`.tiff`, or a folder) rather
 /// than a `.npy`.
 fn is_scan(input: &Path) -> bool {
-    let ext = input
-        .extension()
-        .and_then(|e| e.to_str())
-        .map(str::to_ascii_lowercase);
-    input.is_dir() || matches!(ext.as_deref(), Some("xtekct" | "log" | "tif" | "tiff"))
+    input.is_dir() || scans::detect::is_scan_file(input)
 }
 
 /// Open a scan and say what was read from where.

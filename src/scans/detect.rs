@@ -4,6 +4,14 @@ use std::path::{Path, PathBuf};
 
 use super::{Scan, ScanError, bruker, nikon, stack};
 
+/// The extensions of the files a scan is opened from (lower case).
+pub const EXTENSIONS: [&str; 4] = ["xtekct", "log", "tif", "tiff"];
+
+/// Whether `path` names a file a scan is opened from, by its extension (any case).
+pub fn is_scan_file(path: &Path) -> bool {
+    EXTENSIONS.contains(&extension(path).as_str())
+}
+
 fn extension(path: &Path) -> String {
     path.extension()
         .and_then(|e| e.to_str())
