@@ -36,7 +36,12 @@ impl Frame {
 }
 
 fn unsupported(reason: &str) -> ReconError {
-    ReconError::param("geometry", reason.to_string())
+    ReconError::param(
+        "geometry",
+        format!(
+            "{reason}; the iterative methods (sirt, cgls, os_sart, sart, art, mlem, tv) take any per-view geometry"
+        ),
+    )
 }
 
 /// Least-squares intersection (x, y) of the central rays `source → det_centre`.
@@ -76,9 +81,17 @@ fn frames(
     views: impl Iterator<Item = (f64, Vec3, Vec3, Vec3, Vec3)> + Clone,
     shape: DetectorShape,
 ) -> Result<Vec<Frame>, ReconError> {
+    // The perpendicular from the source onto the detector passes through the rotation centre whatever
+    // the panel's offset (a per-view geometry's `det_centre` is the panel's middle, not the central ray's
+    // foot); for an arc, `det_centre − source` is the central ray.
     let rays: Vec<(Vec3, Vec3)> = views
         .clone()
-        .map(|(_, s, c, _, _)| (s, sub3(c, s)))
+        .map(|(_, s, c, e_u, e_v)| {
+            let r = sub3(c, s);
+            let along_u = scale3(e_u, dot3(r, e_u));
+            let along_v = scale3(e_v, dot3(r, e_v));
+            (s, sub3(sub3(r, along_u), along_v))
+        })
         .collect();
     let [cx, cy] = centre_of(&rays)?;
     let mut out = Vec::with_capacity(rays.len());

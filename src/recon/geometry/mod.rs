@@ -8,12 +8,15 @@
 
 pub mod angles;
 pub mod matlab;
+pub mod per_view;
+pub mod rtk;
 pub mod vectors;
 
 use serde::{Deserialize, Serialize};
 
 pub use angles::Angles;
 pub use matlab::{MatlabFan, MatlabSensors};
+pub use per_view::{ConeVectors, FanVectors, VectorPanel, VectorRow, cone_vectors, fan_vectors};
 pub use vectors::{
     Detector1, Detector2, DetectorShape, Ray2, Ray3, Source2, Vec2, Vec3, View2, View3, Views2,
     Views3, angular_steps,
@@ -246,7 +249,8 @@ impl ConeBeam {
     }
 }
 
-/// Any scan geometry. JSON: `{"type": "parallel" | "fan" | "fan_matlab" | "cone", …}`.
+/// Any scan geometry. JSON: `{"type": "parallel" | "fan" | "fan_matlab" | "cone" | "fan_vectors" |
+/// "cone_vectors", …}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Geometry {
@@ -254,6 +258,8 @@ pub enum Geometry {
     Fan(FanBeam),
     FanMatlab(MatlabFan),
     Cone(ConeBeam),
+    FanVectors(FanVectors),
+    ConeVectors(ConeVectors),
 }
 
 /// A geometry in canonical form.
@@ -281,19 +287,24 @@ impl Geometry {
             Geometry::Fan(g) => Views::D2(g.to_views()?),
             Geometry::FanMatlab(g) => Views::D2(g.to_fan()?.to_views()?),
             Geometry::Cone(g) => Views::D3(g.to_views()?),
+            Geometry::FanVectors(g) => Views::D2(g.to_views()?),
+            Geometry::ConeVectors(g) => Views::D3(g.to_views()?),
         })
     }
     /// True for cone beams (3D data).
     pub fn is_3d(&self) -> bool {
-        matches!(self, Geometry::Cone(_))
+        matches!(self, Geometry::Cone(_) | Geometry::ConeVectors(_))
     }
-    /// Source-to-isocentre distance, if the geometry has a source.
+    /// Source-to-isocentre distance, if the geometry has a source (for a per-view geometry, the smallest
+    /// distance of a source from the rotation axis).
     pub fn dso_mm(&self) -> Option<f64> {
         match self {
             Geometry::Parallel(_) => None,
             Geometry::Fan(g) => Some(g.dso_mm),
             Geometry::FanMatlab(g) => Some(g.d_px * g.pixel_mm),
             Geometry::Cone(g) => Some(g.dso_mm),
+            Geometry::FanVectors(g) => per_view::nearest_source_2d(g),
+            Geometry::ConeVectors(g) => per_view::nearest_source_3d(g),
         }
     }
     /// Refuse a source orbit that passes through a field of view of radius `fov_radius_mm`.
@@ -322,5 +333,9 @@ pub fn fuzz_entry(data: &[u8]) {
     }
 }
 
+#[cfg(test)]
+mod per_view_tests;
+#[cfg(test)]
+mod rtk_tests;
 #[cfg(test)]
 mod tests;
