@@ -1,12 +1,12 @@
 #!/usr/bin/env bash
 # Install the real peers that tests drive or compare against, each in its own idempotent, non-interactive
 # section (a section does nothing when its peer is already there): Debian packages, and Python peers in
-# ignored folders of the checkout (.venv-peers/ for VTK, .venv-scans/ for tifffile, .peers/ for
+# ignored folders of the checkout (.venv-peers/ for VTK, .venv-scans/ for tifffile, .venv-rtk/ for itk-rtk, .peers/ for
 # schemathesis). Run by .ci/run; safe to run again. A test whose peer is missing prints one skip line, or
 # fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
 #   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, s3,
-#                                       netns, vtk, scans, schemathesis, ts-client)
+#                                       netns, vtk, scans, rtk, schemathesis, ts-client)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 root=$(pwd)
@@ -104,6 +104,20 @@ if want scans; then
     cp tests/peers/requirements-scans.txt .venv-scans/.scans-requirements
   fi
   .venv-scans/bin/python -c "import tifffile; print('tifffile', tifffile.__version__)"
+fi
+
+# --- rtk: itk-rtk, the independent reader and writer of RTK geometry XML in tests/geometry_rtk.rs ------------
+if want rtk; then
+  echo "== peer: rtk"
+  if [ ! -x .venv-rtk/bin/python ]; then
+    python3 -m venv .venv-rtk
+  fi
+  if ! .venv-rtk/bin/python -c "from itk import RTK" 2>/dev/null \
+     || ! cmp -s tests/peers/requirements-rtk.txt .venv-rtk/.rtk-requirements; then
+    .venv-rtk/bin/python -m pip install -q --disable-pip-version-check -r tests/peers/requirements-rtk.txt
+    cp tests/peers/requirements-rtk.txt .venv-rtk/.rtk-requirements
+  fi
+  .venv-rtk/bin/python -c "import itk; from itk import RTK; print('itk', itk.Version.GetITKVersion())"
 fi
 
 # --- schemathesis: property-based tests of openapi.yaml against the running server ------------------------

@@ -12,6 +12,7 @@ fn main() -> std::process::ExitCode {
         Command::Phantom(args) => ctrecon::cli::phantom::run(args),
         Command::Recon(args) => ctrecon::cli::recon::run(args),
         Command::Mesh(args) => ctrecon::cli::mesh::run(args),
+        Command::Geometry(args) => ctrecon::cli::geometry::run(args),
     };
     match result {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -27,6 +27,7 @@ mod docs_console;
 mod docs_examples;
 mod fuzz_replay;
 mod generated_client;
+mod geometry_rtk;
 mod hostile_http;
 mod job_store;
 #[path = "mesh_honest/main.rs"]

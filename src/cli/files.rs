@@ -31,6 +31,16 @@ pub const BUILT_IN_GEOMETRIES: [(&str, &str); 3] = [
 /// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`) when no file
 /// of that name exists.
 pub fn read_geometry(path: &Path) -> CliResult<Geometry> {
+    let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");
+    if ext.eq_ignore_ascii_case("xml") || ext.eq_ignore_ascii_case("npy") {
+        return Err(format!(
+            "{}: an RTK or ASTRA geometry; convert it first: ctrecon geometry --input {} --detector NU NV \
+             [--pitch-mm DU DV] --output geometry.json",
+            path.display(),
+            path.display()
+        )
+        .into());
+    }
     if !path.exists()
         && let Some((_, text)) = BUILT_IN_GEOMETRIES
             .iter()

@@ -1,4 +1,4 @@
-//! The `ctrecon` command line: `serve` runs the HTTP service, `worker` runs jobs beside it, `phantom`, `recon` and `mesh` work on local files.
+//! The `ctrecon` command line: `serve` runs the HTTP service, `worker` runs jobs beside it, `phantom`, `recon`, `mesh` and `geometry` work on local files.
 
 use clap::{Parser, Subcommand};
 
@@ -22,9 +22,12 @@ pub enum Command {
     Recon(recon::ReconArgs),
     /// Write the iso-surface of a `.npy` volume as a binary STL.
     Mesh(mesh::MeshArgs),
+    /// Convert a geometry between ctrecon JSON, per-view vectors, RTK geometry XML and ASTRA vector arrays.
+    Geometry(geometry::GeometryArgs),
 }
 
 pub mod files;
+pub mod geometry;
 pub mod mesh;
 pub mod phantom;
 pub mod progress;
