@@ -6,12 +6,15 @@
 //! view through [`ViewSource`] and never held whole.
 //!
 //! Conventions (DESIGN.md §2, §11):
-//! - [`ViewSource::read_view`] gives the image as stored: row 0 is the image's top row, column 0 its left
-//!   column. [`Orientation`] says how that image maps onto ctrecon's detector (`[v][u]`, row 0 at the most
-//!   negative v, v along +z), and [`Scan::geometry`] is ctrecon's geometry for the image so oriented.
+//! - [`ViewSource::read_view`] gives the image as stored: row 0 is the image's first row (its top in a
+//!   TIFF), column 0 its first column. [`Orientation`] says how that image maps onto ctrecon's detector
+//!   (`[v][u]`, row 0 at the most negative v, v along +z), and [`Scan::geometry`] is ctrecon's geometry for
+//!   the image so oriented.
 //! - Values are raw detector values as `f32`; [`Intensity`] says what a value of "no attenuation" is.
 //! - Every value taken from a vendor file is listed in [`Scan::provenance`] with the file and key it came
 //!   from; values read but not used are listed in [`Scan::notes`].
+//! - A scanner's per-view alignment (such as Zeiss `Alignment/X-Shifts`) is given by [`ViewSource::shift`] and
+//!   applied to the normalised view, before the minus log (`convert`).
 
 pub mod bruker;
 pub mod calibrate;
@@ -131,9 +134,16 @@ pub trait ViewSource: Send {
     fn view_count(&self) -> usize;
     /// `(rows, columns)` of every view: `(nv, nu)`.
     fn shape(&self) -> (usize, usize);
-    /// Read view `i` into `out` (`nv · nu` values, row-major, row 0 = the image's top row), as raw detector
-    /// values converted to `f32`.
+    /// Read view `i` into `out` (`nv · nu` values, row-major, row 0 = the image's first row), as raw
+    /// detector values converted to `f32`.
     fn read_view(&mut self, i: usize, out: &mut [f32]) -> Result<(), ScanError>;
+    /// The scanner's alignment of view `i` (motion correction): `[rows, columns]`, in pixels of the stored
+    /// image, by which the view is moved once normalised to transmissions (its value at `(r, c)` becomes
+    /// the one at `(r − rows, c − columns)`, linearly interpolated, the edge value beyond the image).
+    /// `None` (the default): not moved.
+    fn shift(&self, _i: usize) -> Option<[f64; 2]> {
+        None
+    }
 }
 
 /// How a stored image maps onto ctrecon's detector: ctrecon's `[r][c]` is the image's
