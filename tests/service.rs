@@ -35,6 +35,7 @@ mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
 mod scan_formats;
+mod scan_zeiss;
 mod scans_http;
 #[path = "viewer/main.rs"]
 mod viewer;

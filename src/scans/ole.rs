@@ -24,7 +24,8 @@ pub struct OleFile {
 }
 
 impl OleFile {
-    /// Open `file`; a file that is not a compound file is [`ScanError::NotAScan`].
+    /// Open `file`; a file without the compound file signature is [`ScanError::NotAScan`], one with it that
+    /// fails to parse is [`ScanError::Io`].
     pub fn open(file: &Path) -> Result<Self, ScanError> {
         let mut f = File::open(file).map_err(|e| ScanError::io(file, e))?;
         let mut head = [0u8; 8];
@@ -38,9 +39,12 @@ impl OleFile {
         }
         f.seek(SeekFrom::Start(0))
             .map_err(|e| ScanError::io(file, e))?;
-        let ole = CompoundFile::open(f).map_err(|e| ScanError::NotAScan {
-            path: file.to_path_buf(),
-            why: format!("not a readable OLE compound file: {e}"),
+        // The signature is there: a file that then fails to parse is a damaged compound file.
+        let ole = CompoundFile::open(f).map_err(|e| {
+            ScanError::io(
+                file,
+                std::io::Error::new(e.kind(), format!("a damaged OLE compound file: {e}")),
+            )
         })?;
         Ok(Self {
             file: file.to_path_buf(),
