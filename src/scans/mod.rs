@@ -27,6 +27,7 @@ pub mod nikon;
 pub mod ole;
 pub mod stack;
 pub mod tiff_views;
+pub mod xradia_views;
 pub mod zeiss;
 
 #[cfg(test)]

@@ -21,7 +21,7 @@
 //! - no offsets: the file states no calibrated centre of rotation (it is found on import).
 //!
 //! `Alignment/X-Shifts` and `Y-Shifts` (per view, pixels) are Zeiss's motion correction; CIL,
-//! xrmreader and txrm2tiff apply them, and so does ctrecon ([`ViewSource::shift`]): each view, divided by
+//! xrmreader and txrm2tiff apply them, and so does ctrecon ([`super::ViewSource::shift`]): each view, divided by
 //! the reference, is moved by `(Y-Shift, X-Shift)` (its value at `(r, c)` becomes the one at
 //! `(r − y, c − x)`, interpolated linearly as xrmreader does). Stage positions, optical and X-ray
 //! magnifications, the camera pixel, `ReconSettings/CenterShift` and a reference exposure that differs from
@@ -30,40 +30,12 @@
 use std::path::Path;
 
 use super::ole::OleFile;
-use super::{Format, Intensity, MAX_VIEW_PIXELS, Orientation, Scan, ScanError, ViewSource};
+pub use super::xradia_views::{Sample, image_stream};
+use super::xradia_views::{XradiaViews, decode};
+use super::{Format, Intensity, MAX_VIEW_PIXELS, Orientation, Scan, ScanError};
 use crate::recon::geometry::angles::MAX_VIEWS;
 use crate::recon::geometry::{Angles, ConeBeam, Geometry, Panel};
 use crate::recon::grid::MAX_AXIS;
-
-/// The sample types of Xradia images ctrecon reads (`DataType` codes of Xradia's `XrmDataTypes`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Sample {
-    /// Code 5.
-    U16,
-    /// Code 10.
-    F32,
-}
-
-impl Sample {
-    pub fn bytes(self) -> usize {
-        match self {
-            Sample::U16 => 2,
-            Sample::F32 => 4,
-        }
-    }
-    fn name(self) -> &'static str {
-        match self {
-            Sample::U16 => "uint16",
-            Sample::F32 => "float32",
-        }
-    }
-}
-
-/// The stream of view `i` (from 0): `ImageData<⌈(i+1)/100⌉>/Image<i+1>`.
-pub fn image_stream(i: usize) -> String {
-    let n = i + 1;
-    format!("ImageData{}/Image{n}", n.div_ceil(100))
-}
 
 /// The numbers of an Xradia file that ctrecon uses, as read.
 #[derive(Debug, Clone, PartialEq)]
@@ -419,71 +391,6 @@ pub fn geometry(x: &Xradia) -> Geometry {
     })
 }
 
-/// The views of an Xradia file, read one stream at a time.
-pub struct XradiaViews {
-    ole: OleFile,
-    views: usize,
-    shape: (usize, usize),
-    sample: Sample,
-    shifts: Option<Vec<[f64; 2]>>,
-    bytes: Vec<u8>,
-}
-
-/// Decode little-endian `sample`s into `out` (`bytes.len() = out.len() · sample bytes`).
-fn decode(sample: Sample, bytes: &[u8], out: &mut [f32]) {
-    match sample {
-        Sample::U16 => {
-            for (o, b) in out.iter_mut().zip(bytes.chunks_exact(2)) {
-                *o = f32::from(u16::from_le_bytes([b[0], b[1]]));
-            }
-        }
-        Sample::F32 => {
-            for (o, b) in out.iter_mut().zip(bytes.chunks_exact(4)) {
-                *o = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
-            }
-        }
-    }
-}
-
-impl ViewSource for XradiaViews {
-    fn view_count(&self) -> usize {
-        self.views
-    }
-    fn shape(&self) -> (usize, usize) {
-        self.shape
-    }
-    fn read_view(&mut self, i: usize, out: &mut [f32]) -> Result<(), ScanError> {
-        if i >= self.views {
-            return Err(ScanError::NoSuchView {
-                file: self.ole.file.clone(),
-                index: i,
-                count: self.views,
-            });
-        }
-        let pixels = self.shape.0 * self.shape.1;
-        let stream = image_stream(i);
-        let want = pixels * self.sample.bytes();
-        match self.ole.len(&stream) {
-            Some(len) if len == want as u64 && out.len() == pixels => {}
-            len => {
-                return Err(ScanError::invalid(
-                    &self.ole.file,
-                    &stream,
-                    &format!("{} bytes", len.unwrap_or(0)),
-                    format!("an image is {want} bytes"),
-                ));
-            }
-        }
-        self.bytes.resize(want, 0);
-        self.ole.read_into(&stream, &mut self.bytes)?;
-        decode(self.sample, &self.bytes, out);
-        Ok(())
-    }
-    fn shift(&self, i: usize) -> Option<[f64; 2]> {
-        self.shifts.as_ref().and_then(|s| s.get(i).copied())
-    }
-}
-
 /// Open a Zeiss Xradia scan from its `.txrm` / `.xrm` file.
 pub fn open(path: &Path) -> Result<Scan, ScanError> {
     let mut ole = OleFile::open(path)?;
@@ -507,14 +414,13 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
         Sample::F32 => 1.0,
     };
     let provenance = std::mem::take(&mut ole.taken);
-    let views = XradiaViews {
+    let views = XradiaViews::new(
         ole,
-        views: x.views,
-        shape: (x.height, x.width),
-        sample: x.sample,
-        shifts: x.shifts.clone(),
-        bytes: Vec::new(),
-    };
+        x.views,
+        (x.height, x.width),
+        x.sample,
+        x.shifts.clone(),
+    );
     Ok(Scan {
         format: Format::ZeissXradia,
         source: path.to_path_buf(),
