@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Install the real peers that tests drive or compare against, each in its own idempotent, non-interactive
 # section (a section does nothing when its peer is already there): Debian packages, and Python peers in
-# ignored folders of the checkout (.venv-peers/ for VTK, .venv-scans/ for tifffile, .venv-rtk/ for itk-rtk, .peers/ for
-# schemathesis). Run by .ci/run; safe to run again. A test whose peer is missing prints one skip line, or
+# ignored folders of the checkout (.venv-peers/ for VTK, .venv-scans/ for tifffile and xrmreader, .venv-rtk/ for
+# itk-rtk, .peers/ for schemathesis). Run by .ci/run; safe to run again. A test whose peer is missing prints one skip line, or
 # fails when CTRECON_REQUIRE_PEERS=1.
 #   scripts/install-peers.sh            every peer
 #   scripts/install-peers.sh NAME...    only these (names: chromium, dcmtk, orthanc, postgres, s3,
@@ -92,18 +92,21 @@ if want vtk; then
   .venv-peers/bin/python -c "import vtk; print('vtk', vtk.vtkVersion.GetVTKVersion())"
 fi
 
-# --- scans: Python tifffile, the independent writer of tests/scan_formats.rs's TIFF, Nikon and SkyScan data ----
+# --- scans: Python tifffile, the independent writer of tests/scan_formats.rs's TIFF, Nikon and SkyScan data, and
+# xrmreader, the independent reader of tests/scan_zeiss.rs's Zeiss .txrm files ---------------------------------
 if want scans; then
   echo "== peer: scans"
   if [ ! -x .venv-scans/bin/python ]; then
     python3 -m venv .venv-scans
   fi
-  if ! .venv-scans/bin/python -c "import tifffile, numpy" 2>/dev/null \
+  if ! .venv-scans/bin/python -c "import tifffile, numpy, olefile, scipy, skimage, six, tqdm" 2>/dev/null \
+     || ! .venv-scans/bin/python -c "import importlib.metadata as m; m.version('xrmreader')" 2>/dev/null \
      || ! cmp -s tests/peers/requirements-scans.txt .venv-scans/.scans-requirements; then
     .venv-scans/bin/python -m pip install -q --disable-pip-version-check -r tests/peers/requirements-scans.txt
     cp tests/peers/requirements-scans.txt .venv-scans/.scans-requirements
   fi
   .venv-scans/bin/python -c "import tifffile; print('tifffile', tifffile.__version__)"
+  .venv-scans/bin/python -c "import importlib.metadata as m; print('xrmreader', m.version('xrmreader'))"
 fi
 
 # --- rtk: itk-rtk, the independent reader and writer of RTK geometry XML in tests/geometry_rtk.rs ------------

@@ -99,7 +99,8 @@ fn scan_root(mut root: PathBuf) -> PathBuf {
     }
 }
 
-/// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.log`, `.tif`, `.tiff`).
+/// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.txrm`, `.xrm`, `.log`, `.tif`,
+/// `.tiff`).
 fn recognisable(root: &Path) -> bool {
     std::fs::read_dir(root).is_ok_and(|entries| {
         entries
@@ -219,7 +220,8 @@ pub fn import(
     if !recognisable(&root) {
         return Err(Problem::new(
             ErrorCode::ScanNotRecognised,
-            "no .xtekct (Nikon), .log (SkyScan) or .tif/.tiff file in the upload's folder",
+            "no .xtekct (Nikon), .txrm/.xrm (Zeiss), .log (SkyScan) or .tif/.tiff file in the upload's \
+             folder",
         ));
     }
     let mut scan = crate::scans::open(&root).map_err(|e| scan_problem(&e, &folder))?;
@@ -246,7 +248,7 @@ pub fn import(
         )));
     }
     let temp = store.temp();
-    let (bytes, sha256, clamped, normalisation) = write_views(&mut scan, temp.path(), &shape)
+    let (bytes, sha256, counts, normalisation) = write_views(&mut scan, temp.path(), &shape)
         .map_err(|e| match e {
             Written::Scan(e) => scan_problem(&e, &folder),
             Written::Io(e) => internal(e),
@@ -270,12 +272,20 @@ pub fn import(
             })
             .collect(),
         notes: scan.notes.clone(),
-        preprocessing: vec![
-            normalise_step(normalisation),
-            json!({"step": "minus_log", "floor": TRANSMISSION_FLOOR, "clamped_pixels": clamped}),
-            json!({"step": "orient", "flip_rows": scan.orientation.flip_rows,
-                   "flip_cols": scan.orientation.flip_cols}),
-        ],
+        preprocessing: [
+            Some(normalise_step(normalisation)),
+            // The scanner's motion correction (Zeiss alignment shifts), on the transmissions.
+            (counts.shifted_views > 0)
+                .then(|| json!({"step": "align", "shifted_views": counts.shifted_views})),
+            Some(
+                json!({"step": "minus_log", "floor": TRANSMISSION_FLOOR, "clamped_pixels": counts.clamped}),
+            ),
+            Some(json!({"step": "orient", "flip_rows": scan.orientation.flip_rows,
+                   "flip_cols": scan.orientation.flip_cols})),
+        ]
+        .into_iter()
+        .flatten()
+        .collect(),
         calibration: Some(calibration),
     };
     Ok(ImportedScan {
@@ -293,13 +303,19 @@ enum Written {
     Io(std::io::Error),
 }
 
+/// Pixels clamped and views moved by the scanner's alignment while converting.
+struct Counts {
+    clamped: u64,
+    shifted_views: u64,
+}
+
 /// Stream `scan`'s views as a float32 `.npy` of `shape` to `path` (synced); answers its size, SHA-256, the
-/// clamped pixel count and the normalisation used.
+/// clamped pixels and shifted views, and the normalisation used.
 fn write_views(
     scan: &mut Scan,
     path: &Path,
     shape: &[usize],
-) -> Result<(u64, String, u64, Normalisation), Written> {
+) -> Result<(u64, String, Counts, Normalisation), Written> {
     let io = Written::Io;
     let file = std::fs::File::create(path).map_err(io)?;
     let mut out = std::io::BufWriter::with_capacity(64 << 10, file);
@@ -328,7 +344,10 @@ fn write_views(
     Ok((
         written,
         hex(&hash.finalize()),
-        conv.clamped,
+        Counts {
+            clamped: conv.clamped,
+            shifted_views: conv.shifted_views,
+        },
         conv.normalisation(),
     ))
 }

@@ -1,8 +1,8 @@
 //! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, or a scanner's
-//! scan (`.xtekct`, SkyScan `.log`, TIFF stack: geometry from its metadata, converted to line integrals by
-//! `scans::line_integrals`), write the result as float32 `.npy` and optionally a PNG of one slice with
-//! window/level. Admission, the reconstruction and its errors are the application's (`app::local`), as for a
-//! job submitted to the API.
+//! scan (`.xtekct`, Zeiss `.txrm`, SkyScan `.log`, TIFF stack: geometry from its metadata, converted to line
+//! integrals by `scans::line_integrals`), write the result as float32 `.npy` and optionally a PNG of one
+//! slice with window/level. Admission, the reconstruction and its errors are the application's
+//! (`app::local`), as for a job submitted to the API.
 
 use std::path::{Path, PathBuf};
 
@@ -45,7 +45,8 @@ impl From<Filter> for Window {
 #[derive(Debug, clap::Args)]
 pub struct ReconArgs {
     /// Sinogram `[view][u]` or projections `[view][v][u]` (float32 or float64 `.npy`, line integrals), or a
-    /// scan: `.xtekct` (Nikon), `.log` (Bruker SkyScan), `.tif` stack, or a folder holding one.
+    /// scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.log` (Bruker SkyScan), `.tif` stack, or a
+    /// folder holding one.
     #[arg(long, visible_alias = "data")]
     pub input: PathBuf,
     /// Geometry JSON (default: the sidecar `<input>.json` written by `ctrecon phantom`, or the scan's own).
@@ -130,8 +131,8 @@ fn output_grid(args: &ReconArgs, local: &Local, geometry: &Geometry) -> CliResul
     Ok(local.square_grid(geometry, args.size, args.pixel_mm)?)
 }
 
-/// Whether `--input` names a scanner's scan (`.xtekct`, SkyScan `.log`, `.tif`/`.tiff`, or a folder) rather
-/// than a `.npy`.
+/// Whether `--input` names a scanner's scan (`.xtekct`, Zeiss `.txrm`/`.xrm`, SkyScan `.log`, `.tif`/`.tiff`,
+/// or a folder) rather than a `.npy`.
 fn is_scan(input: &Path) -> bool {
     input.is_dir() || scans::detect::is_scan_file(input)
 }
@@ -163,6 +164,12 @@ fn scan_data(scan: &mut Scan, max_bytes: u64) -> CliResult<ArrayD<f32>> {
         li.clamped,
         scans::TRANSMISSION_FLOOR
     );
+    if li.shifted_views > 0 {
+        eprintln!(
+            "  {} views moved by the scanner's alignment shifts",
+            li.shifted_views
+        );
+    }
     Ok(li.projections.into_dyn())
 }
 

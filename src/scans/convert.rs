@@ -1,9 +1,10 @@
 //! The minimal conversion of a scan's views into ctrecon's projections: line integrals
 //! `p = −ln((I − D)/(F − D))` with the scan's dark `D` and flat `F` when it has both, else
 //! `p = −ln(I / white level)` (DESIGN.md §11), the transmission clamped to [`TRANSMISSION_FLOOR`] (clamped
-//! pixels counted), oriented into ctrecon's detector order: [`ViewConverter`] one view at a time (what an
-//! import streams), [`line_integrals`] the whole stack (the CLI). To be replaced by the full preprocessing
-//! chain.
+//! pixels counted), moved by the scanner's alignment of the view where it has one
+//! ([`super::ViewSource::shift`]), oriented into ctrecon's detector order: [`ViewConverter`] one view at a
+//! time (what an import streams), [`line_integrals`] the whole stack (the CLI). To be replaced by the full
+//! preprocessing chain.
 
 use ndarray::Array3;
 
@@ -12,11 +13,13 @@ use super::{Intensity, Scan, ScanError};
 /// Smallest transmission kept: darker (or non-finite) pixels are clamped to it (p ≤ 13.8).
 pub const TRANSMISSION_FLOOR: f32 = 1e-6;
 
-/// Projections `[view][v][u]` as line integrals, and how many pixels were clamped.
+/// Projections `[view][v][u]` as line integrals, how many pixels were clamped and how many views were moved
+/// by the scanner's alignment.
 #[derive(Debug)]
 pub struct LineIntegrals {
     pub projections: Array3<f32>,
     pub clamped: u64,
+    pub shifted_views: u64,
 }
 
 /// Read every view of `scan` and convert it to line integrals in ctrecon's detector order. Refuses
@@ -44,10 +47,10 @@ pub fn line_integrals(scan: &mut Scan, max_bytes: u64) -> Result<LineIntegrals, 
         };
         conv.convert(scan, i, dst)?;
     }
-    let clamped = conv.clamped;
     Ok(LineIntegrals {
         projections: out,
-        clamped,
+        clamped: conv.clamped,
+        shifted_views: conv.shifted_views,
     })
 }
 
@@ -72,6 +75,8 @@ pub struct ViewConverter {
     image: Vec<f32>,
     /// Pixels clamped to [`TRANSMISSION_FLOOR`] so far.
     pub clamped: u64,
+    /// Views moved by a non-zero [`super::ViewSource::shift`] so far.
+    pub shifted_views: u64,
 }
 
 impl ViewConverter {
@@ -96,6 +101,7 @@ impl ViewConverter {
             normalisation,
             image: vec![0f32; nv * nu],
             clamped: 0,
+            shifted_views: 0,
         }
     }
 
@@ -124,16 +130,64 @@ impl ViewConverter {
                 Normalisation::Flat => *p / flat[k],
                 Normalisation::WhiteLevel(_) => *p / white,
             };
-            let t = if t.is_finite() && t >= TRANSMISSION_FLOOR {
+            *p = if t.is_finite() && t >= TRANSMISSION_FLOOR {
                 t
             } else {
                 clamped += 1;
                 TRANSMISSION_FLOOR
             };
-            *p = -t.ln();
         }
         self.clamped += clamped;
+        if let Some([rows, cols]) = scan.views.shift(i)
+            && (rows != 0.0 || cols != 0.0)
+        {
+            shift_image(&mut self.image, self.nv, self.nu, rows, cols);
+            self.shifted_views += 1;
+        }
+        for p in self.image.iter_mut() {
+            *p = -p.ln();
+        }
         scan.orientation.apply(&self.image, self.nv, self.nu, out);
         Ok(())
+    }
+}
+
+/// Move an image (`nv × nu`, row-major) by `rows` and `cols` pixels in place: its value at `(r, c)` becomes
+/// the one at `(r − rows, c − cols)`, linearly interpolated, the edge value beyond the image (as
+/// `scipy.ndimage.shift` with `order=1, mode="nearest"`; for whole pixels, `numpy.roll` without the wrap).
+pub fn shift_image(image: &mut [f32], nv: usize, nu: usize, rows: f64, cols: f64) {
+    if cols != 0.0 {
+        for r in 0..nv {
+            shift_line(image, r * nu, 1, nu, cols);
+        }
+    }
+    if rows != 0.0 {
+        for c in 0..nu {
+            shift_line(image, c, nu, nv, rows);
+        }
+    }
+}
+
+/// Move the `n` samples `data[start + k·stride]` by `s`: sample `k` becomes the old value at `k − s`
+/// (linear, clamped to the ends). In place: the walk runs against the shift, so every sample is read
+/// before it is written.
+fn shift_line(data: &mut [f32], start: usize, stride: usize, n: usize, s: f64) {
+    let last = (n - 1) as f64;
+    let mut at = |k: usize| {
+        let x = (k as f64 - s).clamp(0.0, last);
+        let i0 = x.floor() as usize;
+        let f = (x - i0 as f64) as f32;
+        let v0 = data[start + i0 * stride];
+        let v = if f > 0.0 && i0 + 1 < n {
+            v0 + f * (data[start + (i0 + 1) * stride] - v0)
+        } else {
+            v0
+        };
+        data[start + k * stride] = v;
+    };
+    if s > 0.0 {
+        (0..n).rev().for_each(&mut at);
+    } else {
+        (0..n).for_each(&mut at);
     }
 }

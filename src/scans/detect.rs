@@ -2,10 +2,10 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{Scan, ScanError, bruker, nikon, stack};
+use super::{Scan, ScanError, bruker, nikon, stack, zeiss};
 
 /// The extensions of the files a scan is opened from (lower case).
-pub const EXTENSIONS: [&str; 4] = ["xtekct", "log", "tif", "tiff"];
+pub const EXTENSIONS: [&str; 6] = ["xtekct", "log", "txrm", "xrm", "tif", "tiff"];
 
 /// Whether `path` names a file a scan is opened from, by its extension (any case).
 pub fn is_scan_file(path: &Path) -> bool {
@@ -31,12 +31,19 @@ fn with_extension(dir: &Path, ext: &str) -> Result<Vec<PathBuf>, ScanError> {
     Ok(out)
 }
 
-/// Open a scan: `.xtekct` (Nikon), `.log` (Bruker SkyScan), `.tif`/`.tiff` (a multi-page stack with
-/// `<stem>.json`), or a folder holding one of these (else a folder of TIFFs with `geometry.json`).
+/// Open a scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.log` (Bruker SkyScan), `.tif`/`.tiff`
+/// (a multi-page stack with `<stem>.json`), or a folder holding one of these, looked for in that order
+/// (else a folder of TIFFs with `geometry.json`). A folder's `.txrm` comes before its `.xrm` files (a
+/// tomography beside single images such as a separate reference).
 pub fn open(path: &Path) -> Result<Scan, ScanError> {
     if path.is_dir() {
         if let Some(x) = with_extension(path, "xtekct")?.first() {
             return nikon::open(x);
+        }
+        for ext in ["txrm", "xrm"] {
+            if let Some(z) = with_extension(path, ext)?.first() {
+                return zeiss::open(z);
+            }
         }
         if let Some(l) = with_extension(path, "log")?.first() {
             return bruker::open(l);
@@ -46,6 +53,7 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
     match extension(path).as_str() {
         "xtekct" => nikon::open(path),
         "log" => bruker::open(path),
+        "txrm" | "xrm" => zeiss::open(path),
         "tif" | "tiff" => stack::open(path),
         _ if !path.exists() => Err(ScanError::NotAScan {
             path: path.to_path_buf(),
@@ -54,7 +62,8 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
         other => Err(ScanError::NotAScan {
             path: path.to_path_buf(),
             why: format!(
-                "unknown extension {other:?} (ctrecon reads .xtekct, SkyScan .log, .tif/.tiff or a folder of them)"
+                "unknown extension {other:?} (ctrecon reads .xtekct, Zeiss .txrm/.xrm, SkyScan .log, .tif/.tiff \
+                 or a folder of them)"
             ),
         }),
     }

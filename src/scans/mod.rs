@@ -1,17 +1,22 @@
 //! Measured scans as the scanner wrote them: TIFF stacks (with a ctrecon geometry JSON), Nikon XT H
-//! (`.xtekct`) and Bruker SkyScan (`.log`), read into one format-independent [`Scan`].
+//! (`.xtekct`), Bruker SkyScan (`.log`) and Zeiss Xradia (`.txrm`/`.xrm`), read into one
+//! format-independent [`Scan`].
 //!
 //! An adapter: it reads files (`std::fs`), never the network, a clock or the environment, and imports no
-//! async runtime, HTTP, database or DICOM crate. The parsers work on `&str`; the projections are read view by
-//! view through [`ViewSource`] and never held whole.
+//! async runtime, HTTP, database or DICOM crate. The text parsers work on `&str`, the Zeiss compound files
+//! are read stream by stream (`ole`); the projections are read view by view through [`ViewSource`] and
+//! never held whole.
 //!
 //! Conventions (DESIGN.md §2, §11):
-//! - [`ViewSource::read_view`] gives the image as stored: row 0 is the image's top row, column 0 its left
-//!   column. [`Orientation`] says how that image maps onto ctrecon's detector (`[v][u]`, row 0 at the most
-//!   negative v, v along +z), and [`Scan::geometry`] is ctrecon's geometry for the image so oriented.
+//! - [`ViewSource::read_view`] gives the image as stored: row 0 is the image's first row (its top in a
+//!   TIFF), column 0 its first column. [`Orientation`] says how that image maps onto ctrecon's detector
+//!   (`[v][u]`, row 0 at the most negative v, v along +z), and [`Scan::geometry`] is ctrecon's geometry for
+//!   the image so oriented.
 //! - Values are raw detector values as `f32`; [`Intensity`] says what a value of "no attenuation" is.
 //! - Every value taken from a vendor file is listed in [`Scan::provenance`] with the file and key it came
 //!   from; values read but not used are listed in [`Scan::notes`].
+//! - A scanner's per-view alignment (Zeiss `Alignment/X-Shifts`) is given by [`ViewSource::shift`] and
+//!   applied to the normalised view, before the minus log (`convert`).
 
 pub mod bruker;
 pub mod calibrate;
@@ -19,8 +24,11 @@ pub mod convert;
 pub mod detect;
 pub mod ini;
 pub mod nikon;
+pub mod ole;
 pub mod stack;
 pub mod tiff_views;
+pub mod xradia_views;
+pub mod zeiss;
 
 #[cfg(test)]
 mod tests;
@@ -50,6 +58,8 @@ pub enum Format {
     NikonXtek,
     /// Bruker SkyScan: `.log` + TIFFs.
     BrukerSkyscan,
+    /// Zeiss Xradia (Versa, Context, Ultra): one OLE compound file, `.txrm` (or `.xrm`).
+    ZeissXradia,
 }
 
 impl fmt::Display for Format {
@@ -58,6 +68,7 @@ impl fmt::Display for Format {
             Format::TiffStack => "tiff_stack",
             Format::NikonXtek => "nikon_xtek",
             Format::BrukerSkyscan => "bruker_skyscan",
+            Format::ZeissXradia => "zeiss_xradia",
         })
     }
 }
@@ -131,9 +142,16 @@ pub trait ViewSource: Send {
     fn view_count(&self) -> usize;
     /// `(rows, columns)` of every view: `(nv, nu)`.
     fn shape(&self) -> (usize, usize);
-    /// Read view `i` into `out` (`nv · nu` values, row-major, row 0 = the image's top row), as raw detector
-    /// values converted to `f32`.
+    /// Read view `i` into `out` (`nv · nu` values, row-major, row 0 = the image's first row), as raw
+    /// detector values converted to `f32`.
     fn read_view(&mut self, i: usize, out: &mut [f32]) -> Result<(), ScanError>;
+    /// The scanner's alignment of view `i` (motion correction): `[rows, columns]`, in pixels of the stored
+    /// image, by which the view is moved once normalised to transmissions (its value at `(r, c)` becomes
+    /// the one at `(r − rows, c − columns)`, linearly interpolated, the edge value beyond the image).
+    /// `None` (the default): not moved.
+    fn shift(&self, _i: usize) -> Option<[f64; 2]> {
+        None
+    }
 }
 
 /// How a stored image maps onto ctrecon's detector: ctrecon's `[r][c]` is the image's
@@ -145,6 +163,12 @@ pub struct Orientation {
 }
 
 impl Orientation {
+    /// The image as stored: row 0 at the detector's bottom (ctrecon's row 0), column 0 at its most
+    /// negative u.
+    pub const AS_STORED: Orientation = Orientation {
+        flip_rows: false,
+        flip_cols: false,
+    };
     /// Image row 0 is the detector's top (+z): rows reversed, columns as stored.
     pub const ROWS_UP: Orientation = Orientation {
         flip_rows: true,

@@ -1,10 +1,11 @@
 //! Unit tests of the metadata parsers and of each vendor's geometry mapping: an off-centre point must land
-//! on the image pixel the vendor's convention (as CIL reads it for Nikon) says.
+//! on the image pixel the vendor's convention (as CIL reads it for Nikon and Zeiss) says.
 
 use std::path::Path;
 
+use super::convert::shift_image;
 use super::ini::Ini;
-use super::{Orientation, bruker, nikon, sort_naturally, view_number};
+use super::{Orientation, bruker, nikon, sort_naturally, view_number, zeiss};
 use crate::recon::geometry::vectors::{add3, cross3, dot3, scale3, sub3};
 use crate::recon::geometry::{Geometry, Vec3, Views3};
 
@@ -297,4 +298,135 @@ fn views_sort_by_the_number_in_their_names() {
         .map(|p| p.to_string_lossy().into_owned())
         .collect();
     assert_eq!(names, ["p_1.tif", "p_9.tif", "p_10.tif", "p_100.tif"]);
+}
+
+/// A Zeiss scan as read: 7 views at uneven angles, source 20 mm and detector 60 mm from the axis, 5 µm pixels
+/// at the object (20 µm on the panel), 64 × 48.
+fn xradia() -> zeiss::Xradia {
+    zeiss::Xradia {
+        views: 7,
+        width: 64,
+        height: 48,
+        sample: zeiss::Sample::U16,
+        angles_deg: vec![-170.0, -100.0, -35.0, 0.0, 10.0, 90.0, 170.0],
+        source_to_axis_mm: 20.0,
+        detector_to_axis_mm: 60.0,
+        pixel_um: 5.0,
+        shifts: None,
+        reference: None,
+        notes: Vec::new(),
+    }
+}
+
+/// The image pixel `(row, column)` where CIL's model of a Zeiss scan puts point `q` at Zeiss angle
+/// `theta_deg`: `ZEISSDataReader`'s system (source `(0, −|StoRA|, 0)`, panel centre `(0, |DtoRA|, 0)`, panel
+/// origin bottom-left, pixel `PixelSize · (|StoRA| + |DtoRA|)/|StoRA|`, CIL angle `θ` = the Zeiss angle)
+/// turned by `−θ` as CIL's ASTRA conversion does.
+fn cil_zeiss_pixel(x: &zeiss::Xradia, theta_deg: f64, q: Vec3) -> (f64, f64) {
+    let (s, d) = (x.source_to_axis_mm, x.detector_to_axis_mm);
+    let p = x.pixel_um / 1000.0 * (s + d) / s;
+    let src0 = [0.0, -s, 0.0];
+    let det0 = [0.0, d, 0.0];
+    let row0 = [p, 0.0, 0.0]; // one column step (panel origin on the left)
+    let col0 = [0.0, 0.0, p]; // one row step (panel origin at the bottom)
+    let [src, det, u, v] = [src0, det0, row0, col0].map(|w| rot_z(-theta_deg.to_radians(), w));
+    let dir = sub3(q, src);
+    let n = cross3(u, v);
+    let t = dot3(sub3(det, src), n) / dot3(dir, n);
+    let hit = sub3(add3(src, scale3(dir, t)), det);
+    let a = dot3(hit, u) / dot3(u, u);
+    let b = dot3(hit, v) / dot3(v, v);
+    (
+        b + (x.height as f64 - 1.0) / 2.0,
+        a + (x.width as f64 - 1.0) / 2.0,
+    )
+}
+
+#[test]
+fn an_off_centre_point_lands_where_cil_puts_it_on_a_zeiss_scan() {
+    let x = xradia();
+    assert!((x.detector_pixel_mm() - 0.02).abs() < 1e-15);
+    let v = views(&zeiss::geometry(&x));
+    assert_eq!(v.views.len(), 7);
+    for q in [[0.11, -0.06, 0.08], [-0.09, 0.12, -0.07], [0.0, 0.0, 0.0]] {
+        for (i, &a) in x.angles_deg.iter().enumerate() {
+            let want = cil_zeiss_pixel(&x, a, q);
+            let got = to_image(Orientation::AS_STORED, 48, 64, project(&v, i, q));
+            assert!(
+                (got.0 - want.0).abs() < 1e-6 && (got.1 - want.1).abs() < 1e-6,
+                "view {i} (Zeiss angle {a}°), point {q:?}: ctrecon puts it at image {got:?}, CIL at {want:?}"
+            );
+        }
+    }
+}
+
+#[test]
+fn zeiss_rows_run_up_and_the_sample_turns_counter_clockwise_as_the_angle_grows() {
+    let x = xradia();
+    let v = views(&zeiss::geometry(&x));
+    let at = |i: usize, q: Vec3| to_image(Orientation::AS_STORED, 48, 64, project(&v, i, q));
+    // Magnification 4, panel pixel 20 µm: 0.1 mm at the axis is 20 pixels.
+    let (rc, cc) = (23.5, 31.5);
+    // View 3 (0°): +x lands 20 columns right of the centre, +z 20 rows above it (image row 0 is the bottom).
+    let (r, c) = at(3, [0.1, 0.0, 0.0]);
+    assert!(
+        (r - rc).abs() < 1e-9 && (c - (cc + 20.0)).abs() < 1e-9,
+        "{r} {c}"
+    );
+    let (r, c) = at(3, [0.0, 0.0, 0.1]);
+    assert!(
+        (r - (rc + 20.0)).abs() < 1e-9 && (c - cc).abs() < 1e-9,
+        "{r} {c}"
+    );
+    // View 5 (90°): the sample has turned by +90° about z, so its +y side faces the panel's −x edge.
+    let (r, c) = at(5, [0.0, 0.1, 0.0]);
+    assert!(
+        (r - rc).abs() < 1e-9 && (c - (cc - 20.0)).abs() < 1e-9,
+        "{r} {c}"
+    );
+}
+
+#[test]
+fn a_wrong_sign_of_the_zeiss_angle_moves_the_point_by_pixels() {
+    let x = xradia();
+    let mut wrong = x.clone();
+    wrong.angles_deg = x.angles_deg.iter().map(|a| -a).collect();
+    let v = views(&zeiss::geometry(&wrong));
+    let q = [0.11, -0.06, 0.08];
+    let want = cil_zeiss_pixel(&x, x.angles_deg[5], q);
+    let got = to_image(Orientation::AS_STORED, 48, 64, project(&v, 5, q));
+    assert!((got.1 - want.1).abs() > 5.0, "{got:?} vs {want:?}");
+}
+
+#[test]
+fn zeiss_views_live_in_folders_of_a_hundred() {
+    assert_eq!(zeiss::image_stream(0), "ImageData1/Image1");
+    assert_eq!(zeiss::image_stream(99), "ImageData1/Image100");
+    assert_eq!(zeiss::image_stream(100), "ImageData2/Image101");
+    assert_eq!(zeiss::image_stream(1799), "ImageData18/Image1800");
+}
+
+#[test]
+fn a_shift_moves_the_image_and_keeps_the_edge_values() {
+    // 3 × 5, value 10·r + c.
+    let image: Vec<f32> = (0..15).map(|k| (10 * (k / 5) + k % 5) as f32).collect();
+    // Whole pixels: (r, c) takes (r − 1, c + 2), clamped to the image.
+    let mut a = image.clone();
+    shift_image(&mut a, 3, 5, 1.0, -2.0);
+    let want = |r: i32, c: i32| (10 * (r - 1).clamp(0, 2) + (c + 2).clamp(0, 4)) as f32;
+    for r in 0..3 {
+        for c in 0..5 {
+            assert_eq!(a[(r * 5 + c) as usize], want(r, c), "({r}, {c})");
+        }
+    }
+    // Half a pixel along the columns: the mean of the two neighbours, the edge where one is outside.
+    let mut b = image.clone();
+    shift_image(&mut b, 3, 5, 0.0, 0.5);
+    assert_eq!(&b[5..10], &[10.0, 10.5, 11.5, 12.5, 13.5]);
+    let mut c = image.clone();
+    shift_image(&mut c, 3, 5, -0.25, 0.0);
+    for k in 0..5 {
+        assert!((c[k] - (image[k] + 0.25 * 10.0)).abs() < 1e-6);
+        assert!((c[10 + k] - image[10 + k]).abs() < 1e-6);
+    }
 }
