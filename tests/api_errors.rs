@@ -724,3 +724,60 @@ fn every_operation_has_a_stable_unique_operation_id() {
         );
     }
 }
+
+/// A 3D parallel beam simulates, reconstructs slice by slice through a job, and is refused as every other
+/// geometry when it cannot exist: 422 `invalid_geometry` for an upload and for a simulation.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn parallel3d_scans_simulate_and_reconstruct_and_bad_ones_are_invalid_geometry() {
+    let app = spawn_app().await;
+    let geometry = |du: f64| {
+        json!({"type": "parallel3d", "angles": {"count": 90},
+               "detector": {"nu": 64, "nv": 24, "du_mm": du, "dv_mm": 1.0}})
+    };
+    // The phantom (scale 20 mm) reaches 18.4 mm in x and y: 64 elements of 0.75 mm cover ±24 mm.
+    let input = app.simulate(geometry(0.75), 20.0).await;
+    let job = app
+        .submit(
+            &json!({"input": input, "algorithm": {"name": "fbp", "filter": "hann"},
+               "grid": {"nx": 48, "ny": 48, "nz": 8, "spacing_mm": [1.0, 1.0, 1.0]},
+               "outputs": ["volume", "metrics"]}),
+        )
+        .await;
+    let id = job["id"].as_str().unwrap();
+    let done = app.finish(id).await;
+    assert_eq!(done["status"], "succeeded", "{done}");
+    assert_eq!(done["result"]["shape"], json!([8, 48, 48]));
+    let m: Value = app
+        .get(&format!("/v1/jobs/{id}/result/metrics"))
+        .await
+        .json()
+        .await
+        .unwrap();
+    let rmse = m["rmse"].as_f64().unwrap();
+    assert!(rmse < 0.1, "RMSE {rmse}: {m}");
+    let data: Vec<u8> = std::iter::repeat_n(0f32.to_le_bytes(), 4 * 2 * 3)
+        .flatten()
+        .collect();
+    let r = app
+        .client
+        .post(app.url("/v1/sinograms"))
+        .header("content-type", "application/x-npy")
+        .header(
+            "x-ctrecon-geometry",
+            json!({"type": "parallel3d", "angles": {"count": 4},
+                   "detector": {"nu": 3, "nv": 2, "du_mm": -1.0, "dv_mm": 1.0}})
+            .to_string(),
+        )
+        .body(npy("<f4", "(4, 2, 3)", &data))
+        .send()
+        .await
+        .unwrap();
+    assert_problem(r, 422, "invalid_geometry").await;
+    let r = app
+        .post_json(
+            "/v1/simulations",
+            &json!({"phantom": {"table": "shepp_logan", "scale_mm": 20}, "geometry": geometry(0.0)}),
+        )
+        .await;
+    assert_problem(r, 422, "invalid_geometry").await;
+}

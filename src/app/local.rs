@@ -93,7 +93,7 @@ impl Local {
         let views = geometry.to_views().map_err(|e| recon_problem(&e.into()))?;
         Ok(match views {
             Views::D2(_) => OutputGrid::Image(ImageGrid::square(size, pixel_mm)),
-            Views::D3(_) => OutputGrid::Volume(VolumeGrid::cube(size, pixel_mm)),
+            Views::D3(_) | Views::Slices(_) => OutputGrid::Volume(VolumeGrid::cube(size, pixel_mm)),
         })
     }
 

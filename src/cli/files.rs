@@ -16,7 +16,7 @@ pub fn sidecar(data: &Path) -> PathBuf {
 
 /// The geometries that ship with ctrecon, by name: the files under `docs/geometries/`, so that
 /// `--geometry fan_arc` works from any folder.
-pub const BUILT_IN_GEOMETRIES: [(&str, &str); 3] = [
+pub const BUILT_IN_GEOMETRIES: [(&str, &str); 4] = [
     (
         "parallel",
         include_str!("../../docs/geometries/parallel.json"),
@@ -26,9 +26,13 @@ pub const BUILT_IN_GEOMETRIES: [(&str, &str); 3] = [
         include_str!("../../docs/geometries/fan_arc.json"),
     ),
     ("cone", include_str!("../../docs/geometries/cone.json")),
+    (
+        "parallel3d",
+        include_str!("../../docs/geometries/parallel3d.json"),
+    ),
 ];
 
-/// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`) when no file
+/// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`, `parallel3d`) when no file
 /// of that name exists.
 pub fn read_geometry(path: &Path) -> CliResult<Geometry> {
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");

@@ -164,6 +164,11 @@ pub fn run(args: GeometryArgs) -> CliResult<()> {
         "json" => {
             let per_view = match &views {
                 Views::D3(v) => Geometry::ConeVectors(cone_vectors(v)),
+                Views::Slices(_) => {
+                    return Err(
+                        "3D parallel beams have no per-view JSON form; keep the parametric JSON".into(),
+                    );
+                }
                 Views::D2(v) => Geometry::FanVectors(fan_vectors(v).ok_or(
                     "parallel beams and arc detectors have no per-view JSON form; keep the parametric JSON",
                 )?),
@@ -182,6 +187,9 @@ pub fn run(args: GeometryArgs) -> CliResult<()> {
         "npy" => {
             let rows: Vec<Vec<f64>> = match &views {
                 Views::D3(v) => cone_vectors(v).vectors.iter().map(|r| r.to_vec()).collect(),
+                Views::Slices(_) => {
+                    return Err("3D parallel beams have no ASTRA cone_vec form".into());
+                }
                 Views::D2(v) => fan_vectors(v)
                     .ok_or("parallel beams and arc detectors have no ASTRA fanflat_vec form")?
                     .vectors

@@ -210,7 +210,7 @@ pub fn admit_simulation(req: &SimulationRequest, max_elements: u64) -> Result<Vi
         .map_err(|e| recon_problem_at(&e.into(), "/geometry"))?;
     let bodies = match &views {
         Views::D2(_) => req.phantom.phantom2().map(|p| p.ellipses.len()),
-        Views::D3(_) => req.phantom.phantom3().map(|p| p.ellipsoids.len()),
+        Views::D3(_) | Views::Slices(_) => req.phantom.phantom3().map(|p| p.ellipsoids.len()),
     }
     .map_err(|e| recon_problem_at(&e, "/phantom"))?;
     if bodies > MAX_BODIES {

@@ -57,6 +57,12 @@ pub fn simulate(req: &SimulationRequest, views: &Views) -> Result<ArrayD<f32>, P
             .map_err(|e| recon_problem(&e))?
             .project(v)
             .into_dyn(),
+        Views::Slices(v) => req
+            .phantom
+            .phantom3()
+            .map_err(|e| recon_problem(&e))?
+            .project_parallel(v)
+            .into_dyn(),
     };
     if let Some(noise) = &req.noise {
         poisson_noise(data.view_mut(), noise.incident_photons, noise.seed)

@@ -10,6 +10,9 @@ use serde::{Deserialize, Serialize};
 use crate::recon::error::ReconError;
 use crate::recon::grid::{ImageGrid, VolumeGrid};
 mod run;
+mod slices;
+#[cfg(test)]
+mod slices_tests;
 pub use run::{check_grid, estimate_bytes, reconstruct};
 
 pub use crate::recon::iterative::params::{

@@ -15,17 +15,17 @@ use crate::recon::iterative::params::InitialImage;
 pub fn check_grid(views: &Views, grid: &OutputGrid) -> Result<(), ReconError> {
     match (views, grid) {
         (Views::D2(_), OutputGrid::Image(g)) => g.validate()?,
-        (Views::D3(_), OutputGrid::Volume(g)) => g.validate()?,
+        (Views::D3(_) | Views::Slices(_), OutputGrid::Volume(g)) => g.validate()?,
         (Views::D2(_), OutputGrid::Volume(_)) => {
             return Err(ReconError::param(
                 "grid",
                 "a 2D geometry reconstructs an image: {nx, ny, dx_mm, dy_mm}",
             ));
         }
-        (Views::D3(_), OutputGrid::Image(_)) => {
+        (Views::D3(_) | Views::Slices(_), OutputGrid::Image(_)) => {
             return Err(ReconError::param(
                 "grid",
-                "a cone beam reconstructs a volume: {nx, ny, nz, spacing_mm}",
+                "a 3D geometry (cone or parallel3d) reconstructs a volume: {nx, ny, nz, spacing_mm}",
             ));
         }
     }
@@ -48,6 +48,9 @@ fn data_elements(views: &Views) -> u64 {
 
 /// Bytes a reconstruction allocates besides its input: the output, working copies and per-thread buffers.
 pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> u64 {
+    if let (Views::Slices(v), OutputGrid::Volume(g)) = (views, grid) {
+        return super::slices::estimate_bytes(spec, v, g);
+    }
     let out = Limits::f32_bytes(grid_elements(grid));
     if let AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) = spec {
         analytic::estimate_bytes(views, grid, p)
@@ -61,7 +64,8 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
 
 /// Reconstruct `data` (`[view][u]` or `[view][v][u]`, line integrals) measured with `views` on `grid`.
 ///
-/// `fbp` and `fdk` name the same family: a 2D geometry runs parallel or fan-beam FBP, a cone beam FDK.
+/// `fbp` and `fdk` name the same family: a 2D geometry runs parallel or fan-beam FBP, a cone beam FDK, a 3D
+/// parallel beam 2D FBP slice by slice ([`super::slices`], as every iterative method on it).
 /// Validation (shape, finiteness, parameters, memory) happens before any large allocation.
 pub fn reconstruct(
     spec: &AlgorithmSpec,
@@ -81,6 +85,15 @@ pub fn reconstruct(
     check_grid(views, grid)?;
     limits.check(estimate_bytes(spec, views, grid))?;
     ensure_finite(data.view())?;
+    if let (Views::Slices(v), OutputGrid::Volume(g)) = (views, grid) {
+        let data = data
+            .into_dimensionality::<Ix3>()
+            .map_err(|_| ReconError::ShapeMismatch {
+                expected: views.data_shape(),
+                got: expected.clone(),
+            })?;
+        return Ok(super::slices::reconstruct(spec, v, data, g, limits, ctl)?.into_dyn());
+    }
     match spec {
         AlgorithmSpec::Fbp(p) | AlgorithmSpec::Fdk(p) => analytic_run(p, views, data, grid, ctl),
         _ => {
@@ -143,6 +156,10 @@ fn analytic_run(
             let proj = data.into_dimensionality::<Ix3>().map_err(shape_err)?;
             Ok(analytic::fdk(v, proj, g, params, ctl)?.into_dyn())
         }
+        (Views::Slices(_), _) => Err(ReconError::param(
+            "geometry",
+            "a 3D parallel beam is reconstructed slice by slice (recon::algorithm::reconstruct)",
+        )),
         _ => Err(ReconError::param(
             "grid",
             "grid and geometry dimensionality differ",

@@ -16,6 +16,8 @@ pub fn check(views: &Views, params: &FbpParams) -> Result<(), ReconError> {
     match views {
         Views::D2(v) => check_2d(v, params),
         Views::D3(v) => check_cone(v, params),
+        // Reconstructed slice by slice with the 2D parallel-beam FBP of its rows.
+        Views::Slices(v) => check_2d(&v.rows, params),
     }
 }
 

@@ -72,7 +72,8 @@ pub fn back_project_voxels_bytes(views: &Views3, grid: &VolumeGrid) -> u64 {
 
 /// Bytes FBP or FDK allocates besides its input: the output, the filtered views (2D) or one filtered
 /// projection per thread (FDK), and per-thread filter buffers. Grids of the wrong dimensionality count
-/// zero (the dispatcher refuses them).
+/// zero (the dispatcher refuses them), and so do 3D parallel beams: the dispatcher runs and counts them
+/// slice by slice ([`crate::recon::algorithm::estimate_bytes`]).
 pub fn estimate_bytes(
     views: &Views,
     grid: &crate::recon::algorithm::OutputGrid,
@@ -82,6 +83,7 @@ pub fn estimate_bytes(
     match (views, grid) {
         (Views::D2(v), OutputGrid::Image(g)) => fbp2d::estimate_bytes(v, g, params),
         (Views::D3(v), OutputGrid::Volume(g)) => fdk::estimate_bytes(v, g, params),
+        (Views::Slices(_), _) => 0,
         _ => 0,
     }
 }

@@ -8,6 +8,7 @@
 
 pub mod angles;
 pub mod matlab;
+pub mod parallel3d;
 pub mod per_view;
 pub mod rtk;
 pub mod vectors;
@@ -16,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 pub use angles::Angles;
 pub use matlab::{MatlabFan, MatlabSensors};
+pub use parallel3d::{Parallel3d, SliceViews};
 pub use per_view::{ConeVectors, FanVectors, VectorPanel, VectorRow, cone_vectors, fan_vectors};
 pub use vectors::{
     Detector1, Detector2, DetectorShape, Ray2, Ray3, Source2, Vec2, Vec3, View2, View3, Views2,
@@ -250,7 +252,7 @@ impl ConeBeam {
 }
 
 /// Any scan geometry. JSON: `{"type": "parallel" | "fan" | "fan_matlab" | "cone" | "fan_vectors" |
-/// "cone_vectors", …}`.
+/// "cone_vectors" | "parallel3d", …}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Geometry {
@@ -260,13 +262,16 @@ pub enum Geometry {
     Cone(ConeBeam),
     FanVectors(FanVectors),
     ConeVectors(ConeVectors),
+    Parallel3d(Parallel3d),
 }
 
-/// A geometry in canonical form.
+/// A geometry in canonical form: 2D views, cone-beam views, or a stack of 2D parallel-beam slices (a 3D
+/// parallel beam, reconstructed slice by slice).
 #[derive(Debug, Clone, PartialEq)]
 pub enum Views {
     D2(Views2),
     D3(Views3),
+    Slices(SliceViews),
 }
 
 impl Views {
@@ -275,6 +280,7 @@ impl Views {
         match self {
             Views::D2(v) => v.shape().to_vec(),
             Views::D3(v) => v.shape().to_vec(),
+            Views::Slices(v) => v.shape().to_vec(),
         }
     }
 }
@@ -289,17 +295,21 @@ impl Geometry {
             Geometry::Cone(g) => Views::D3(g.to_views()?),
             Geometry::FanVectors(g) => Views::D2(g.to_views()?),
             Geometry::ConeVectors(g) => Views::D3(g.to_views()?),
+            Geometry::Parallel3d(g) => Views::Slices(g.to_views()?),
         })
     }
-    /// True for cone beams (3D data).
+    /// True for 3D data (`[view][v][u]`): cone beams and 3D parallel beams.
     pub fn is_3d(&self) -> bool {
-        matches!(self, Geometry::Cone(_) | Geometry::ConeVectors(_))
+        matches!(
+            self,
+            Geometry::Cone(_) | Geometry::ConeVectors(_) | Geometry::Parallel3d(_)
+        )
     }
     /// Source-to-isocentre distance, if the geometry has a source (for a per-view geometry, the smallest
     /// distance of a source from the rotation axis).
     pub fn dso_mm(&self) -> Option<f64> {
         match self {
-            Geometry::Parallel(_) => None,
+            Geometry::Parallel(_) | Geometry::Parallel3d(_) => None,
             Geometry::Fan(g) => Some(g.dso_mm),
             Geometry::FanMatlab(g) => Some(g.d_px * g.pixel_mm),
             Geometry::Cone(g) => Some(g.dso_mm),

@@ -74,7 +74,7 @@ pub fn check_views(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconError
     if !matches!(views, Views::D3(_)) {
         return Err(ReconError::param(
             "back_projector",
-            "`voxel` back-projects cone beams only; 2D geometries use `matched`",
+            "`voxel` back-projects cone beams only; 2D and parallel3d geometries use `matched`",
         ));
     }
     crate::recon::analytic::check(views, &crate::recon::algorithm::FbpParams::default())
@@ -109,7 +109,8 @@ fn keeps_walk_table(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> b
 
 /// Bytes an iterative run allocates besides its input: image-sized and data-sized work arrays, one
 /// back-projection buffer per thread, stored per-subset weights (none for SART's fused updates), and the
-/// initial image.
+/// initial image. A 3D parallel beam is run and counted slice by slice by the dispatcher
+/// ([`crate::recon::algorithm::estimate_bytes`]); here it counts only its image- and data-sized arrays.
 pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) -> u64 {
     let (n, m, nv) = sizes(views, grid);
     let stored = |s: u64| {
@@ -151,6 +152,7 @@ pub fn estimate_bytes(spec: &AlgorithmSpec, views: &Views, grid: &OutputGrid) ->
         ),
         (Views::D3(v), OutputGrid::Volume(g)) => (cone_columns::work_bytes(v, g), data),
         (Views::D3(_), _) => (0, data),
+        (Views::Slices(_), _) => (0, data),
     };
     Limits::f32_bytes(
         (images + buffers)
@@ -220,6 +222,12 @@ pub fn solve(
                     nx: g.nx,
                 },
             )
+        }
+        (Views::Slices(_), _) => {
+            return Err(ReconError::param(
+                "geometry",
+                "a 3D parallel beam is reconstructed slice by slice (recon::algorithm::reconstruct)",
+            ));
         }
         _ => {
             return Err(ReconError::param(

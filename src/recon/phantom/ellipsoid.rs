@@ -1,5 +1,5 @@
 //! 3D phantoms: ellipsoids with the seed program's Euler convention, their voxelisation on a
-//! [`VolumeGrid`] and their exact cone-beam projection ([`Views3`]).
+//! [`VolumeGrid`] and their exact cone-beam ([`Views3`]) and 3D parallel-beam ([`SliceViews`]) projections.
 
 use ndarray::{Array3, ArrayViewMut2, Axis};
 use rayon::prelude::*;
@@ -10,7 +10,7 @@ use super::{MAX_BODIES, Table3, check_scale, finite_field, positive_field};
 use crate::recon::control::{Control, unattended};
 use crate::recon::error::ReconError;
 use crate::recon::geometry::vectors::{add3, dot3, norm3, scale3, sub3};
-use crate::recon::geometry::{Detector2, Vec3, View3, Views3};
+use crate::recon::geometry::{Detector2, SliceViews, Vec3, View3, Views3};
 use crate::recon::grid::VolumeGrid;
 
 /// One filled ellipsoid in phantom units (the cube [−1, 1]³, scaled by the phantom's `scale_mm`), as in
@@ -259,6 +259,26 @@ impl Phantom3 {
             .into_par_iter()
             .zip(views.views.par_iter())
             .for_each(|(img, view)| project_view(&bodies, &views.detector, view, img));
+        out
+    }
+
+    /// Exact 3D parallel-beam projections, shape `[views][nv][nu]`: element `[i][r][c]` is the line integral
+    /// of μ along the horizontal ray `views.ray(i, r, c)`. Views run in parallel.
+    pub fn project_parallel(&self, views: &SliceViews) -> Array3<f32> {
+        let bodies = self.quadrics();
+        let mut out = Array3::<f32>::zeros(views.shape());
+        out.axis_iter_mut(Axis(0))
+            .into_par_iter()
+            .enumerate()
+            .for_each(|(i, mut img)| {
+                for ((r, c), p) in img.indexed_iter_mut() {
+                    let ray = views.ray(i, r, c);
+                    *p = bodies
+                        .iter()
+                        .map(|q| q.line_integral(&ray.origin, &ray.direction))
+                        .sum::<f64>() as f32;
+                }
+            });
         out
     }
 }
