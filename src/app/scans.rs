@@ -99,8 +99,8 @@ fn scan_root(mut root: PathBuf) -> PathBuf {
     }
 }
 
-/// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.txrm`, `.xrm`, `.log`, `.tif`,
-/// `.tiff`).
+/// Whether `root` holds a file a scan reader starts from (`.xtekct`, `.txrm`, `.xrm`, `.nx`, `.nxs`, `.h5`,
+/// `.hdf5`, `.log`, `.tif`, `.tiff`).
 fn recognisable(root: &Path) -> bool {
     std::fs::read_dir(root).is_ok_and(|entries| {
         entries
@@ -220,8 +220,8 @@ pub fn import(
     if !recognisable(&root) {
         return Err(Problem::new(
             ErrorCode::ScanNotRecognised,
-            "no .xtekct (Nikon), .txrm/.xrm (Zeiss), .log (SkyScan) or .tif/.tiff file in the upload's \
-             folder",
+            "no .xtekct (Nikon), .txrm/.xrm (Zeiss), .nx/.nxs/.h5/.hdf5 (NXtomo), .log (SkyScan) or \
+             .tif/.tiff file in the upload's folder",
         ));
     }
     let mut scan = crate::scans::open(&root).map_err(|e| scan_problem(&e, &folder))?;

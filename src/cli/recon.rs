@@ -1,5 +1,5 @@
 //! `ctrecon recon`: reconstruct a `.npy` sinogram or projection stack with its geometry JSON, or a scanner's
-//! scan (`.xtekct`, Zeiss `.txrm`, SkyScan `.log`, TIFF stack: geometry from its metadata, converted to line
+//! scan (`.xtekct`, Zeiss `.txrm`, NXtomo `.nx`, SkyScan `.log`, TIFF stack: geometry from its metadata, converted to line
 //! integrals by `scans::line_integrals`), write the result as float32 `.npy` and optionally a PNG of one
 //! slice with window/level. Admission, the reconstruction and its errors are the application's
 //! (`app::local`), as for a job submitted to the API.
@@ -45,8 +45,8 @@ impl From<Filter> for Window {
 #[derive(Debug, clap::Args)]
 pub struct ReconArgs {
     /// Sinogram `[view][u]` or projections `[view][v][u]` (float32 or float64 `.npy`, line integrals), or a
-    /// scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.log` (Bruker SkyScan), `.tif` stack, or a
-    /// folder holding one.
+    /// scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.nx`/`.nxs`/`.h5`/`.hdf5` (NeXus NXtomo),
+    /// `.log` (Bruker SkyScan), `.tif` stack, or a folder holding one.
     #[arg(long, visible_alias = "data")]
     pub input: PathBuf,
     /// Geometry JSON (default: the sidecar `<input>.json` written by `ctrecon phantom`, or the scan's own).
@@ -131,8 +131,8 @@ fn output_grid(args: &ReconArgs, local: &Local, geometry: &Geometry) -> CliResul
     Ok(local.square_grid(geometry, args.size, args.pixel_mm)?)
 }
 
-/// Whether `--input` names a scanner's scan (`.xtekct`, Zeiss `.txrm`/`.xrm`, SkyScan `.log`, `.tif`/`.tiff`,
-/// or a folder) rather than a `.npy`.
+/// Whether `--input` names a scanner's scan (`.xtekct`, Zeiss `.txrm`/`.xrm`, NXtomo `.nx`/`.nxs`/`.h5`/
+/// `.hdf5`, SkyScan `.log`, `.tif`/`.tiff`, or a folder) rather than a `.npy`.
 fn is_scan(input: &Path) -> bool {
     input.is_dir() || scans::detect::is_scan_file(input)
 }

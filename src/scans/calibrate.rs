@@ -1,7 +1,8 @@
 //! Calibration of an imported scan: the centre of rotation (the detector's u offset) found from the views
 //! themselves when the scan's metadata states none, read from the metadata when it does, or pinned by the
 //! user; the result says which. A full turn is calibrated from opposite views, a shorter scan from the
-//! consistency of conjugate rays (`recon::prep`). The in-plane tilt is not estimated yet (the estimate
+//! consistency of conjugate rays (`recon::prep`); a parallel beam (`parallel3d`) from views half a turn
+//! apart, mirrored (`calibrate_parallel`). The in-plane tilt is not estimated yet (the estimate
 //! misses its goal, see `recon::prep::centre`): the panel keeps its roll of 0.
 
 use std::os::unix::fs::FileExt;
@@ -81,28 +82,31 @@ pub fn states_centre(provenance: &[Provenance]) -> bool {
         .any(|p| CENTRE_KEYS.iter().any(|k| p.key.ends_with(k)))
 }
 
-/// Settle the centre of rotation of a cone-beam `geometry` for its `projections` (`[view][v][u]`, line
-/// integrals) under `policy`, and write it into the geometry.
+/// Settle the centre of rotation of a cone-beam or 3D parallel-beam `geometry` for its `projections`
+/// (`[view][v][u]`, line integrals) under `policy`, and write it into the geometry's panel
+/// (`offset_u_mm`).
 pub fn calibrate(
     geometry: &mut Geometry,
     projections: &dyn ViewSource,
     provenance: &[Provenance],
     policy: CentrePolicy,
 ) -> Result<Calibration, ReconError> {
-    let Geometry::Cone(cone) = geometry else {
-        return Err(ReconError::param(
-            "geometry",
-            "the centre of rotation is calibrated for cone-beam scans only",
-        ));
+    let read = match geometry {
+        Geometry::Cone(cone) => cone.detector.offset_u_mm,
+        Geometry::Parallel3d(p) => p.detector.offset_u_mm,
+        _ => {
+            return Err(ReconError::param(
+                "geometry",
+                "the centre of rotation is calibrated for cone-beam and parallel3d scans only",
+            ));
+        }
     };
-    let read = cone.detector.offset_u_mm;
     let find = match policy {
         CentrePolicy::Auto => !states_centre(provenance),
         CentrePolicy::Find => true,
         CentrePolicy::Read => false,
         CentrePolicy::Pinned(mm) => {
-            cone.detector.offset_u_mm = mm;
-            cone.to_views()?;
+            set_offset(geometry, mm)?;
             return Ok(Calibration {
                 offset_u_mm: mm,
                 centre: "pinned".into(),
@@ -119,16 +123,25 @@ pub fn calibrate(
             note: None,
         });
     }
-    let views = cone.to_views()?;
-    let found = if full_turn(&views.views.iter().map(|v| v.angle_rad).collect::<Vec<_>>()) {
-        find_centre(&views, projections, &CentreOptions::default())
-    } else {
-        find_centre_conjugate(
-            &views,
-            cone.dsd_mm,
-            projections,
-            &ConjugateOptions::default(),
-        )
+    let found = match geometry {
+        Geometry::Cone(cone) => {
+            let views = cone.to_views()?;
+            if full_turn(&views.views.iter().map(|v| v.angle_rad).collect::<Vec<_>>()) {
+                find_centre(&views, projections, &CentreOptions::default())
+            } else {
+                find_centre_conjugate(
+                    &views,
+                    cone.dsd_mm,
+                    projections,
+                    &ConjugateOptions::default(),
+                )
+            }
+        }
+        Geometry::Parallel3d(p) => super::calibrate_parallel::find_centre_parallel(p, projections),
+        _ => Err(ReconError::param(
+            "geometry",
+            "no centre search for this geometry",
+        )),
     };
     let estimate = match found {
         // The tilt estimate misses its goal (recon::prep::centre) and a cone's panel has no roll: not
@@ -148,13 +161,34 @@ pub fn calibrate(
         }
         Err(e) => return Err(e),
     };
-    cone.detector.offset_u_mm = estimate.offset_u_mm;
+    set_offset(geometry, estimate.offset_u_mm)?;
     Ok(Calibration {
         offset_u_mm: estimate.offset_u_mm,
         centre: "found".into(),
         estimate: Some(estimate),
         note: None,
     })
+}
+
+/// Write `mm` into the panel's `offset_u_mm` and check the geometry still holds.
+fn set_offset(geometry: &mut Geometry, mm: f64) -> Result<(), ReconError> {
+    match geometry {
+        Geometry::Cone(cone) => {
+            cone.detector.offset_u_mm = mm;
+            cone.to_views()?;
+        }
+        Geometry::Parallel3d(p) => {
+            p.detector.offset_u_mm = mm;
+            p.to_views()?;
+        }
+        _ => {
+            return Err(ReconError::param(
+                "geometry",
+                "the centre of rotation is calibrated for cone-beam and parallel3d scans only",
+            ));
+        }
+    }
+    Ok(())
 }
 
 /// The views of a float32 `.npy` projection file (`[view][v][u]`, little-endian, C order) on disk, read
@@ -210,7 +244,7 @@ impl ViewSource for NpyViews {
 }
 
 /// Whether the view angles cover a full turn (the last view one step short of 2π from the first).
-fn full_turn(angles: &[f64]) -> bool {
+pub(crate) fn full_turn(angles: &[f64]) -> bool {
     let (Some(first), Some(last)) = (angles.first(), angles.last()) else {
         return false;
     };

@@ -1,5 +1,6 @@
 //! The minimal conversion of a scan's views into ctrecon's projections: line integrals
-//! `p = −ln((I − D)/(F − D))` with the scan's dark `D` and flat `F` when it has both, else
+//! `p = −ln((I − D)/(F − D))` with the scan's dark `D` and flat `F` when it has both (the view's own
+//! flat where the view source has one, [`super::ViewSource::view_flat`]), else
 //! `p = −ln(I / white level)` (DESIGN.md §11), the transmission clamped to [`TRANSMISSION_FLOOR`] (clamped
 //! pixels counted), moved by the scanner's alignment of the view where it has one
 //! ([`super::ViewSource::shift`]), oriented into ctrecon's detector order: [`ViewConverter`] one view at a
@@ -73,6 +74,8 @@ pub struct ViewConverter {
     nu: usize,
     normalisation: Normalisation,
     image: Vec<f32>,
+    /// The flat of the view being converted, where the view source has one per view.
+    view_flat: Vec<f32>,
     /// Pixels clamped to [`TRANSMISSION_FLOOR`] so far.
     pub clamped: u64,
     /// Views moved by a non-zero [`super::ViewSource::shift`] so far.
@@ -100,6 +103,7 @@ impl ViewConverter {
             nu,
             normalisation,
             image: vec![0f32; nv * nu],
+            view_flat: Vec::new(),
             clamped: 0,
             shifted_views: 0,
         }
@@ -115,9 +119,20 @@ impl ViewConverter {
     pub fn convert(&mut self, scan: &mut Scan, i: usize, out: &mut [f32]) -> Result<(), ScanError> {
         scan.views.read_view(i, &mut self.image)?;
         let empty: &[f32] = &[];
+        let per_view = matches!(
+            self.normalisation,
+            Normalisation::DarkFlat | Normalisation::Flat
+        ) && {
+            self.view_flat.resize(self.nv * self.nu, 0.0);
+            scan.views.view_flat(i, &mut self.view_flat)
+        };
         let (dark, flat) = (
             scan.dark.as_deref().unwrap_or(empty),
-            scan.flat.as_deref().unwrap_or(empty),
+            if per_view {
+                &self.view_flat[..]
+            } else {
+                scan.flat.as_deref().unwrap_or(empty)
+            },
         );
         let white = match self.normalisation {
             Normalisation::WhiteLevel(w) => w as f32,

@@ -2,15 +2,20 @@
 
 use std::path::{Path, PathBuf};
 
-use super::{Scan, ScanError, bruker, nikon, stack, zeiss};
+use super::{Scan, ScanError, bruker, nikon, nxtomo, stack, zeiss};
 
 /// The extensions of the files a scan is opened from (lower case).
-pub const EXTENSIONS: [&str; 6] = ["xtekct", "log", "txrm", "xrm", "tif", "tiff"];
+pub const EXTENSIONS: [&str; 10] = [
+    "xtekct", "log", "txrm", "xrm", "nx", "nxs", "h5", "hdf5", "tif", "tiff",
+];
 
 /// Whether `path` names a file a scan is opened from, by its extension (any case).
 pub fn is_scan_file(path: &Path) -> bool {
     EXTENSIONS.contains(&extension(path).as_str())
 }
+
+/// The extensions of NeXus (HDF5) files, opened as NXtomo.
+const NEXUS: [&str; 4] = ["nx", "nxs", "h5", "hdf5"];
 
 fn extension(path: &Path) -> String {
     path.extension()
@@ -31,9 +36,9 @@ fn with_extension(dir: &Path, ext: &str) -> Result<Vec<PathBuf>, ScanError> {
     Ok(out)
 }
 
-/// Open a scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.log` (Bruker SkyScan), `.tif`/`.tiff`
-/// (a multi-page stack with `<stem>.json`), or a folder holding one of these, looked for in that order
-/// (else a folder of TIFFs with `geometry.json`). A folder's `.txrm` comes before its `.xrm` files (a
+/// Open a scan: `.xtekct` (Nikon), `.txrm`/`.xrm` (Zeiss Xradia), `.nx`/`.nxs`/`.h5`/`.hdf5` (NeXus
+/// NXtomo), `.log` (Bruker SkyScan), `.tif`/`.tiff` (a multi-page stack with `<stem>.json`), or a folder
+/// holding one of these, looked for in that order (else a folder of TIFFs with `geometry.json`). A folder's `.txrm` comes before its `.xrm` files (a
 /// tomography beside single images such as a separate reference).
 pub fn open(path: &Path) -> Result<Scan, ScanError> {
     if path.is_dir() {
@@ -45,6 +50,11 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
                 return zeiss::open(z);
             }
         }
+        for ext in NEXUS {
+            if let Some(n) = with_extension(path, ext)?.first() {
+                return nxtomo::open(n);
+            }
+        }
         if let Some(l) = with_extension(path, "log")?.first() {
             return bruker::open(l);
         }
@@ -54,6 +64,7 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
         "xtekct" => nikon::open(path),
         "log" => bruker::open(path),
         "txrm" | "xrm" => zeiss::open(path),
+        "nx" | "nxs" | "h5" | "hdf5" => nxtomo::open(path),
         "tif" | "tiff" => stack::open(path),
         _ if !path.exists() => Err(ScanError::NotAScan {
             path: path.to_path_buf(),
@@ -62,8 +73,8 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
         other => Err(ScanError::NotAScan {
             path: path.to_path_buf(),
             why: format!(
-                "unknown extension {other:?} (ctrecon reads .xtekct, Zeiss .txrm/.xrm, SkyScan .log, .tif/.tiff \
-                 or a folder of them)"
+                "unknown extension {other:?} (ctrecon reads .xtekct, Zeiss .txrm/.xrm, NXtomo \
+                 .nx/.nxs/.h5/.hdf5, SkyScan .log, .tif/.tiff or a folder of them)"
             ),
         }),
     }

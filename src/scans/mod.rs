@@ -1,6 +1,6 @@
 //! Measured scans as the scanner wrote them: TIFF stacks (with a ctrecon geometry JSON), Nikon XT H
-//! (`.xtekct`), Bruker SkyScan (`.log`) and Zeiss Xradia (`.txrm`/`.xrm`), read into one
-//! format-independent [`Scan`].
+//! (`.xtekct`), Bruker SkyScan (`.log`), Zeiss Xradia (`.txrm`/`.xrm`) and NeXus NXtomo (HDF5: `.nx`,
+//! `.nxs`, `.h5`, `.hdf5`), read into one format-independent [`Scan`].
 //!
 //! An adapter: it reads files (`std::fs`), never the network, a clock or the environment, and imports no
 //! async runtime, HTTP, database or DICOM crate. The text parsers work on `&str`, the Zeiss compound files
@@ -20,10 +20,12 @@
 
 pub mod bruker;
 pub mod calibrate;
+pub mod calibrate_parallel;
 pub mod convert;
 pub mod detect;
 pub mod ini;
 pub mod nikon;
+pub mod nxtomo;
 pub mod ole;
 pub mod stack;
 pub mod tiff_views;
@@ -60,6 +62,8 @@ pub enum Format {
     BrukerSkyscan,
     /// Zeiss Xradia (Versa, Context, Ultra): one OLE compound file, `.txrm` (or `.xrm`).
     ZeissXradia,
+    /// NeXus NXtomo (the synchrotron standard): one HDF5 file, `.nx`/`.nxs`/`.h5`/`.hdf5`.
+    NxTomo,
 }
 
 impl fmt::Display for Format {
@@ -69,6 +73,7 @@ impl fmt::Display for Format {
             Format::NikonXtek => "nikon_xtek",
             Format::BrukerSkyscan => "bruker_skyscan",
             Format::ZeissXradia => "zeiss_xradia",
+            Format::NxTomo => "nxtomo",
         })
     }
 }
@@ -151,6 +156,12 @@ pub trait ViewSource: Send {
     /// `None` (the default): not moved.
     fn shift(&self, _i: usize) -> Option<[f64; 2]> {
         None
+    }
+    /// The flat (open beam) image of view `i` (as stored, `nv · nu` values) where the scan's flat varies
+    /// from view to view (NXtomo flats taken before and after, interpolated): writes it to `out` and says
+    /// `true`. `false` (the default): the scan's one [`Scan::flat`] applies.
+    fn view_flat(&self, _i: usize, _out: &mut [f32]) -> bool {
+        false
     }
 }
 
