@@ -26,6 +26,7 @@ pub mod detect;
 pub mod ini;
 pub mod nikon;
 pub mod nxtomo;
+pub mod nxtomo_views;
 pub mod ole;
 pub mod stack;
 pub mod tiff_views;

@@ -19,13 +19,12 @@
 //! the flat of a projection is interpolated linearly by frame index between the series before and after it
 //! (the nearest series outside them), DESIGN.md §11.
 
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 use hdf5_pure::{DType, Dataset, File as H5File};
 
-use super::{
-    Format, Intensity, MAX_VIEW_PIXELS, Orientation, Provenance, Scan, ScanError, ViewSource,
-};
+use super::nxtomo_views::NxViews;
+use super::{Format, Intensity, MAX_VIEW_PIXELS, Orientation, Provenance, Scan, ScanError};
 use crate::recon::geometry::angles::MAX_VIEWS;
 use crate::recon::geometry::{Angles, Geometry, Panel, Parallel3d};
 
@@ -34,12 +33,26 @@ pub const MAX_FRAMES: usize = 4 * MAX_VIEWS;
 /// Most flat series kept in memory (each one view of `f32`).
 pub const MAX_FLAT_SERIES: usize = 16;
 
+/// The detector data types read (converted to `f32` frame by frame).
+const NUMERIC: [DType; 10] = [
+    DType::U8,
+    DType::U16,
+    DType::U32,
+    DType::U64,
+    DType::I8,
+    DType::I16,
+    DType::I32,
+    DType::I64,
+    DType::F32,
+    DType::F64,
+];
+
 /// Whether `path` is an HDF5 file with an NXtomo entry.
 pub fn is_nxtomo(path: &Path) -> bool {
     open_file(path).and_then(|f| entry(path, &f)).is_ok()
 }
 
-fn h5_error(file: &Path, key: &str, e: impl std::fmt::Display) -> ScanError {
+pub(super) fn h5_error(file: &Path, key: &str, e: impl std::fmt::Display) -> ScanError {
     ScanError::invalid(file, key, "", format!("unreadable HDF5: {e}"))
 }
 
@@ -100,9 +113,18 @@ impl Reader<'_> {
     }
     fn units(&self, ds: &Dataset) -> Option<String> {
         let attrs = ds.attrs().ok()?;
+        use hdf5_pure::AttrValue as A;
         match attrs.get("units")? {
-            hdf5_pure::AttrValue::String(s) => Some(s.clone()),
-            hdf5_pure::AttrValue::StringArray(v) => v.first().cloned(),
+            A::String(s)
+            | A::AsciiString(s)
+            | A::VarLenString(s)
+            | A::VarLenAsciiString(s)
+            | A::StringSized { value: s, .. }
+            | A::AsciiStringSized { value: s, .. } => Some(s.clone()),
+            A::StringArray(v)
+            | A::AsciiStringArray(v)
+            | A::VarLenStringArray(v)
+            | A::VarLenAsciiStringArray(v) => v.first().cloned(),
             other => Some(format!("{other:?}")),
         }
     }
@@ -190,88 +212,6 @@ fn series(frames: &[usize]) -> Vec<Vec<usize>> {
     out
 }
 
-/// The projections of an NXtomo file, read frame by frame; flats interpolated per view.
-pub struct NxViews {
-    path: PathBuf,
-    key: String,
-    data: Dataset,
-    frames: Vec<usize>,
-    rows: usize,
-    cols: usize,
-    /// Flat series: (mean frame index, mean image).
-    flats: Vec<(f64, Vec<f32>)>,
-}
-
-impl NxViews {
-    fn read_frame(&self, frame: usize, out: &mut [f32]) -> Result<(), ScanError> {
-        let v = self
-            .data
-            .read_f32_rows(frame as u64, 1)
-            .map_err(|e| h5_error(&self.path, &self.key, format!("frame {frame}: {e}")))?;
-        if v.len() != out.len() {
-            return Err(ScanError::mismatch(
-                &self.path,
-                &self.key,
-                format!("frame {frame} has {} values, not {}", v.len(), out.len()),
-            ));
-        }
-        out.copy_from_slice(&v);
-        Ok(())
-    }
-    fn mean(&self, frames: &[usize]) -> Result<Vec<f32>, ScanError> {
-        let mut acc = vec![0f64; self.rows * self.cols];
-        let mut one = vec![0f32; self.rows * self.cols];
-        for &f in frames {
-            self.read_frame(f, &mut one)?;
-            acc.iter_mut()
-                .zip(&one)
-                .for_each(|(a, &v)| *a += f64::from(v));
-        }
-        let n = frames.len().max(1) as f64;
-        Ok(acc.iter().map(|a| (a / n) as f32).collect())
-    }
-}
-
-impl ViewSource for NxViews {
-    fn view_count(&self) -> usize {
-        self.frames.len()
-    }
-    fn shape(&self) -> (usize, usize) {
-        (self.rows, self.cols)
-    }
-    fn read_view(&mut self, i: usize, out: &mut [f32]) -> Result<(), ScanError> {
-        let Some(&frame) = self.frames.get(i) else {
-            return Err(ScanError::NoSuchView {
-                file: self.path.clone(),
-                index: i,
-                count: self.frames.len(),
-            });
-        };
-        self.read_frame(frame, out)
-    }
-    fn view_flat(&self, i: usize, out: &mut [f32]) -> bool {
-        let (Some(&frame), Some(first), Some(last)) =
-            (self.frames.get(i), self.flats.first(), self.flats.last())
-        else {
-            return false;
-        };
-        let at = frame as f64;
-        let after = self.flats.iter().position(|(k, _)| *k >= at);
-        let (a, b, w) = match after {
-            None => (last, last, 0.0),
-            Some(0) => (first, first, 0.0),
-            Some(j) => {
-                let (a, b) = (&self.flats[j - 1], &self.flats[j]);
-                (a, b, ((at - a.0) / (b.0 - a.0)) as f32)
-            }
-        };
-        for ((o, &x), &y) in out.iter_mut().zip(&a.1).zip(&b.1) {
-            *o = x + w * (y - x);
-        }
-        true
-    }
-}
-
 /// Open an NXtomo scan from its HDF5 file (`.nx`, `.nxs`, `.h5`, `.hdf5`).
 pub fn open(path: &Path) -> Result<Scan, ScanError> {
     let file = open_file(path)?;
@@ -289,24 +229,12 @@ pub fn open(path: &Path) -> Result<Scan, ScanError> {
             what: format!("{key} is a virtual dataset (copy it into the file first)"),
         });
     }
-    match data.dtype() {
-        Ok(
-            DType::U8
-            | DType::U16
-            | DType::U32
-            | DType::I8
-            | DType::I16
-            | DType::I32
-            | DType::F32
-            | DType::F64,
-        ) => {}
-        Ok(other) => {
-            return Err(ScanError::Unsupported {
-                file: path.to_path_buf(),
-                what: format!("{key} has type {other:?} (ctrecon reads integers and floats)"),
-            });
-        }
-        Err(err) => return Err(h5_error(path, &key, err)),
+    let dtype = data.dtype().map_err(|err| h5_error(path, &key, err))?;
+    if !NUMERIC.contains(&dtype) {
+        return Err(ScanError::Unsupported {
+            file: path.to_path_buf(),
+            what: format!("{key} has type {dtype:?} (ctrecon reads integers and floats)"),
+        });
     }
     let shape = data.shape().map_err(|err| h5_error(path, &key, err))?;
     let [n, rows, cols] = match shape.as_slice() {
