@@ -92,14 +92,15 @@ if want vtk; then
   .venv-peers/bin/python -c "import vtk; print('vtk', vtk.vtkVersion.GetVTKVersion())"
 fi
 
-# --- scans: Python tifffile, the independent writer of tests/scan_formats.rs's TIFF, Nikon and SkyScan data, and
-# xrmreader, the independent reader of tests/scan_zeiss.rs's Zeiss .txrm files ---------------------------------
+# --- scans: Python tifffile, the independent writer of tests/scan_formats.rs's TIFF, Nikon and SkyScan data,
+# xrmreader, the independent reader of tests/scan_zeiss.rs's Zeiss .txrm files, and nxtomo (h5py), the writer of
+# tests/scan_nxtomo.rs's NeXus NXtomo files ------------------------------------------------------------------
 if want scans; then
   echo "== peer: scans"
   if [ ! -x .venv-scans/bin/python ]; then
     python3 -m venv .venv-scans
   fi
-  if ! .venv-scans/bin/python -c "import tifffile, numpy, olefile, scipy, skimage, six, tqdm" 2>/dev/null \
+  if ! .venv-scans/bin/python -c "import tifffile, numpy, olefile, scipy, skimage, six, tqdm, nxtomo, h5py" 2>/dev/null \
      || ! .venv-scans/bin/python -c "import importlib.metadata as m; m.version('xrmreader')" 2>/dev/null \
      || ! cmp -s tests/peers/requirements-scans.txt .venv-scans/.scans-requirements; then
     .venv-scans/bin/python -m pip install -q --disable-pip-version-check -r tests/peers/requirements-scans.txt
@@ -107,6 +108,7 @@ if want scans; then
   fi
   .venv-scans/bin/python -c "import tifffile; print('tifffile', tifffile.__version__)"
   .venv-scans/bin/python -c "import importlib.metadata as m; print('xrmreader', m.version('xrmreader'))"
+  .venv-scans/bin/python -c "import nxtomo, h5py; print('nxtomo', nxtomo.__version__, 'h5py', h5py.__version__)"
 fi
 
 # --- rtk: itk-rtk, the independent reader and writer of RTK geometry XML in tests/geometry_rtk.rs ------------

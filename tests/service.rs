@@ -36,6 +36,7 @@ mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
 mod scan_formats;
+mod scan_nxtomo;
 mod scan_zeiss;
 mod scans_http;
 #[path = "viewer/main.rs"]
