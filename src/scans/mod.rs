@@ -34,6 +34,8 @@ pub mod xradia_views;
 pub mod zeiss;
 
 #[cfg(test)]
+mod nxtomo_tests;
+#[cfg(test)]
 mod tests;
 
 use std::fmt;
