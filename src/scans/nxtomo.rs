@@ -18,6 +18,10 @@
 //! the mean of every dark frame; flats come in series (runs of consecutive flat frames), each averaged, and
 //! the flat of a projection is interpolated linearly by frame index between the series before and after it
 //! (the nearest series outside them), DESIGN.md §11.
+//!
+//! The centre of rotation is not read from the file (no key of it is taken, e.g. nxtomo's
+//! `x_rotation_axis_pixel_position`): the panel's `offset_u_mm` is 0 and the import finds it from the views
+//! (`scans::calibrate_parallel`). The mapping is tested by an off-centre point (`nxtomo_tests`).
 
 use std::path::Path;
 
