@@ -25,6 +25,7 @@ pub mod detect;
 pub mod ini;
 pub mod nikon;
 pub mod ole;
+pub mod simulated;
 pub mod stack;
 pub mod tiff_views;
 pub mod xradia_views;
