@@ -36,7 +36,9 @@ mod node_tables;
 #[path = "orientation/main.rs"]
 mod orientation;
 mod scan_formats;
+mod scan_simulated;
 mod scan_zeiss;
 mod scans_http;
+mod scans_prep;
 #[path = "viewer/main.rs"]
 mod viewer;

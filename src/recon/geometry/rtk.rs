@@ -348,13 +348,11 @@ pub fn parse_rtk_xml(text: &str) -> Result<Vec<RtkProjection>, GeometryError> {
                     }
                 }
             }
-            Event::Text(t) => {
-                if element.is_some() {
-                    let t = t
-                        .decode()
-                        .map_err(|e| invalid(format!("not well-formed XML: {e}")))?;
-                    value.push_str(&t);
-                }
+            Event::Text(t) if element.is_some() => {
+                let t = t
+                    .decode()
+                    .map_err(|e| invalid(format!("not well-formed XML: {e}")))?;
+                value.push_str(&t);
             }
             Event::End(e) => {
                 let name = String::from_utf8_lossy(e.name().as_ref()).into_owned();
@@ -367,10 +365,10 @@ pub fn parse_rtk_xml(text: &str) -> Result<Vec<RtkProjection>, GeometryError> {
                         Some(f) => f.set(&el, &value, &at)?,
                         None => globals.set(&el, &value, &at)?,
                     }
-                } else if name == "Projection" {
-                    if let Some(f) = current.take() {
-                        out.push(f.projection(out.len())?);
-                    }
+                } else if name == "Projection"
+                    && let Some(f) = current.take()
+                {
+                    out.push(f.projection(out.len())?);
                 }
             }
             Event::Empty(e) => {
