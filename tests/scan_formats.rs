@@ -375,6 +375,7 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
             output: out.clone(),
             png: None,
             centre: centre.into(),
+            preprocessing: None,
             slice: None,
             ww: None,
             wl: None,

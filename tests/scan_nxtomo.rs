@@ -389,6 +389,7 @@ fn fbp_of_a_simulated_nxtomo_puts_an_off_centre_ball_where_it_was() {
         output: out.clone(),
         png: None,
         centre: "auto".into(),
+        preprocessing: None,
         slice: None,
         ww: None,
         wl: None,

@@ -741,6 +741,7 @@ fn fdk_of_a_simulated_zeiss_scan_puts_an_off_centre_ball_where_it_was() {
         output: out.clone(),
         png: None,
         centre: "auto".into(),
+        preprocessing: None,
         slice: None,
         ww: None,
         wl: None,

@@ -37,7 +37,9 @@ mod node_tables;
 mod orientation;
 mod scan_formats;
 mod scan_nxtomo;
+mod scan_simulated;
 mod scan_zeiss;
 mod scans_http;
+mod scans_prep;
 #[path = "viewer/main.rs"]
 mod viewer;

@@ -18,6 +18,7 @@ use crate::dicom::{Unpacked, UploadFile, ZipLimits, is_zip, unpack_file};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::{ScanRecord, ScanValue};
 use crate::recon::geometry::Geometry;
+use crate::recon::prep::PrepPlan;
 use crate::scans::calibrate::{CentrePolicy, NpyViews, calibrate};
 use crate::scans::{
     Normalisation, Scan, ScanError, TRANSMISSION_FLOOR, ViewConverter, convert::Normalisation as N,
@@ -182,6 +183,7 @@ impl App {
         &self,
         files: Vec<ReceivedFile>,
         centre: CentrePolicy,
+        plan: PrepPlan,
     ) -> Result<ImportedScan, Problem> {
         let store = self.store.clone();
         let s = &self.settings;
@@ -193,7 +195,7 @@ impl App {
         };
         let max_values = super::limits::max_array_values(s).min(s.max_upload_bytes / 4);
         self.engine
-            .compute(move || import(&store, files, &limits, max_values, centre))
+            .compute(move || import(&store, files, &limits, max_values, centre, &plan))
             .await
     }
 }
@@ -205,6 +207,7 @@ pub fn import(
     limits: &ZipLimits,
     max_values: u64,
     centre: CentrePolicy,
+    plan: &PrepPlan,
 ) -> Result<ImportedScan, Problem> {
     let internal = |e: std::io::Error| {
         tracing::error!(error = %e, "importing a scan failed");
@@ -247,17 +250,28 @@ pub fn import(
             "the geometry expects projections {expected:?}, the images are {shape:?}"
         )));
     }
+    let asked = |e: crate::recon::ReconError| {
+        Problem::new(ErrorCode::InvalidParameter, format!("preprocessing: {e}"))
+    };
+    plan.check(n, nv, nu).map_err(asked)?;
+    let kept = plan.kept_views(n).map_err(asked)?;
+    let (pv, pu) = plan.view_shape(nv, nu).map_err(asked)?;
+    let scan_geometry = plan.geometry(&scan.geometry).map_err(asked)?;
+    let shape = vec![kept.len(), pv, pu];
     let temp = store.temp();
-    let (bytes, sha256, counts, normalisation) = write_views(&mut scan, temp.path(), &shape)
-        .map_err(|e| match e {
-            Written::Scan(e) => scan_problem(&e, &folder),
-            Written::Io(e) => internal(e),
-        })?;
+    let (bytes, sha256, counts, normalisation) =
+        write_views(&mut scan, temp.path(), &kept, [nv, nu], &shape, plan).map_err(
+            |e| match e {
+                Written::Scan(e) => scan_problem(&e, &folder),
+                Written::Io(e) => internal(e),
+                Written::Prep(e) => asked(e),
+            },
+        )?;
     // The centre of rotation, from the views just written (read back one at a time where needed).
     let views = std::fs::File::open(temp.path()).map_err(internal)?;
     let header = crate::storage::npy::f32_header(&shape).len() as u64;
     let source = NpyViews::new(views, header, [shape[0], shape[1], shape[2]]);
-    let mut geometry = scan.geometry.clone();
+    let mut geometry = scan_geometry;
     let calibration = calibrate(&mut geometry, &source, &scan.provenance, centre)
         .map_err(|e| invalid(format!("calibrating the centre of rotation: {e}")))?;
     let record = ScanRecord {
@@ -285,6 +299,7 @@ pub fn import(
         ]
         .into_iter()
         .flatten()
+        .chain(plan.steps(n, kept.len()))
         .collect(),
         calibration: Some(calibration),
     };
@@ -301,6 +316,7 @@ pub fn import(
 enum Written {
     Scan(ScanError),
     Io(std::io::Error),
+    Prep(crate::recon::ReconError),
 }
 
 /// Pixels clamped and views moved by the scanner's alignment while converting.
@@ -309,45 +325,136 @@ struct Counts {
     shifted_views: u64,
 }
 
-/// Stream `scan`'s views as a float32 `.npy` of `shape` to `path` (synced); answers its size, SHA-256, the
-/// clamped pixels and shifted views, and the normalisation used.
+/// Stream the `kept` views of `scan` (`nv × nu` each), converted and put through `plan`, as a float32
+/// `.npy` of `shape` to `path` (synced); then the plan's stripe pass, a block of detector rows at a time.
+/// Answers the file's size, SHA-256, the clamped pixels and shifted views, and the normalisation used.
 fn write_views(
     scan: &mut Scan,
     path: &Path,
+    kept: &[usize],
+    [nv, nu]: [usize; 2],
     shape: &[usize],
+    plan: &PrepPlan,
 ) -> Result<(u64, String, Counts, Normalisation), Written> {
     let io = Written::Io;
-    let file = std::fs::File::create(path).map_err(io)?;
+    // Read and write: the stripe pass reads the views back.
+    let file = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .create(true)
+        .truncate(true)
+        .open(path)
+        .map_err(io)?;
     let mut out = std::io::BufWriter::with_capacity(64 << 10, file);
-    let mut hash = Sha256::new();
     let header = crate::storage::npy::f32_header(shape);
-    hash.update(&header);
     out.write_all(&header).map_err(io)?;
-    let mut written = header.len() as u64;
     let mut conv = ViewConverter::new(scan);
-    let mut view = vec![0f32; shape[1] * shape[2]];
+    let mut view = vec![0f32; nv * nu];
     let mut bytes = Vec::with_capacity(64 << 10);
-    for i in 0..shape[0] {
+    for &i in kept {
         conv.convert(scan, i, &mut view).map_err(Written::Scan)?;
-        for chunk in view.chunks(16 << 10) {
+        let raw = ndarray::ArrayView2::from_shape((nv, nu), &view)
+            .map_err(|e| Written::Io(std::io::Error::other(e)))?;
+        let done = if plan.is_empty() {
+            None
+        } else {
+            Some(plan.apply_view(raw).map_err(Written::Prep)?)
+        };
+        let values: Vec<f32>;
+        let slice: &[f32] = match &done {
+            None => &view,
+            Some(a) => match a.as_slice() {
+                Some(s) => s,
+                None => {
+                    values = a.iter().copied().collect();
+                    &values
+                }
+            },
+        };
+        for chunk in slice.chunks(16 << 10) {
             bytes.clear();
             for v in chunk {
                 bytes.extend_from_slice(&v.to_le_bytes());
             }
-            hash.update(&bytes);
             out.write_all(&bytes).map_err(io)?;
-            written += bytes.len() as u64;
         }
     }
     let file = out.into_inner().map_err(|e| Written::Io(e.into_error()))?;
+    if plan.stripes.is_some() {
+        stripe_pass(&file, header.len() as u64, shape, plan)?;
+    }
     file.sync_all().map_err(io)?;
+    drop(file);
+    let (written, sha256) = hash_file(path).map_err(io)?;
     Ok((
         written,
-        hex(&hash.finalize()),
+        sha256,
         Counts {
             clamped: conv.clamped,
             shifted_views: conv.shifted_views,
         },
         conv.normalisation(),
     ))
+}
+
+/// The plan's stripe suppression on the float32 `[view][v][u]` values after `header` bytes of `file`, in
+/// place: blocks of detector rows of every view ([`PrepPlan::stripe_rows`]), read, filtered and written
+/// back.
+fn stripe_pass(
+    file: &std::fs::File,
+    header: u64,
+    shape: &[usize],
+    plan: &PrepPlan,
+) -> Result<(), Written> {
+    use std::os::unix::fs::FileExt;
+    let [n, nv, nu] = [shape[0], shape[1], shape[2]];
+    let rows = PrepPlan::stripe_rows(n, nu).min(nv);
+    let mut bytes = Vec::new();
+    let mut v0 = 0;
+    while v0 < nv {
+        let r = rows.min(nv - v0);
+        let mut block = ndarray::Array3::<f32>::zeros((n, r, nu));
+        bytes.resize(r * nu * 4, 0);
+        for k in 0..n {
+            let at = header + ((k * nv + v0) * nu * 4) as u64;
+            file.read_exact_at(&mut bytes, at).map_err(Written::Io)?;
+            for (d, b) in block
+                .index_axis_mut(ndarray::Axis(0), k)
+                .iter_mut()
+                .zip(bytes.chunks_exact(4))
+            {
+                *d = f32::from_le_bytes([b[0], b[1], b[2], b[3]]);
+            }
+        }
+        plan.apply_stripes(block.view_mut())
+            .map_err(Written::Prep)?;
+        for k in 0..n {
+            bytes.clear();
+            for v in block.index_axis(ndarray::Axis(0), k) {
+                bytes.extend_from_slice(&v.to_le_bytes());
+            }
+            let at = header + ((k * nv + v0) * nu * 4) as u64;
+            file.write_all_at(&bytes, at).map_err(Written::Io)?;
+        }
+        v0 += r;
+    }
+    Ok(())
+}
+
+/// Size and SHA-256 (hex) of a file, read in 1 MiB pieces.
+fn hash_file(path: &Path) -> std::io::Result<(u64, String)> {
+    use std::io::Read;
+    let mut f = std::fs::File::open(path)?;
+    let mut hash = Sha256::new();
+    let mut buf = vec![0u8; 1 << 20];
+    let mut total = 0u64;
+    loop {
+        let got = f.read(&mut buf)?;
+        if got == 0 {
+            break;
+        }
+        hash.update(&buf[..got]);
+        total += got as u64;
+    }
+    Ok((total, hex(&hash.finalize())))
 }

@@ -1,13 +1,16 @@
 //! `ctrecon phantom`: write an analytic phantom, or its exact projections, as float32 `.npy`. The
 //! projections are admitted and computed as `POST /v1/simulations` does them (`app::local`).
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+use ndarray::{ArrayD, Ix3};
 
 use clap::ValueEnum;
 
 use super::files::{CliResult, read_geometry, sidecar, write_geometry, write_npy};
 use crate::app::local::{Local, Raster};
 use crate::jobs::model::NoiseSpec;
+use crate::recon::geometry::Geometry;
 use crate::recon::phantom::{PhantomSpec, TableName};
 
 /// Built-in phantom tables.
@@ -60,7 +63,12 @@ pub struct PhantomArgs {
     /// Seed of the noise generator.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Output `.npy`; projections also get a geometry sidecar `<out>.json`.
+    /// Shift the rotation axis this many detector columns off the panel's centre (projections; with a
+    /// `.xtekct` output the shift is not written into the file, so that the import has to find it).
+    #[arg(long, allow_hyphen_values = true)]
+    pub axis_offset_px: Option<f64>,
+    /// Output `.npy` (projections also get a geometry sidecar `<out>.json`), or `<name>.xtekct`: the
+    /// projections as a Nikon XT H scanner writes a scan (the `.xtekct` and 16-bit TIFFs beside it).
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -83,12 +91,21 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
     let local = Local::default();
     let out = match &args.geometry {
         Some(path) => {
-            let geometry = read_geometry(path)?;
+            let mut geometry = read_geometry(path)?;
+            if let Some(px) = args.axis_offset_px {
+                let Geometry::Cone(cone) = &mut geometry else {
+                    return Err("--axis-offset-px shifts a cone beam's panel".into());
+                };
+                cone.detector.offset_u_mm += px * cone.detector.du_mm;
+            }
             let noise = args.photons.map(|incident_photons| NoiseSpec {
                 incident_photons,
                 seed: args.seed,
             });
             let data = super::on_pool(|| local.simulate(spec, geometry.clone(), noise))?;
+            if is_xtekct(&args.out) {
+                return write_scan(&args.out, &geometry, &data, args.axis_offset_px);
+            }
             write_geometry(&sidecar(&args.out), &geometry)?;
             data
         }
@@ -101,7 +118,46 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
             },
         )?,
     };
+    if is_xtekct(&args.out) {
+        return Err("a .xtekct output holds projections: give --geometry (a cone beam)".into());
+    }
     write_npy(&args.out, &out)?;
     eprintln!("wrote {} {:?}", args.out.display(), out.shape());
+    Ok(())
+}
+
+fn is_xtekct(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("xtekct"))
+}
+
+/// The projections as a Nikon XT H scan, with the axis shift left out of the file.
+fn write_scan(
+    out: &Path,
+    geometry: &Geometry,
+    data: &ArrayD<f32>,
+    axis_offset_px: Option<f64>,
+) -> CliResult<()> {
+    let projections = data
+        .view()
+        .into_dimensionality::<Ix3>()
+        .map_err(|e| format!("projections are [view][v][u]: {e}"))?;
+    let mut written = geometry.clone();
+    if let (Geometry::Cone(cone), Some(px)) = (&mut written, axis_offset_px) {
+        cone.detector.offset_u_mm -= px * cone.detector.du_mm;
+    }
+    let w = crate::scans::simulated::write_nikon(out, &written, projections)?;
+    eprintln!(
+        "wrote {} and {} TIFFs beside it (a simulated Nikon XT H scan{}; {} pixels clipped to 16 bits)",
+        w.xtekct.display(),
+        w.tiffs,
+        match axis_offset_px {
+            Some(px) => format!(
+                ", the rotation axis {px} columns off the panel's centre, not written in the file"
+            ),
+            None => String::new(),
+        },
+        w.clipped
+    );
     Ok(())
 }

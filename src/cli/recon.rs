@@ -16,6 +16,7 @@ use crate::app::local::{DEFAULT_BUDGET_BYTES, Local, Reconstruction};
 use crate::recon::algorithm::{AlgorithmSpec, OutputGrid, Window};
 use crate::recon::control::Cancel;
 use crate::recon::geometry::Geometry;
+use crate::recon::prep::PrepPlan;
 use crate::scans::calibrate::{CentrePolicy, calibrate};
 use crate::scans::{self, Scan};
 
@@ -87,6 +88,11 @@ pub struct ReconArgs {
     /// calibrated centre), `find`, `read` (as the metadata gives it), or a detector u offset in mm.
     #[arg(long, default_value = "auto")]
     pub centre: String,
+    /// Preprocessing steps on the projections (`[view][v][u]`, a cone beam), as JSON with any of
+    /// `angles` (`{"start", "step", "count"}`), `crop` (`{"u0", "v0", "nu", "nv"}`), `bin` (`{"u", "v"}`),
+    /// `linearise` (`{"coefficients": [a0, a1, …]}`), `stripes` (`{"size": 21}`), applied in that order.
+    #[arg(long)]
+    pub preprocessing: Option<String>,
     /// Axial slice of a volume for the PNG (default: the middle one).
     #[arg(long)]
     pub slice: Option<usize>,
@@ -157,6 +163,30 @@ fn open_scan(input: &Path) -> CliResult<Scan> {
 }
 
 /// The projections of a scan as line integrals (the minimal conversion of `scans::convert`).
+/// `data` (`[view][v][u]`) put through `plan`: the kept views cropped, binned and linearised, then the
+/// stripe filter on every detector row's sinogram.
+fn preprocess(data: ArrayD<f32>, plan: &PrepPlan) -> CliResult<ArrayD<f32>> {
+    let data = data
+        .into_dimensionality::<Ix3>()
+        .map_err(|_| "--preprocessing works on projections [view][v][u]")?;
+    let (n, nv, nu) = data.dim();
+    let bad = |e: crate::recon::ReconError| format!("--preprocessing: {e}");
+    plan.check(n, nv, nu).map_err(bad)?;
+    let kept = plan.kept_views(n).map_err(bad)?;
+    let (pv, pu) = plan.view_shape(nv, nu).map_err(bad)?;
+    let mut out = ndarray::Array3::<f32>::zeros((kept.len(), pv, pu));
+    for (o, &k) in kept.iter().enumerate() {
+        let view = plan.apply_view(data.index_axis(Axis(0), k)).map_err(bad)?;
+        out.index_axis_mut(Axis(0), o).assign(&view);
+    }
+    plan.apply_stripes(out.view_mut()).map_err(bad)?;
+    eprintln!(
+        "preprocessing: {}",
+        serde_json::Value::Array(plan.steps(n, kept.len()))
+    );
+    Ok(out.into_dyn())
+}
+
 fn scan_data(scan: &mut Scan, max_bytes: u64) -> CliResult<ArrayD<f32>> {
     let li = scans::line_integrals(scan, max_bytes)?;
     eprintln!(
@@ -198,6 +228,15 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
         (None, Some(scan)) => scan.geometry.clone(),
         (None, None) => read_geometry(&sidecar(&args.input))?,
     };
+    let plan: PrepPlan = match &args.preprocessing {
+        Some(text) => serde_json::from_str(text).map_err(|e| format!("--preprocessing: {e}"))?,
+        None => PrepPlan::default(),
+    };
+    if !plan.is_empty() {
+        geometry = plan
+            .geometry(&geometry)
+            .map_err(|e| format!("--preprocessing: {e}"))?;
+    }
     let policy = centre_policy(&args)?;
     let local = Local::new(args.max_bytes);
     let grid = output_grid(&args, &local, &geometry)?;
@@ -211,6 +250,11 @@ pub fn run(args: ReconArgs) -> CliResult<()> {
     let data = match &mut scan {
         Some(scan) => scan_data(scan, args.max_bytes)?,
         None => read_npy(&args.input)?,
+    };
+    let data = if plan.is_empty() {
+        data
+    } else {
+        preprocess(data, &plan)?
     };
     if let Some(scan) = &scan {
         let projections = data

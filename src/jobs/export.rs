@@ -119,12 +119,15 @@ pub fn export_job(
             .local(&store.result_path(job, &ResultName::Volume))
             .and_then(std::fs::read)
             .map_err(io_problem)?;
-        let m = meta(
-            source,
-            "volume",
-            format!("ctrecon volume job {job}: the processed volume"),
-            900,
-        );
+        let processed = format!("ctrecon volume job {job}: the processed volume");
+        let derivation = match &result.derivation {
+            Some(d) => format!("{d}; {processed}")
+                .chars()
+                .take(crate::jobs::model::MAX_DERIVATION_CHARS)
+                .collect(),
+            None => processed,
+        };
+        let m = meta(source, "volume", derivation, 900);
         let data = to_hu(decode_stack(&bytes)?, &ctx);
         let series = write_ct_series(
             &Volume {

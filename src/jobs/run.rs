@@ -6,7 +6,7 @@ use sha2::{Digest, Sha256};
 
 use super::model::{
     Dataset, FileInfo, ImageConvention, Job, JobRequest, JobResult, Quality, SimulationRequest,
-    VolumeUnits,
+    VolumeUnits, scan_derivation,
 };
 use super::plan::recon_problem;
 use super::quality::quality;
@@ -178,6 +178,10 @@ pub fn execute(
     };
     let mut result = write_volume(store, job, vol.view(), &req.grid, metrics)?;
     result.frame = frame;
+    result.derivation = dataset
+        .scan
+        .as_ref()
+        .map(|scan| scan_derivation(req.algorithm.name(), scan));
     ctl.step("done", 1.0);
     Ok(result)
 }
@@ -225,5 +229,6 @@ fn write_volume(
         source_series: None,
         products: Vec::new(),
         warnings: Vec::new(),
+        derivation: None,
     })
 }

@@ -28,6 +28,7 @@ pub mod nikon;
 pub mod nxtomo;
 pub mod nxtomo_views;
 pub mod ole;
+pub mod simulated;
 pub mod stack;
 pub mod tiff_views;
 pub mod xradia_views;

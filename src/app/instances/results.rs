@@ -176,9 +176,10 @@ impl App {
             .collect(),
             series_number: DERIVED_SERIES_NUMBER,
             source_series_uid: source.as_ref().map(|s| s.series_uid.clone()),
-            derivation_description: Some(
-                "Volume reconstructed by ctrecon from the referenced series".into(),
-            ),
+            derivation_description: Some(match (&source, &result.derivation) {
+                (None, Some(d)) => d.clone(),
+                _ => "Volume reconstructed by ctrecon from the referenced series".into(),
+            }),
         };
         let (store, mu_water) = (self.store.clone(), self.settings.mu_water_per_mm);
         let volume_path = store.result_path(id, &ResultName::Volume);

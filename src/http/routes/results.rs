@@ -108,6 +108,7 @@ async fn render_context(st: &AppState, r: &JobResult) -> ApiResult<RenderContext
         None => SeriesMeta {
             series_description: "ctrecon reconstruction".into(),
             series_number: 900,
+            derivation_description: r.derivation.clone(),
             ..SeriesMeta::default()
         },
     };

@@ -18,6 +18,7 @@ use crate::app::uploads::ReceivedFile;
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::model::now_us;
 use crate::jobs::{Dataset, DatasetKind, IdempotencyKey};
+use crate::recon::prep::PrepPlan;
 use crate::scans::calibrate::CentrePolicy;
 use crate::storage::DatasetId;
 use crate::storage::npy::hex;
@@ -34,6 +35,27 @@ pub struct ScanQuery {
     pub centre: Option<String>,
 }
 
+/// The preprocessing steps asked for in `X-Ctrecon-Preprocessing` (JSON; none when absent).
+fn preprocessing(headers: &axum::http::HeaderMap) -> ApiResult<PrepPlan> {
+    let Some(value) = headers.get("x-ctrecon-preprocessing") else {
+        return Ok(PrepPlan::default());
+    };
+    let text = value.to_str().map_err(|_| {
+        api_error(
+            ErrorCode::InvalidParameter,
+            "X-Ctrecon-Preprocessing: not visible ASCII",
+        )
+    })?;
+    serde_json::from_str(text).map_err(|e| {
+        api_error(
+            ErrorCode::InvalidParameter,
+            format!(
+                "X-Ctrecon-Preprocessing: {e} (a JSON object with any of angles, crop, bin, linearise, stripes)"
+            ),
+        )
+    })
+}
+
 pub async fn post_scan(
     State(st): State<AppState>,
     ApiQuery(q): ApiQuery<ScanQuery>,
@@ -48,6 +70,7 @@ pub async fn post_scan(
             )
         })?,
     };
+    let plan = preprocessing(req.headers())?;
     check_length(&st, req.headers())?;
     let key = idempotency_key(req.headers())?;
     let media = media_type(req.headers());
@@ -107,6 +130,7 @@ pub async fn post_scan(
             h.update(f.file.sha256);
         }
         h.update(q.centre.as_deref().unwrap_or("auto").as_bytes());
+        h.update(serde_json::to_string(&plan).unwrap_or_default().as_bytes());
         IdempotencyKey {
             route: ROUTE_SCANS,
             key,
@@ -125,7 +149,7 @@ pub async fn post_scan(
             temp: f.file.temp,
         })
         .collect();
-    let imported = st.import_scan(received, centre).await?;
+    let imported = st.import_scan(received, centre, plan).await?;
     let d = Dataset {
         id: DatasetId::generate(),
         kind: DatasetKind::Scan,

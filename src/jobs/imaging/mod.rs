@@ -38,6 +38,8 @@ pub struct VolumeInput {
     pub units: VolumeUnits,
     pub source_series: Option<SeriesId>,
     pub warnings: Vec<Notice>,
+    /// How the input volume was derived when it is not a DICOM series (a reconstruction of a scan).
+    pub derivation: Option<String>,
 }
 
 /// Find the volume a job reads: a stored series, or the volume of a succeeded job.
@@ -64,6 +66,7 @@ pub async fn resolve_input(
             units: VolumeUnits::Hu,
             source_series: Some(sid),
             warnings: r.warnings,
+            derivation: None,
         });
     }
     let Ok(jid) = JobId::parse(&text) else {
@@ -88,6 +91,7 @@ pub async fn resolve_input(
                 units: r.units,
                 source_series: r.source_series,
                 warnings: Vec::new(),
+                derivation: r.derivation,
             }),
             (status, _) => Err(Problem::new(
                 ErrorCode::JobNotSucceeded,
@@ -214,6 +218,7 @@ pub fn execute_volume(
         units: input.units,
         frame: Some(vol.frame),
         source_series: input.source_series,
+        derivation: input.derivation.clone(),
         products,
         // An isotropic resample makes the grid orthogonal: warnings about the input grid no longer apply.
         warnings: input

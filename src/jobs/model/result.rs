@@ -81,6 +81,44 @@ pub struct JobResult {
     pub products: Vec<ProductResult>,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub warnings: Vec<Notice>,
+    /// How the volume was derived from data that is not a DICOM series (a scan: its format, the
+    /// preprocessing steps and the centre of rotation), as written to DICOM DerivationDescription.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub derivation: Option<String>,
+}
+
+/// Most characters DICOM DerivationDescription (ST) holds.
+pub const MAX_DERIVATION_CHARS: usize = 1024;
+
+/// The DerivationDescription of a reconstruction by `algorithm` from an imported scan: the format, every
+/// preprocessing step with its parameters, and the centre of rotation used.
+pub fn scan_derivation(algorithm: &str, scan: &super::ScanRecord) -> String {
+    let step = |v: &serde_json::Value| -> String {
+        let Some(obj) = v.as_object() else {
+            return v.to_string();
+        };
+        let name = obj.get("step").and_then(|s| s.as_str()).unwrap_or("step");
+        let params: Vec<String> = obj
+            .iter()
+            .filter(|(k, _)| k.as_str() != "step")
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect();
+        format!("{name}({})", params.join(", "))
+    };
+    let steps: Vec<String> = scan.preprocessing.iter().map(step).collect();
+    let centre = match &scan.calibration {
+        Some(c) => format!(
+            "; centre of rotation {} ({:.4} mm)",
+            c.centre, c.offset_u_mm
+        ),
+        None => String::new(),
+    };
+    let text = format!(
+        "ctrecon {algorithm} of a {} scan: {}{centre}",
+        scan.format,
+        steps.join(" > ")
+    );
+    text.chars().take(MAX_DERIVATION_CHARS).collect()
 }
 
 impl JobResult {

@@ -11,6 +11,7 @@
 //! - [`reshape`]: binning, cropping (with the panel they imply) and angle subsets.
 //! - [`stripes`]: ring suppression in the sinogram (Vo's sorting-based filter).
 //! - [`hardening`]: beam-hardening linearisation by a polynomial.
+//! - [`plan`]: the optional steps a user asks for, as one value applied and recorded in one order.
 //! - [`centre`]: the detector u offset (centre of rotation) and in-plane tilt, from opposite views of a
 //!   full turn; [`conjugate`]: the u offset of any scan of at least π + fan angle from the consistency of
 //!   conjugate rays in the mid-plane.
@@ -28,6 +29,7 @@ pub mod conjugate;
 pub mod hardening;
 pub mod normalise;
 pub mod pixels;
+pub mod plan;
 pub mod reshape;
 pub mod stripes;
 pub mod views;
@@ -39,12 +41,15 @@ pub use conjugate::{ConjugateOptions, find_centre_conjugate};
 pub use hardening::Linearise;
 pub use normalise::{FlatField, Normalise, average_frames};
 pub use pixels::{RepairPixels, find_outliers, repair_pixels};
+pub use plan::PrepPlan;
 pub use reshape::{AngleSubset, Bin, Crop};
 pub use stripes::SortingStripeFilter;
 pub use views::{ViewSource, roll_views};
 
 #[cfg(test)]
 mod centre_tests;
+#[cfg(test)]
+mod plan_tests;
 #[cfg(test)]
 mod scan_tests;
 #[cfg(test)]

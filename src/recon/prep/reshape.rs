@@ -107,7 +107,8 @@ pub struct Crop {
 }
 
 impl Crop {
-    fn check(&self, nv: usize, nu: usize) -> Result<(), ReconError> {
+    /// Refuse an empty window or one beyond the panel `nv × nu`.
+    pub fn check(&self, nv: usize, nu: usize) -> Result<(), ReconError> {
         if self.nu == 0 || self.nv == 0 {
             return Err(ReconError::param("crop", "the window must not be empty"));
         }

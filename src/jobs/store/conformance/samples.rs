@@ -39,6 +39,7 @@ pub fn sample_result() -> JobResult {
         source_series: None,
         products: Vec::new(),
         warnings: Vec::new(),
+        derivation: None,
     }
 }
 
