@@ -74,8 +74,24 @@ fn open_file(path: &Path) -> Result<H5File, ScanError> {
     H5File::open_streaming(path).map_err(|e| h5_error(path, "/", e))
 }
 
+/// Most elements a dataset read as a scalar may declare: checked before it is read, so that a hostile file
+/// cannot make a scalar read allocate without bound.
+const MAX_SCALAR_ELEMENTS: u64 = 16;
+
+/// Whether `ds` declares at most [`MAX_SCALAR_ELEMENTS`] elements.
+fn small(ds: &Dataset) -> bool {
+    ds.shape().is_ok_and(|s| {
+        s.iter()
+            .try_fold(1u64, |a, &d| a.checked_mul(d))
+            .is_some_and(|n| n <= MAX_SCALAR_ELEMENTS)
+    })
+}
+
 /// Text of a scalar string dataset (fixed or variable length).
 fn text(ds: &Dataset) -> Option<String> {
+    if !small(ds) {
+        return None;
+    }
     if let Ok(v) = ds.read_string() {
         return v.into_iter().next();
     }
@@ -150,6 +166,16 @@ impl Reader<'_> {
         let Ok(ds) = self.file.dataset(key) else {
             return Ok(None);
         };
+        if !small(&ds) {
+            return Err(ScanError::invalid(
+                self.path,
+                key,
+                "",
+                format!(
+                    "a length, but the dataset declares more than {MAX_SCALAR_ELEMENTS} values"
+                ),
+            ));
+        }
         let v = ds.read_f64().map_err(|e| h5_error(self.path, key, e))?;
         let Some(&x) = v.first() else {
             return Err(ScanError::invalid(self.path, key, "", "empty"));
