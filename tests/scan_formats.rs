@@ -36,6 +36,38 @@ pub(crate) fn python() -> Option<PathBuf> {
     found
 }
 
+/// `ctrecon recon --input <input> --algorithm <algorithm> --size 40 --pixel-mm 0.1 --centre <centre>`, run
+/// in-process; the volume it wrote to `output`.
+pub(crate) fn recon_40(
+    input: &Path,
+    algorithm: &str,
+    centre: &str,
+    output: &Path,
+) -> ndarray::Array3<f32> {
+    let args = ctrecon::cli::recon::ReconArgs {
+        input: input.to_path_buf(),
+        geometry: None,
+        algorithm: algorithm.into(),
+        filter: None,
+        cutoff: None,
+        params: None,
+        size: 40,
+        pixel_mm: 0.1,
+        grid: None,
+        max_bytes: 1 << 30,
+        output: output.to_path_buf(),
+        png: None,
+        centre: centre.into(),
+        preprocessing: None,
+        slice: None,
+        ww: None,
+        wl: None,
+    };
+    ctrecon::cli::recon::run(args)
+        .unwrap_or_else(|e| panic!("ctrecon recon --input {}: {e}", input.display()));
+    ndarray_npy::read_npy(output).expect("read the volume")
+}
+
 /// Writes TIFFs as the jobs on stdin say; view `i` holds `(i·7919 + r·131 + c·17 + base) mod modulo`, times
 /// `scale`, in the job's dtype and byte order.
 const WRITER: &str = r#"
@@ -361,27 +393,7 @@ fn fdk_of_a_simulated_nikon_scan_puts_an_off_centre_ball_where_it_was() {
     // The .xtekct states no calibrated centre, so the centre is found from the views (the default).
     let recon = |centre: &str| -> ndarray::Array3<f32> {
         let out = dir.path().join(format!("v-{centre}.npy"));
-        let args = ctrecon::cli::recon::ReconArgs {
-            input: xfile.clone(),
-            geometry: None,
-            algorithm: "fdk".into(),
-            filter: None,
-            cutoff: None,
-            params: None,
-            size: 40,
-            pixel_mm: 0.1,
-            grid: None,
-            max_bytes: 1 << 30,
-            output: out.clone(),
-            png: None,
-            centre: centre.into(),
-            preprocessing: None,
-            slice: None,
-            ww: None,
-            wl: None,
-        };
-        ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.xtekct");
-        ndarray_npy::read_npy(&out).expect("read v.npy")
+        recon_40(&xfile, "fdk", centre, &out)
     };
     let rms = |a: &ndarray::Array3<f32>, b: &ndarray::Array3<f32>| {
         let s: f64 = a.iter().zip(b).map(|(x, y)| f64::from(x - y).powi(2)).sum();

@@ -375,27 +375,7 @@ fn fbp_of_a_simulated_nxtomo_puts_an_off_centre_ball_where_it_was() {
     write(&py, &ball_job(&file));
     // `ctrecon recon --input scan.nx --algorithm fbp --size 40 --pixel-mm 0.1`: the centre found.
     let out = dir.path().join("v.npy");
-    let args = ctrecon::cli::recon::ReconArgs {
-        input: file.clone(),
-        geometry: None,
-        algorithm: "fbp".into(),
-        filter: None,
-        cutoff: None,
-        params: None,
-        size: 40,
-        pixel_mm: 0.1,
-        grid: None,
-        max_bytes: 1 << 30,
-        output: out.clone(),
-        png: None,
-        centre: "auto".into(),
-        preprocessing: None,
-        slice: None,
-        ww: None,
-        wl: None,
-    };
-    ctrecon::cli::recon::run(args).expect("ctrecon recon --input scan.nx");
-    let cli: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
+    let cli = crate::scan_formats::recon_40(&file, "fbp", "auto", &out);
     assert_ball_at(
         &cli,
         &ctrecon::recon::grid::VolumeGrid::cube(40, 0.1),

@@ -727,27 +727,7 @@ fn fdk_of_a_simulated_zeiss_scan_puts_an_off_centre_ball_where_it_was() {
 
     // `ctrecon recon --input ball.txrm --algorithm fdk --size 40 --pixel-mm 0.1` (centre found from the views).
     let out = dir.path().join("v.npy");
-    let args = ctrecon::cli::recon::ReconArgs {
-        input: file.clone(),
-        geometry: None,
-        algorithm: "fdk".into(),
-        filter: None,
-        cutoff: None,
-        params: None,
-        size: 40,
-        pixel_mm: 0.1,
-        grid: None,
-        max_bytes: 1 << 30,
-        output: out.clone(),
-        png: None,
-        centre: "auto".into(),
-        preprocessing: None,
-        slice: None,
-        ww: None,
-        wl: None,
-    };
-    ctrecon::cli::recon::run(args).expect("ctrecon recon --input ball.txrm");
-    let cli: ndarray::Array3<f32> = ndarray_npy::read_npy(&out).expect("read v.npy");
+    let cli = crate::scan_formats::recon_40(&file, "fdk", "auto", &out);
     assert_ball_at(&cli, &grid, CENTRE);
 }
 
