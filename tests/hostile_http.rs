@@ -208,22 +208,35 @@ struct Wave {
     first: Duration,
     last: Duration,
     fds_held: usize,
+    /// How many connections were younger than the header timeout when `fds_held` was read: on a loaded machine
+    /// opening them all can take longer than the timeout, and the oldest are rightly closed by then.
+    should_be_open: usize,
     rss_held: u64,
 }
 
 /// `silent` connections that send nothing from 127.0.0.2–9 and `partial` that send half a request line from
 /// 127.0.0.10–11, held until the server closes them (each must within `limit` of its connect).
-async fn wave(server: &Server, silent: usize, partial: usize, limit: Duration) -> Wave {
+async fn wave(
+    server: &Server,
+    silent: usize,
+    partial: usize,
+    header: Duration,
+    limit: Duration,
+) -> Wave {
     let addr = server.addr;
     let mut closing = JoinSet::new();
     let t0 = Instant::now();
+    let mut opened = Vec::with_capacity(silent + partial);
     for i in 0..silent {
         let s = connect_from(2 + (i % 8) as u8, addr).await;
-        closing.spawn(closed_after(s, Instant::now(), limit));
+        let since = Instant::now();
+        opened.push(since);
+        closing.spawn(closed_after(s, since, limit));
     }
     for i in 0..partial {
         let mut s = connect_from(10 + (i % 2) as u8, addr).await;
         let since = Instant::now();
+        opened.push(since);
         s.write_all(b"GET / HT")
             .await
             .expect("a partial request line");
@@ -231,7 +244,12 @@ async fn wave(server: &Server, silent: usize, partial: usize, limit: Duration) -
     }
     let connecting = t0.elapsed();
     tokio::time::sleep(Duration::from_millis(300)).await;
+    let sampled = Instant::now();
     let (fds_held, (rss_held, _)) = (server.open_fds(), server.memory_kib());
+    let should_be_open = opened
+        .iter()
+        .filter(|&&since| sampled.duration_since(since) + Duration::from_millis(100) < header)
+        .count();
     let (mut first, mut last) = (Duration::MAX, Duration::ZERO);
     while let Some(closed) = closing.join_next().await {
         let after = closed
@@ -245,14 +263,15 @@ async fn wave(server: &Server, silent: usize, partial: usize, limit: Duration) -
         first,
         last,
         fds_held,
+        should_be_open,
         rss_held,
     }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn connections_without_a_request_are_closed_at_the_header_timeout_while_healthz_answers() {
-    let header = Duration::from_secs(2);
-    let server = Server::start(&[("CTRECON_HEADER_READ_TIMEOUT_MS", "2000")]);
+    let header = Duration::from_secs(4);
+    let server = Server::start(&[("CTRECON_HEADER_READ_TIMEOUT_MS", "4000")]);
     let addr = server.addr;
     let total = affordable(1800);
     let (silent, partial) = (total * 5 / 6, total / 6);
@@ -283,7 +302,7 @@ async fn connections_without_a_request_are_closed_at_the_header_timeout_while_he
     let limit = header + Duration::from_secs(5);
     let mut after = Vec::new();
     for round in 1..=2 {
-        let w = wave(&server, silent, partial, limit).await;
+        let w = wave(&server, silent, partial, header, limit).await;
         tokio::time::sleep(Duration::from_millis(500)).await;
         let (fds_after, (rss_after, hwm)) = (server.open_fds(), server.memory_kib());
         println!(
@@ -299,9 +318,17 @@ async fn connections_without_a_request_are_closed_at_the_header_timeout_while_he
             w.rss_held.saturating_sub(rss_before) as f64 / total as f64
         );
         assert!(
-            w.fds_held >= fds_before + total * 9 / 10,
-            "the server holds the connections: {} descriptors, {fds_before} before",
-            w.fds_held
+            w.should_be_open >= total / 2,
+            "the machine is too slow for this test: only {} of {total} connections opened within the header \
+             timeout of the sample",
+            w.should_be_open
+        );
+        assert!(
+            w.fds_held >= fds_before + w.should_be_open * 9 / 10,
+            "the server holds the connections: {} descriptors, {fds_before} before, {} connections younger than \
+             the header timeout",
+            w.fds_held,
+            w.should_be_open
         );
         assert!(
             w.first >= header - Duration::from_millis(50),
