@@ -633,7 +633,7 @@ fn documented_routes(yaml: &str) -> Vec<(String, String)> {
 }
 
 /// Every operation of the OpenAPI document with its `operationId` (`None` where it has none).
-fn operations(yaml: &str) -> Vec<((String, String), Option<String>)> {
+pub(crate) fn operations(yaml: &str) -> Vec<((String, String), Option<String>)> {
     let mut out: Vec<((String, String), Option<String>)> = Vec::new();
     let mut in_paths = false;
     let mut path = None;

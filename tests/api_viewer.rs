@@ -2,8 +2,9 @@
 //! validators' own constants and settings, and each bound is accepted while one past it is refused;
 //! refusals name the request's fields by JSON Pointer (`errors`) on the simulation, job and rule routes;
 //! `GET /v1/events` streams every job's creation, status, progress and deletion in order, resumes after a
-//! `Last-Event-ID` and asks for a reload when it cannot; `GET /v1/protocols` lists the protocols the rules
-//! run, each a volume job body the API takes, and a rule and the listed body make the same job.
+//! `Last-Event-ID`, asks for a reload when it cannot and ends after `?seconds=`; `GET /v1/protocols` lists
+//! the protocols the rules run, each a volume job body the API takes, and a rule and the listed body make
+//! the same job.
 
 use crate::common;
 use crate::sse;
@@ -396,6 +397,36 @@ async fn one_stream_tells_every_jobs_creation_status_progress_and_deletion_in_or
     // An id from another process is not resumed: the client is told to reload.
     let mut stranger = Sse::open(&app.client, &app.url("/v1/events"), Some("1-1")).await;
     assert_eq!(stranger.next(10).await.name, "resync");
+}
+
+#[tokio::test]
+async fn a_stream_asked_to_last_n_seconds_ends_then_and_a_bad_n_is_refused() {
+    let app = spawn_app_with(|_| {}).await;
+    let started = std::time::Instant::now();
+    let r = app.get("/v1/events?seconds=1").await;
+    assert_eq!(r.status(), 200);
+    let body = r.text().await.expect("the stream ends");
+    let took = started.elapsed();
+    assert!(body.starts_with("event: ready\n"), "{body}");
+    assert!(
+        took >= std::time::Duration::from_millis(950) && took < std::time::Duration::from_secs(5),
+        "ended after {took:?}"
+    );
+    // `0`: `ready` alone.
+    let r = app.get("/v1/events?seconds=0").await;
+    assert_eq!(r.status(), 200);
+    let body = r.text().await.expect("the stream ends");
+    assert!(body.starts_with("event: ready\n"), "{body}");
+    assert_eq!(body.matches("event:").count(), 1, "{body}");
+    for bad in ["86401", "-1", "x", "1.5"] {
+        assert_problem(
+            app.get(&format!("/v1/events?seconds={bad}")).await,
+            400,
+            "invalid_query",
+        )
+        .await;
+    }
+    assert_problem(app.get("/v1/events?second=5").await, 400, "invalid_query").await;
 }
 
 /// The products of a job as the API shows it, typed (defaults filled in, so two spellings compare equal).

@@ -8,7 +8,8 @@
 //! it (the newest `FEED_CAPACITY` events of this process), and gets `resync` otherwise. A comment line is
 //! sent every [`HEARTBEAT`] so that proxies keep the connection open. Each connection holds a cursor into
 //! the shared ring and a channel of [`QUEUE`] events: a slow client costs no more memory, and one that
-//! falls behind the ring gets `resync`.
+//! falls behind the ring gets `resync`. `?seconds=N` ends the stream after N seconds (for scripts that watch
+//! for a while and move on; `0` sends `ready` alone); without it the stream stays open.
 
 use std::convert::Infallible;
 use std::time::Duration;
@@ -17,12 +18,16 @@ use axum::extract::State;
 use axum::http::HeaderMap;
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
+use serde::Deserialize;
 use serde_json::json;
 use tokio::sync::mpsc;
 
 use super::super::AppState;
+use super::super::extract::ApiQuery;
+use super::super::problem::{ApiResult, api_error};
 use super::jobs::summary_json;
 use crate::app::feed::{Feed, FeedItem, Since};
+use crate::error_code::ErrorCode;
 
 /// Time between heartbeat comments.
 pub const HEARTBEAT: Duration = Duration::from_secs(15);
@@ -30,6 +35,17 @@ pub const HEARTBEAT: Duration = Duration::from_secs(15);
 const QUEUE: usize = 32;
 /// Events read from the ring at a time.
 const BATCH: usize = 64;
+/// The longest `?seconds=` a stream may be asked to last (a day).
+pub const MAX_SECONDS: u32 = 86_400;
+
+/// The query of `GET /v1/events`.
+#[derive(Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EventsQuery {
+    /// End the stream after this many seconds (0 to [`MAX_SECONDS`]; the first event is always sent);
+    /// without it the stream stays open.
+    seconds: Option<u32>,
+}
 
 fn event(feed: &Feed, seq: u64, item: &FeedItem) -> Event {
     let (name, data) = match item {
@@ -50,24 +66,47 @@ fn event(feed: &Feed, seq: u64, item: &FeedItem) -> Event {
     }
 }
 
-pub async fn all_events(State(st): State<AppState>, headers: HeaderMap) -> Response {
+pub async fn all_events(
+    State(st): State<AppState>,
+    ApiQuery(q): ApiQuery<EventsQuery>,
+    headers: HeaderMap,
+) -> ApiResult<Response> {
+    let deadline = match q.seconds {
+        None => None,
+        Some(s @ 0..=MAX_SECONDS) => {
+            Some(tokio::time::Instant::now() + Duration::from_secs(u64::from(s)))
+        }
+        Some(s) => {
+            return Err(api_error(
+                ErrorCode::InvalidQuery,
+                format!("seconds must be 0 to {MAX_SECONDS} (a day), not {s}"),
+            ));
+        }
+    };
     let feed = st.feed.clone();
     let last = headers
         .get("last-event-id")
         .and_then(|v| v.to_str().ok())
         .map(|id| feed.seq_of(id));
     let (tx, rx) = mpsc::channel::<Event>(QUEUE);
-    tokio::spawn(follow(st, feed, last, tx));
+    tokio::spawn(follow(st, feed, last, deadline, tx));
     let stream = futures_util::stream::unfold(rx, |mut rx| async move {
         rx.recv().await.map(|e| (Ok::<_, Infallible>(e), rx))
     });
-    Sse::new(stream)
+    Ok(Sse::new(stream)
         .keep_alive(KeepAlive::new().interval(HEARTBEAT).text("heartbeat"))
-        .into_response()
+        .into_response())
 }
 
-/// Send the feed from `last` (`None`: a new connection; `Some(None)`: an id this process does not know).
-async fn follow(st: AppState, feed: Feed, last: Option<Option<u64>>, tx: mpsc::Sender<Event>) {
+/// Send the feed from `last` (`None`: a new connection; `Some(None)`: an id this process does not know)
+/// until `deadline`, if any; returning drops the sender, which ends the stream.
+async fn follow(
+    st: AppState,
+    feed: Feed,
+    last: Option<Option<u64>>,
+    deadline: Option<tokio::time::Instant>,
+    tx: mpsc::Sender<Event>,
+) {
     // Watch before reading the position, so that no event falls between the two.
     let mut changed = feed.watch();
     let mut cursor = feed.latest();
@@ -87,7 +126,19 @@ async fn follow(st: AppState, feed: Feed, last: Option<Option<u64>>, tx: mpsc::S
         return;
     }
     let mut shutdown = st.shutdown.clone();
+    let past =
+        |d: Option<tokio::time::Instant>| d.is_some_and(|d| tokio::time::Instant::now() >= d);
+    let until = async {
+        match deadline {
+            Some(d) => tokio::time::sleep_until(d).await,
+            None => std::future::pending().await,
+        }
+    };
+    tokio::pin!(until);
     loop {
+        if past(deadline) {
+            return;
+        }
         match feed.since(cursor, BATCH) {
             Since::Gone => {
                 cursor = feed.latest();
@@ -104,6 +155,7 @@ async fn follow(st: AppState, feed: Feed, last: Option<Option<u64>>, tx: mpsc::S
                     r = changed.changed() => if r.is_err() { return },
                     _ = shutdown.changed() => return,
                     _ = tx.closed() => return,
+                    _ = &mut until => return,
                 }
             }
             Since::Items(items) => {

@@ -238,8 +238,9 @@ impl ViewRequest {
             }
         }
         if let ViewRequest::Mesh(m) = self {
-            if !m.iso.is_finite() {
-                return bad("`iso` must be finite");
+            // As documented: a finite 32-bit float (a value past f32::MAX would round to it or overflow).
+            if !m.iso.is_finite() || m.iso.abs() > f64::from(f32::MAX) {
+                return bad("`iso` must be a finite 32-bit float");
             }
             mesh_options(m, 1.0, VolumeUnits::MuPerMm)
                 .validate()
