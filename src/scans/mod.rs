@@ -29,6 +29,7 @@ pub mod nxtomo;
 pub mod nxtomo_views;
 pub mod ole;
 pub mod simulated;
+pub mod simulated_nxtomo;
 pub mod stack;
 pub mod tiff_views;
 pub mod xradia_views;
