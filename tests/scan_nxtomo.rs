@@ -3,7 +3,9 @@
 //! dark and flat exactly, the geometry and the provenance; an off-centre ball simulated as a parallel beam
 //! (raw counts with darks and flats that drift between the flat series, an off-centre rotation axis)
 //! reconstructed by FBP where it was, through the library, `ctrecon recon` and `POST /v1/scans` + a job,
-//! the centre found from the views; bad files refused naming the file and the HDF5 path.
+//! the centre found from the views; bad files refused naming the file and the HDF5 path. The other way
+//! round, nxtomo reads the simulated NXtomo files `ctrecon phantom --out x.nx` writes: frames, keys, angles
+//! and pixel size as written.
 //!
 //! Runs when `.venv-scans/` has nxtomo (scripts/install-peers.sh scans); otherwise prints one skip line,
 //! or fails under `CTRECON_REQUIRE_PEERS=1`.
@@ -471,4 +473,82 @@ async fn an_nxtomo_imports_and_reconstructs_and_bad_ones_are_refused() {
     assert!(r.status().is_client_error(), "truncated: {}", r.status());
     let r = post_octets(&app, "scan.nx", b"not an HDF5 file".to_vec()).await;
     assert_problem(r, 422, "scan_not_recognised").await;
+}
+
+/// Reads an NXtomo file with nxtomo (h5py for the frames), answering what it found as JSON.
+const READER: &str = r#"
+import sys, json, numpy as np, h5py
+from nxtomo.application.nxtomo import NXtomo
+path = sys.argv[1]
+nx = NXtomo().load(path, "entry")
+d = nx.instrument.detector
+keys = [int(k.value) for k in d.image_key]
+with h5py.File(path, "r") as f:
+    data = f["entry/instrument/detector/data"]
+    shape, dtype = list(data.shape), str(data.dtype)
+    frames = [float(data[i].mean()) for i in range(data.shape[0])]
+print(json.dumps({
+    "keys": keys, "shape": shape, "dtype": dtype, "frame_means": frames,
+    "degrees": [float(a) for a in np.asarray(nx.sample.rotation_angle.to("degree").magnitude)],
+    "x_pixel_m": float(np.asarray(d.x_pixel_size.to("m").magnitude).ravel()[0]),
+    "y_pixel_m": float(np.asarray(d.y_pixel_size.to("m").magnitude).ravel()[0]),
+}))
+"#;
+
+#[test]
+fn nxtomo_reads_the_simulated_nxtomo_ctrecon_writes() {
+    let Some(py) = nxtomo_python() else { return };
+    let dir = tempfile::tempdir().expect("dir");
+    let file = dir.path().join("sample.nx");
+    let geometry: Geometry = serde_json::from_value(json!({
+        "type": "parallel3d", "angles": {"count": 6, "start_deg": 15, "range_deg": 180},
+        "detector": {"nu": 8, "nv": 4, "du_mm": 0.05, "dv_mm": 0.1}}))
+    .expect("geometry");
+    // Each view a constant line integral 0.1·k: its raw counts are known.
+    let projections = ndarray::Array3::from_shape_fn((6, 4, 8), |(k, _, _)| 0.1 * k as f32);
+    let w = scans::simulated_nxtomo::write_nxtomo(&file, &geometry, projections.view())
+        .expect("written");
+    assert_eq!((w.projections, w.clipped), (6, 0));
+    let out = Command::new(&py)
+        .args(["-c", READER])
+        .arg(&file)
+        .output()
+        .expect("python");
+    assert!(
+        out.status.success(),
+        "nxtomo could not read the file: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).expect("reader's answer");
+    assert_eq!(v["keys"], json!([2, 2, 1, 1, 0, 0, 0, 0, 0, 0, 1, 1]));
+    assert_eq!(v["shape"], json!([12, 4, 8]));
+    assert_eq!(v["dtype"], "uint16");
+    let (dark, flat) = (
+        scans::simulated_nxtomo::DARK_LEVEL,
+        scans::simulated_nxtomo::FLAT_LEVEL,
+    );
+    let means: Vec<f64> = serde_json::from_value(v["frame_means"].clone()).expect("means");
+    for (i, m) in means.iter().enumerate() {
+        let want = match i {
+            0 | 1 => dark,
+            2 | 3 | 10 | 11 => flat,
+            k => (dark + (flat - dark) * (-0.1 * (k - 4) as f64).exp()).round(),
+        };
+        assert!(
+            (m - want).abs() < 1e-9,
+            "frame {i}: mean {m}, expected {want}"
+        );
+    }
+    // ctrecon's β = 15° + 30°·k is the sample's θ = −β; darks and flats at 0.
+    let degrees: Vec<f64> = serde_json::from_value(v["degrees"].clone()).expect("degrees");
+    for (i, d) in degrees.iter().enumerate() {
+        let want = if (4..10).contains(&i) {
+            -(15.0 + 30.0 * (i - 4) as f64)
+        } else {
+            0.0
+        };
+        assert!((d - want).abs() < 1e-9, "frame {i}: {d}°, expected {want}°");
+    }
+    assert!((v["x_pixel_m"].as_f64().expect("x") - 5e-5).abs() < 1e-15);
+    assert!((v["y_pixel_m"].as_f64().expect("y") - 1e-4).abs() < 1e-15);
 }

@@ -63,12 +63,15 @@ pub struct PhantomArgs {
     /// Seed of the noise generator.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Shift the rotation axis this many detector columns off the panel's centre (projections; with a
-    /// `.xtekct` output the shift is not written into the file, so that the import has to find it).
+    /// Shift the rotation axis this many detector columns off the panel's centre (projections of a cone or
+    /// 3D parallel beam; with a `.xtekct` or `.nx` output the shift is not written into the file, so that
+    /// the import has to find it).
     #[arg(long, allow_hyphen_values = true)]
     pub axis_offset_px: Option<f64>,
-    /// Output `.npy` (projections also get a geometry sidecar `<out>.json`), or `<name>.xtekct`: the
-    /// projections as a Nikon XT H scanner writes a scan (the `.xtekct` and 16-bit TIFFs beside it).
+    /// Output `.npy` (projections also get a geometry sidecar `<out>.json`); `<name>.xtekct`: the
+    /// projections of a cone beam as a Nikon XT H scanner writes a scan (the `.xtekct` and 16-bit TIFFs
+    /// beside it); `<name>.nx`: those of a 3D parallel beam as an NXtomo file (raw 16-bit frames with darks
+    /// and flats), as a synchrotron beamline writes one.
     #[arg(long)]
     pub out: PathBuf,
 }
@@ -93,17 +96,24 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
         Some(path) => {
             let mut geometry = read_geometry(path)?;
             if let Some(px) = args.axis_offset_px {
-                let Geometry::Cone(cone) = &mut geometry else {
-                    return Err("--axis-offset-px shifts a cone beam's panel".into());
+                let panel = match &mut geometry {
+                    Geometry::Cone(cone) => &mut cone.detector,
+                    Geometry::Parallel3d(par) => &mut par.detector,
+                    _ => {
+                        return Err(
+                            "--axis-offset-px shifts the panel of a cone or 3D parallel beam"
+                                .into(),
+                        );
+                    }
                 };
-                cone.detector.offset_u_mm += px * cone.detector.du_mm;
+                panel.offset_u_mm += px * panel.du_mm;
             }
             let noise = args.photons.map(|incident_photons| NoiseSpec {
                 incident_photons,
                 seed: args.seed,
             });
             let data = super::on_pool(|| local.simulate(spec, geometry.clone(), noise))?;
-            if is_xtekct(&args.out) {
+            if is_xtekct(&args.out) || is_nx(&args.out) {
                 return write_scan(&args.out, &geometry, &data, args.axis_offset_px);
             }
             write_geometry(&sidecar(&args.out), &geometry)?;
@@ -121,6 +131,9 @@ pub fn run(args: PhantomArgs) -> CliResult<()> {
     if is_xtekct(&args.out) {
         return Err("a .xtekct output holds projections: give --geometry (a cone beam)".into());
     }
+    if is_nx(&args.out) {
+        return Err("an .nx output holds projections: give --geometry (a parallel3d beam)".into());
+    }
     write_npy(&args.out, &out)?;
     eprintln!("wrote {} {:?}", args.out.display(), out.shape());
     Ok(())
@@ -131,7 +144,13 @@ fn is_xtekct(path: &Path) -> bool {
         .is_some_and(|e| e.eq_ignore_ascii_case("xtekct"))
 }
 
-/// The projections as a Nikon XT H scan, with the axis shift left out of the file.
+fn is_nx(path: &Path) -> bool {
+    path.extension()
+        .is_some_and(|e| e.eq_ignore_ascii_case("nx"))
+}
+
+/// The projections as a Nikon XT H scan (`.xtekct`) or an NXtomo file (`.nx`), with the axis shift left
+/// out of the file.
 fn write_scan(
     out: &Path,
     geometry: &Geometry,
@@ -143,20 +162,35 @@ fn write_scan(
         .into_dimensionality::<Ix3>()
         .map_err(|e| format!("projections are [view][v][u]: {e}"))?;
     let mut written = geometry.clone();
-    if let (Geometry::Cone(cone), Some(px)) = (&mut written, axis_offset_px) {
-        cone.detector.offset_u_mm -= px * cone.detector.du_mm;
+    match (&mut written, axis_offset_px) {
+        (Geometry::Cone(cone), Some(px)) => cone.detector.offset_u_mm -= px * cone.detector.du_mm,
+        (Geometry::Parallel3d(par), Some(px)) => {
+            par.detector.offset_u_mm -= px * par.detector.du_mm
+        }
+        _ => {}
+    }
+    let shifted = match axis_offset_px {
+        Some(px) => format!(
+            ", the rotation axis {px} columns off the panel's centre, not written in the file"
+        ),
+        None => String::new(),
+    };
+    if is_nx(out) {
+        let w = crate::scans::simulated_nxtomo::write_nxtomo(out, &written, projections)?;
+        eprintln!(
+            "wrote {} (a simulated NXtomo scan of {} projections with darks and flats{shifted}; {} pixels \
+             clipped to 16 bits)",
+            w.file.display(),
+            w.projections,
+            w.clipped
+        );
+        return Ok(());
     }
     let w = crate::scans::simulated::write_nikon(out, &written, projections)?;
     eprintln!(
-        "wrote {} and {} TIFFs beside it (a simulated Nikon XT H scan{}; {} pixels clipped to 16 bits)",
+        "wrote {} and {} TIFFs beside it (a simulated Nikon XT H scan{shifted}; {} pixels clipped to 16 bits)",
         w.xtekct.display(),
         w.tiffs,
-        match axis_offset_px {
-            Some(px) => format!(
-                ", the rotation axis {px} columns off the panel's centre, not written in the file"
-            ),
-            None => String::new(),
-        },
         w.clipped
     );
     Ok(())
