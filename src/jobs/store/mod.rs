@@ -10,7 +10,6 @@
 
 pub mod conformance;
 mod records;
-pub(crate) mod rows;
 
 pub use records::*;
 

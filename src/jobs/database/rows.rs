@@ -1,15 +1,15 @@
-//! Rows of the SQLite job database decoded into the model: datasets, jobs and job summaries.
+//! Rows of the job database as domain values: datasets, jobs and job summaries (JSON columns are text
+//! holding the typed API objects).
 
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
-
-use super::{DbError, corrupt, product_indexes};
+use super::DbError;
+use super::driver::Row;
 use crate::error_code::Problem;
 use crate::jobs::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary};
+use crate::jobs::store::{corrupt, product_indexes};
 use crate::storage::{DatasetId, JobId};
 
 pub(super) fn json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
+    row: &Row,
     col: &str,
     table: &'static str,
 ) -> Result<T, DbError> {
@@ -18,7 +18,7 @@ pub(super) fn json_col<T: serde::de::DeserializeOwned>(
 }
 
 pub(super) fn opt_json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
+    row: &Row,
     col: &str,
     table: &'static str,
 ) -> Result<Option<T>, DbError> {
@@ -27,7 +27,7 @@ pub(super) fn opt_json_col<T: serde::de::DeserializeOwned>(
         .transpose()
 }
 
-pub(super) fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
+pub(super) fn dataset_from_row(row: &Row) -> Result<Dataset, DbError> {
     let id: String = row.try_get("id")?;
     let kind: String = row.try_get("kind")?;
     let bytes: i64 = row.try_get("bytes")?;
@@ -51,7 +51,7 @@ pub(super) fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
     })
 }
 
-pub(super) fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
+pub(super) fn job_from_row(row: &Row) -> Result<Job, DbError> {
     let id: String = row.try_get("id")?;
     let status: String = row.try_get("status")?;
     let progress: i64 = row.try_get("progress")?;
@@ -77,19 +77,11 @@ pub(super) fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
     })
 }
 
-/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
-/// (comma-separated).
-pub(super) const SUMMARY_COLUMNS: &str =
-    "id, kind, status, progress, stage, created_us, started_us, finished_us,
-    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
-    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
-        AS product_indexes";
-
-pub(super) fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
+pub(super) fn summary_from_row(row: &Row) -> Result<JobSummary, DbError> {
     let id: String = row.try_get("id")?;
     let status: String = row.try_get("status")?;
     let progress: i64 = row.try_get("progress")?;
-    let has_metrics: i64 = row.try_get("has_metrics")?;
+    let has_metrics: bool = row.try_get("has_metrics")?;
     let products: Option<String> = row.try_get("product_indexes")?;
     let product_indexes = product_indexes(products.as_deref())?;
     Ok(JobSummary {
@@ -102,7 +94,7 @@ pub(super) fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
         created_us: row.try_get("created_us")?,
         started_us: row.try_get("started_us")?,
         finished_us: row.try_get("finished_us")?,
-        has_metrics: has_metrics != 0,
+        has_metrics,
         product_indexes,
     })
 }
