@@ -7,7 +7,9 @@ use sqlx::postgres::{PgPool, PgRow};
 use sqlx::sqlite::{SqlitePool, SqliteRow};
 use sqlx::{AssertSqlSafe, Decode, Encode, Postgres, Row as _, Sqlite, Type};
 
+use super::DbError;
 use super::dialect::Dialect;
+use crate::jobs::store::corrupt;
 
 /// A pool of connections to the job database.
 #[derive(Clone, Debug)]
@@ -114,6 +116,18 @@ impl Row {
             Row::Sqlite(r) => r.try_get(column),
             Row::Postgres(r) => r.try_get(column),
         }
+    }
+
+    /// The text of `column` read by `parse` (an id's); a value it refuses makes this a corrupt row of
+    /// `table`.
+    pub(crate) fn parsed<T, E: ToString>(
+        &self,
+        column: &str,
+        table: &'static str,
+        parse: impl FnOnce(&str) -> Result<T, E>,
+    ) -> Result<T, DbError> {
+        let text: String = self.try_get(column)?;
+        parse(&text).map_err(|e| corrupt(table, e))
     }
 }
 

@@ -14,7 +14,7 @@ use super::driver::{assembled, query};
 use super::node_rows::{INSTANCE_COLUMNS, replaced_copy, stored_instance};
 use super::{Database, DbError};
 use crate::jobs::model::{IndexScope, NewInstance, ReplacedCopy, StoredInstance, now_us};
-use crate::jobs::store::{corrupt, to_json};
+use crate::jobs::store::to_json;
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
 
 impl Database {
@@ -182,10 +182,7 @@ impl Database {
         .fetch_all(&self.pool)
         .await?;
         rows.iter()
-            .map(|r| {
-                let id: String = r.try_get("id")?;
-                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
-            })
+            .map(|r| r.parsed("id", "jobs", JobId::parse))
             .collect()
     }
 
@@ -237,10 +234,7 @@ impl Database {
         .await?;
         let mut ids = rows
             .iter()
-            .map(|r| {
-                let id: String = r.try_get("id")?;
-                InstanceId::parse(&id).map_err(|e| corrupt("instances", e))
-            })
+            .map(|r| r.parsed("id", "instances", InstanceId::parse))
             .collect::<Result<Vec<_>, DbError>>()?;
         ids.sort_by_key(|i| i.to_string());
         Ok(ids)
@@ -287,10 +281,7 @@ impl Database {
             .fetch_all(&self.pool)
             .await?;
         rows.iter()
-            .map(|r| {
-                let id: String = r.try_get("upload_id")?;
-                UploadId::parse(&id).map_err(|e| corrupt("instances", e))
-            })
+            .map(|r| r.parsed("upload_id", "instances", UploadId::parse))
             .collect()
     }
 }

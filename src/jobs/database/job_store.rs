@@ -153,10 +153,7 @@ impl Database {
         );
         let ids = |rows: Vec<Row>| {
             rows.iter()
-                .map(|r| {
-                    let id: String = r.try_get("id")?;
-                    JobId::parse(&id).map_err(|e| corrupt("jobs", e))
-                })
+                .map(|r| r.parsed("id", "jobs", JobId::parse))
                 .collect::<Result<Vec<_>, DbError>>()
         };
         let mut tx = self.pool.begin().await?;

@@ -7,7 +7,7 @@ use super::rows::{job_from_row, summary_from_row};
 use super::{CANCEL_CHANNEL, Database, DbError, QUEUED_CHANNEL};
 use crate::error_code::Problem;
 use crate::jobs::model::{IdempotencyKey, Inserted, Job, JobFilter, JobStatus, JobSummary, now_us};
-use crate::jobs::store::{corrupt, to_json};
+use crate::jobs::store::to_json;
 use crate::storage::JobId;
 
 impl Database {
@@ -128,12 +128,8 @@ impl Database {
         .await?;
         rows.iter()
             .map(|r| {
-                let id: String = r.try_get("id")?;
                 let est: i64 = r.try_get("estimate_bytes")?;
-                Ok((
-                    JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
-                    est.max(0) as u64,
-                ))
+                Ok((r.parsed("id", "jobs", JobId::parse)?, est.max(0) as u64))
             })
             .collect()
     }
@@ -276,10 +272,7 @@ impl Database {
             .fetch_all(&self.pool)
             .await?;
         rows.iter()
-            .map(|r| {
-                let id: String = r.try_get("id")?;
-                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
-            })
+            .map(|r| r.parsed("id", "jobs", JobId::parse))
             .collect()
     }
 
