@@ -52,18 +52,14 @@ pub(super) fn dataset_from_row(row: &Row) -> Result<Dataset, DbError> {
 }
 
 pub(super) fn job_from_row(row: &Row) -> Result<Job, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
     let estimate: i64 = row.try_get("estimate_bytes")?;
     let attempts: i64 = row.try_get("attempts")?;
     let cancel: i64 = row.try_get("cancel_requested")?;
     Ok(Job {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        id: row.parsed("id", "jobs", JobId::parse)?,
         kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
+        status: status_col(row)?,
+        progress: progress_col(row)?,
         stage: row.try_get("stage")?,
         request: json_col::<JobSpec>(row, "spec", "jobs")?,
         estimate_bytes: estimate.max(0) as u64,
@@ -78,23 +74,29 @@ pub(super) fn job_from_row(row: &Row) -> Result<Job, DbError> {
 }
 
 pub(super) fn summary_from_row(row: &Row) -> Result<JobSummary, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let has_metrics: bool = row.try_get("has_metrics")?;
     let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = product_indexes(products.as_deref())?;
     Ok(JobSummary {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        id: row.parsed("id", "jobs", JobId::parse)?,
         kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
+        status: status_col(row)?,
+        progress: progress_col(row)?,
         stage: row.try_get("stage")?,
         created_us: row.try_get("created_us")?,
         started_us: row.try_get("started_us")?,
         finished_us: row.try_get("finished_us")?,
-        has_metrics,
-        product_indexes,
+        has_metrics: row.try_get("has_metrics")?,
+        product_indexes: product_indexes(products.as_deref())?,
     })
+}
+
+/// A job's `status` column.
+fn status_col(row: &Row) -> Result<JobStatus, DbError> {
+    let status: String = row.try_get("status")?;
+    JobStatus::parse(&status).ok_or_else(|| corrupt("jobs", format!("status {status}")))
+}
+
+/// A job's `progress` column, in percent.
+fn progress_col(row: &Row) -> Result<u8, DbError> {
+    let progress: i64 = row.try_get("progress")?;
+    Ok(progress.clamp(0, 100) as u8)
 }
