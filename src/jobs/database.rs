@@ -105,12 +105,7 @@ impl Database {
     /// Send `payload` on [`EVENTS_CHANNEL`] (PostgreSQL refuses payloads of 8000 bytes or more); nothing on
     /// a database no other process uses.
     pub async fn notify_event(&self, payload: &str) -> Result<(), DbError> {
-        if !self.is_shared() {
-            return Ok(());
-        }
-        let mut tx = self.pool.begin().await?;
-        tx.notify(EVENTS_CHANNEL, payload).await?;
-        tx.commit().await?;
+        driver::notify(&self.pool, EVENTS_CHANNEL, payload).await?;
         Ok(())
     }
 

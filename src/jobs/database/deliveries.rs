@@ -11,7 +11,7 @@
 //! - the end of an attempt is recorded only by the attempt that holds the claim (`attempts` guard), so a
 //!   process whose claim expired and was taken over cannot overwrite the newer attempt.
 
-use super::driver::{Tx, assembled, query};
+use super::driver::{Target, assembled, query};
 use super::node_rows::{delivery, delivery_instance};
 use super::{Database, DbError};
 use crate::jobs::deliveries::{Delivery, DeliveryFilter, DeliveryInstance, DeliveryState, RuleRun};
@@ -29,10 +29,7 @@ impl Database {
         run: Option<&RuleRun>,
         destination: &str,
     ) -> Result<String, DbError> {
-        let mut tx = self.pool.begin().await?;
-        let id = insert_delivery(&mut tx, job, run, destination).await?;
-        tx.commit().await?;
-        Ok(id)
+        insert_delivery(&self.pool, job, run, destination).await
     }
 
     /// A delivery with its instances.
@@ -287,9 +284,10 @@ impl Database {
     }
 }
 
-/// Queue a delivery of `job` to `destination`, due now, in `c`; returns its id.
-pub(super) async fn insert_delivery(
-    c: &mut Tx,
+/// Queue a delivery of `job` to `destination`, due now, on `on` (a transaction's or the pool's); returns
+/// its id.
+pub(super) async fn insert_delivery<'a>(
+    on: impl Into<Target<'a>>,
     job: JobId,
     run: Option<&RuleRun>,
     destination: &str,
@@ -309,7 +307,7 @@ pub(super) async fn insert_delivery(
     .bind(now)
     .bind(now)
     .bind(now)
-    .execute(&mut *c)
+    .execute(on)
     .await?;
     Ok(id)
 }

@@ -79,18 +79,33 @@ impl Tx {
         Ok(())
     }
 
-    /// Announce `payload` on `channel` when this transaction commits (PostgreSQL's `NOTIFY`, delivered once
-    /// and only on commit). SQLite has one process, which needs no announcement: nothing.
+    /// Announce `payload` on `channel` when this transaction commits (see [`notify`]).
     pub(crate) async fn notify(&mut self, channel: &str, payload: &str) -> Result<(), sqlx::Error> {
-        if self.dialect() == Dialect::Postgres {
-            query("SELECT pg_notify($1, $2)")
-                .bind(channel)
-                .bind(payload)
-                .execute(&mut *self)
-                .await?;
-        }
-        Ok(())
+        notify(self, channel, payload).await
     }
+}
+
+/// Announce `payload` on `channel` to the processes listening on a shared database (PostgreSQL's `NOTIFY`;
+/// inside a transaction it is delivered once, when the transaction commits). SQLite has one process, which
+/// needs no announcement: nothing.
+pub(crate) async fn notify<'a>(
+    on: impl Into<Target<'a>>,
+    channel: &str,
+    payload: &str,
+) -> Result<(), sqlx::Error> {
+    let on = on.into();
+    let dialect = match &on {
+        Target::Pool(p) => p.dialect(),
+        Target::Tx(t) => t.dialect(),
+    };
+    if dialect == Dialect::Postgres {
+        query("SELECT pg_notify($1, $2)")
+            .bind(channel)
+            .bind(payload)
+            .execute(on)
+            .await?;
+    }
+    Ok(())
 }
 
 /// A row of either database; columns are read by name.
