@@ -13,7 +13,7 @@ use crate::error_code::ErrorCode;
 use crate::jobs::SeriesRecord;
 use crate::jobs::ingest::{IngestOptions, Ingested, Staged, ingest_series, prepare};
 use crate::jobs::model::rfc3339;
-use crate::jobs::repo::Deleted;
+use crate::jobs::store::Deleted;
 use crate::recon::control::{Cancel, Control, NoProgress};
 use crate::series::UnevenPolicy;
 use crate::storage::sweep::BlobKind;

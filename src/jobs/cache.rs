@@ -2,9 +2,10 @@
 //! round trip (SQLite runs every query on a connection thread, which waits for a core when the workers
 //! keep them all busy).
 //!
-//! Every write of a job goes through [`super::repo::Db`], which invalidates the entry after the write. A
-//! read fills the cache only if no invalidation happened while it queried (a generation counter), so a
-//! stale row can never be cached after a newer write.
+//! Every write of a job goes through [`super::database::Database`], which invalidates the entry after the
+//! write. A read fills the cache only if no invalidation happened while it queried (a generation counter),
+//! so a stale row can never be cached after a newer write. Only a database this process owns (SQLite) has
+//! one.
 
 use std::collections::HashMap;
 use std::sync::Mutex;

@@ -39,7 +39,7 @@ use super::imaging::VolumeInput;
 use super::model::VolumeJobRequest;
 use super::model::{Dataset, Job, JobRequest, JobStatus};
 use super::pull::SeriesPuller;
-use super::repo::DbError;
+use super::store::DbError;
 use crate::error_code::Problem;
 use crate::recon::control::Cancel;
 use crate::storage::{BlobStore, JobId};

@@ -7,9 +7,9 @@
 //!    node's rules and what they send), `plan` and `quality` (admission and figures of reconstructions),
 //!    `iso_range`, `ingest` (DICOM → series problems), `cache`.
 //! 2. `store`: the `JobStore` port, the outcomes both databases answer, and the conformance suite.
-//! 3. Adapters: `repo` (SQLite, with datasets, uploads, series and the DICOM node's tables), `pg` (its
-//!    PostgreSQL twin, the DICOM node's tables included); `database` holds the one the service runs on
-//!    (with the node tables' conformance suite); `sweep` and `retention` work on it.
+//! 3. The adapter: `database`, one SQL adapter for SQLite and PostgreSQL (each statement written once, a
+//!    dialect seam for what differs; datasets, uploads, series and the DICOM node's tables besides jobs,
+//!    with the node tables' conformance suite); `sweep` and `retention` work on it.
 //! 4. What jobs make: `run` (reconstruction, simulation), `views` (a *view*: a 2D image, a mesh or a derived
 //!    series rendered from a result on request, and the renderings of stored products), `render_products`
 //!    (volume and surface renderings made by a job), `imaging` (volume jobs: planning, steps, products),
@@ -29,12 +29,10 @@ pub mod ingest;
 pub mod iso_range;
 pub mod lifecycle;
 pub mod model;
-pub mod pg;
 pub mod plan;
 pub mod pull;
 pub mod quality;
 pub mod render_products;
-pub mod repo;
 pub mod retention;
 pub mod rules;
 pub mod run;
@@ -43,14 +41,13 @@ pub mod sweep;
 pub mod views;
 
 pub use database::Database;
+pub use database::{Db, PgDb};
 pub use engine::{CancelError, Engine, EngineConfig, JobEvent, Remote, StartError};
 pub use lifecycle::{IllegalTransition, JobState, Lease, Outcome, Transition};
 pub use model::{
     Dataset, DatasetKind, Job, JobRequest, JobResult, JobSpec, JobStatus, JobSummary, SeriesRecord,
     SimulationRequest, UploadRecord,
 };
-pub use pg::PgDb;
-pub use repo::{
-    Appended, Completed, Db, DbError, IdempotencyKey, Inserted, JobFilter, UploadDeleted,
-};
+pub use model::{IdempotencyKey, Inserted, JobFilter};
+pub use store::{Appended, Completed, DbError, UploadDeleted};
 pub use store::{JobStore, StoreError};

@@ -15,7 +15,7 @@ use tokio::sync::watch;
 
 use super::database::Database;
 use super::model::now_us;
-use super::repo::DbError;
+use super::store::DbError;
 use crate::storage::BlobStore;
 use crate::telemetry::names;
 

@@ -1,6 +1,6 @@
 //! Job events across processes on a shared (PostgreSQL) database. Each process publishes what its engine
 //! sees — status changes and progress of the jobs it runs, jobs submitted and deleted through it — on
-//! [`EVENTS_CHANNEL`](crate::jobs::pg::EVENTS_CHANNEL), and every process hears the others', so that an
+//! [`EVENTS_CHANNEL`](crate::jobs::database::EVENTS_CHANNEL), and every process hears the others', so that an
 //! event stream served by any process (`GET /v1/jobs/{id}/events`, `GET /v1/events`) follows a job run by
 //! any other: an API process with `--workers 0` shows the progress of the workers' jobs.
 //!
@@ -58,11 +58,11 @@ pub(super) struct Relay {
 impl Relay {
     /// A relay for `db` when it is shared, with its sending task; `None` otherwise.
     pub(super) fn start(db: &Database) -> Option<Self> {
-        let Database::Postgres(pg) = db else {
+        if !db.is_shared() {
             return None;
-        };
+        }
         let (queue, mut rx) = mpsc::channel::<String>(QUEUE);
-        let pg = pg.clone();
+        let pg = db.clone();
         tokio::spawn(async move {
             while let Some(payload) = rx.recv().await {
                 if let Err(e) = pg.notify_event(&payload).await {

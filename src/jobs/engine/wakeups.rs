@@ -6,19 +6,19 @@
 use std::time::Duration;
 
 use super::Engine;
-use crate::jobs::database::Database;
-use crate::jobs::pg::listen::{Listener, Wakeup};
+use crate::jobs::database::listen::{Listener, Wakeup};
 
 impl Engine {
     /// On a shared database: listen for wake-ups until the engine stops, reconnecting after a failure.
     pub(super) async fn listen_for_wakeups(self) {
-        let Database::Postgres(db) = &self.inner.db else {
+        if !self.inner.db.is_shared() {
             return;
-        };
-        let db = db.clone();
+        }
+        let db = self.inner.db.clone();
         while !self.is_stopping() {
             let mut listener = match Listener::connect(&db).await {
-                Ok(l) => l,
+                Ok(Some(l)) => l,
+                Ok(None) => return,
                 Err(e) => {
                     tracing::warn!(error = %e, "listening for job notifications failed; retrying");
                     tokio::time::sleep(Duration::from_secs(1)).await;

@@ -5,7 +5,7 @@
 //! queued` happens two ways: a graceful hand-back (the server stops and the job stops with it), which spends
 //! no attempt, and recovery after a crash, which keeps the attempt the claim counted (and fails the job with
 //! `attempts_exhausted` once `max_attempts` starts were spent). Terminal states never change. Every
-//! transition is one guarded update in [`super::repo::Db`].
+//! transition is one guarded update in [`super::database::Database`].
 
 use serde::{Deserialize, Serialize};
 

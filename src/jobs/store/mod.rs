@@ -1,7 +1,7 @@
 //! The `JobStore` port: where jobs live, how they are queued, claimed under a lease, moved through their
-//! lifecycle and listed. Adapters: SQLite ([`super::Db`], the default), PostgreSQL ([`super::PgDb`]) and
-//! [`super::Database`], which holds one of them; tests hold an in-memory one. [`conformance`] is the suite
-//! every adapter must pass.
+//! lifecycle and listed. The SQL adapter is [`super::Database`], one for SQLite (the default) and PostgreSQL
+//! (also reached as [`super::Db`] and [`super::PgDb`], a database opened on one of them); tests hold an
+//! in-memory one. [`conformance`] is the suite every adapter must pass.
 //!
 //! Every transition is checked against [`lifecycle::transition`](super::lifecycle::transition) and applied by
 //! the adapter as one guarded update, so two racing transitions cannot both win; an illegal one is an
@@ -10,7 +10,6 @@
 
 pub mod conformance;
 mod records;
-pub(crate) mod rows;
 
 pub use records::*;
 

@@ -1,12 +1,12 @@
-//! Rows of the DICOM node's tables read the same way from either adapter: the SQLite and PostgreSQL rows
-//! hold the same columns with the same meanings (TEXT, and INTEGER / BIGINT read as `i64`), so one
-//! function per table reads both.
+//! Rows of the DICOM node's tables as domain values: deliveries and their instances, indexed instances. The
+//! SQLite and PostgreSQL rows hold the same columns with the same meanings (TEXT, and INTEGER / BIGINT read
+//! as `i64`).
 
-use sqlx::{ColumnIndex, Decode, Row, Type};
-
-use super::{DbError, corrupt};
+use super::DbError;
+use super::driver::Row;
 use crate::jobs::deliveries::{Delivery, DeliveryInstance, DeliveryState, InstanceState};
 use crate::jobs::model::{IndexedInstance, ReplacedCopy, StoredInstance};
+use crate::jobs::store::corrupt;
 use crate::storage::{InstanceId, InstanceOwner, JobId, SeriesId, UploadId};
 
 /// The columns of `instances` that [`stored_instance`] reads.
@@ -16,13 +16,7 @@ pub(crate) const INSTANCE_COLUMNS: &str = "id, upload_id, series_id, job_id, sop
      series_number, series_description, body_part, instance_number, bytes, created_us, sha256";
 
 /// An indexed instance (a row of `instances` with [`INSTANCE_COLUMNS`]).
-pub(crate) fn stored_instance<'r, R>(row: &'r R) -> Result<StoredInstance, DbError>
-where
-    R: Row,
-    for<'a> &'a str: ColumnIndex<R>,
-    String: Decode<'r, R::Database> + Type<R::Database>,
-    i64: Decode<'r, R::Database> + Type<R::Database>,
-{
+pub(crate) fn stored_instance(row: &Row) -> Result<StoredInstance, DbError> {
     let bad = |e: crate::storage::BadId| corrupt("instances", e);
     let id: String = row.try_get("id")?;
     let upload: Option<String> = row.try_get("upload_id")?;
@@ -71,12 +65,7 @@ where
 }
 
 /// A received copy replaced by a newer one (the `id` and `upload_id` of a deleted row of `instances`).
-pub(crate) fn replaced_copy<'r, R>(row: &'r R) -> Result<ReplacedCopy, DbError>
-where
-    R: Row,
-    for<'a> &'a str: ColumnIndex<R>,
-    String: Decode<'r, R::Database> + Type<R::Database>,
-{
+pub(crate) fn replaced_copy(row: &Row) -> Result<ReplacedCopy, DbError> {
     let bad = |e: crate::storage::BadId| corrupt("instances", e);
     let id: String = row.try_get("id")?;
     let upload: String = row.try_get("upload_id")?;
@@ -87,13 +76,7 @@ where
 }
 
 /// A delivery, without its instances (a row of `deliveries`).
-pub(crate) fn delivery<'r, R>(row: &'r R) -> Result<Delivery, DbError>
-where
-    R: Row,
-    for<'a> &'a str: ColumnIndex<R>,
-    String: Decode<'r, R::Database> + Type<R::Database>,
-    i64: Decode<'r, R::Database> + Type<R::Database>,
-{
+pub(crate) fn delivery(row: &Row) -> Result<Delivery, DbError> {
     let state: String = row.try_get("state")?;
     let job: String = row.try_get("job_id")?;
     let attempts: i64 = row.try_get("attempts")?;
@@ -115,13 +98,7 @@ where
 }
 
 /// One instance of a delivery (a row of `delivery_instances`).
-pub(crate) fn delivery_instance<'r, R>(row: &'r R) -> Result<DeliveryInstance, DbError>
-where
-    R: Row,
-    for<'a> &'a str: ColumnIndex<R>,
-    String: Decode<'r, R::Database> + Type<R::Database>,
-    i64: Decode<'r, R::Database> + Type<R::Database>,
-{
+pub(crate) fn delivery_instance(row: &Row) -> Result<DeliveryInstance, DbError> {
     let state: String = row.try_get("state")?;
     let status: Option<i64> = row.try_get("status")?;
     Ok(DeliveryInstance {

@@ -1,18 +1,22 @@
-//! The rows of rules and rule runs (SQLite; plain runtime queries, so that another adapter can repeat
-//! them). A run is unique per rule and series content, and is closed (its deliveries queued) by one guarded
-//! update, so it fires and delivers once.
+//! The rows of rules and rule runs. With several processes on one (PostgreSQL) database: a run is unique per rule and series content (`ON CONFLICT DO NOTHING`), so a series
+//! assembled by two processes starts one job; a run is closed and its deliveries queued by one guarded
+//! update in one transaction, so two delivery workers queue them once; the configuration's rules are
+//! written under a transaction-level advisory lock, so processes starting together do not interleave.
 
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
-
-use super::{Db, DbError, corrupt, json_col, opt_json_col, to_json};
+use super::driver::{Row, assembled, query};
+use super::rows::{json_col, opt_json_col};
+use super::{Database, DbError};
 use crate::error_code::Problem;
 use crate::jobs::deliveries::{NewRun, RuleRun, RunState};
 use crate::jobs::model::{JobStatus, now_us};
 use crate::jobs::rules::{RuleSource, RuleSpec, StoredRule};
+use crate::jobs::store::{corrupt, to_json};
 use crate::storage::{JobId, SeriesId};
 
-fn rule_from_row(row: &SqliteRow) -> Result<StoredRule, DbError> {
+/// The transaction-level lock that serialises writing the configuration's rules.
+const CONFIG_RULES_LOCK: i64 = 0x6374_7265_636f_6e01;
+
+fn rule_from_row(row: &Row) -> Result<StoredRule, DbError> {
     let source: String = row.try_get("source")?;
     Ok(StoredRule {
         spec: json_col(row, "spec", "rules")?,
@@ -26,7 +30,7 @@ fn rule_from_row(row: &SqliteRow) -> Result<StoredRule, DbError> {
     })
 }
 
-fn run_from_row(row: &SqliteRow) -> Result<RuleRun, DbError> {
+fn run_from_row(row: &Row) -> Result<RuleRun, DbError> {
     let state: String = row.try_get("state")?;
     let series: String = row.try_get("series_id")?;
     let job: Option<String> = row.try_get("job_id")?;
@@ -46,12 +50,12 @@ fn run_from_row(row: &SqliteRow) -> Result<RuleRun, DbError> {
     })
 }
 
-impl Db {
+impl Database {
     /// Insert a rule; false when one of that name exists.
     pub async fn insert_rule(&self, spec: &RuleSpec, source: RuleSource) -> Result<bool, DbError> {
         let now = now_us();
-        let r = sqlx::query(
-            "INSERT INTO rules (name, source, spec, created_us, updated_us) VALUES (?, ?, ?, ?, ?)
+        let r = query(
+            "INSERT INTO rules (name, source, spec, created_us, updated_us) VALUES ($1, $2, $3, $4, $5)
              ON CONFLICT (name) DO NOTHING",
         )
         .bind(&spec.name)
@@ -66,29 +70,28 @@ impl Db {
 
     /// Replace an API rule; false when there is no API rule of that name.
     pub async fn replace_rule(&self, spec: &RuleSpec) -> Result<bool, DbError> {
-        let r = sqlx::query(
-            "UPDATE rules SET spec = ?, updated_us = ? WHERE name = ? AND source = 'api'",
-        )
-        .bind(to_json(spec))
-        .bind(now_us())
-        .bind(&spec.name)
-        .execute(&self.pool)
-        .await?;
+        let r =
+            query("UPDATE rules SET spec = $1, updated_us = $2 WHERE name = $3 AND source = 'api'")
+                .bind(to_json(spec))
+                .bind(now_us())
+                .bind(&spec.name)
+                .execute(&self.pool)
+                .await?;
         Ok(r.rows_affected() == 1)
     }
 
     /// Delete an API rule and its runs (so a rule made again under the name starts afresh); false when
     /// there is no API rule of that name.
     pub async fn delete_rule(&self, name: &str) -> Result<bool, DbError> {
-        let mut tx = self.write_tx().await?;
-        let r = sqlx::query("DELETE FROM rules WHERE name = ? AND source = 'api'")
+        let mut tx = self.pool.begin().await?;
+        let r = query("DELETE FROM rules WHERE name = $1 AND source = 'api'")
             .bind(name)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?;
         if r.rows_affected() == 1 {
-            sqlx::query("DELETE FROM rule_runs WHERE rule_name = ?")
+            query("DELETE FROM rule_runs WHERE rule_name = $1")
                 .bind(name)
-                .execute(&mut *tx)
+                .execute(&mut tx)
                 .await?;
         }
         tx.commit().await?;
@@ -96,7 +99,7 @@ impl Db {
     }
 
     pub async fn get_rule(&self, name: &str) -> Result<Option<StoredRule>, DbError> {
-        let row = sqlx::query("SELECT * FROM rules WHERE name = ?")
+        let row = query("SELECT * FROM rules WHERE name = $1")
             .bind(name)
             .fetch_optional(&self.pool)
             .await?;
@@ -105,7 +108,7 @@ impl Db {
 
     /// Every rule, by name.
     pub async fn list_rules(&self) -> Result<Vec<StoredRule>, DbError> {
-        let rows = sqlx::query("SELECT * FROM rules ORDER BY name")
+        let rows = query("SELECT * FROM rules ORDER BY name")
             .fetch_all(&self.pool)
             .await?;
         rows.iter().map(rule_from_row).collect()
@@ -115,17 +118,17 @@ impl Db {
     /// replaced (a config rule replaces an API rule of the same name).
     pub async fn sync_config_rules(&self, specs: &[RuleSpec]) -> Result<(), DbError> {
         let now = now_us();
-        let mut tx = self.write_tx().await?;
+        let mut tx = self.pool.begin().await?;
+        tx.lock(CONFIG_RULES_LOCK).await?;
         let names = to_json(&specs.iter().map(|s| &s.name).collect::<Vec<_>>());
-        sqlx::query(
-            "DELETE FROM rules WHERE source = 'config' AND name NOT IN (SELECT value FROM json_each(?))",
-        )
-        .bind(names)
-        .execute(&mut *tx)
-        .await?;
+        let sql = format!(
+            "DELETE FROM rules WHERE source = 'config' AND name NOT IN {}",
+            self.dialect().json_strings(1)
+        );
+        assembled(sql).bind(names).execute(&mut tx).await?;
         for s in specs {
-            sqlx::query(
-                "INSERT INTO rules (name, source, spec, created_us, updated_us) VALUES (?, 'config', ?, ?, ?)
+            query(
+                "INSERT INTO rules (name, source, spec, created_us, updated_us) VALUES ($1, 'config', $2, $3, $4)
                  ON CONFLICT (name) DO UPDATE SET source = 'config', spec = excluded.spec,
                      updated_us = excluded.updated_us
                  WHERE rules.spec <> excluded.spec OR rules.source <> 'config'",
@@ -134,7 +137,7 @@ impl Db {
             .bind(to_json(s))
             .bind(now)
             .bind(now)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?;
         }
         tx.commit().await?;
@@ -144,10 +147,10 @@ impl Db {
     /// Record that a rule fires for a series; `None` when it already fired for this content.
     pub async fn insert_run(&self, run: &NewRun<'_>) -> Result<Option<String>, DbError> {
         let id = JobId::generate().to_string();
-        let r = sqlx::query(
+        let r = query(
             "INSERT INTO rule_runs (id, rule_name, content_hash, series_id, series_uid, calling_ae, state,
                                     created_us)
-             VALUES (?, ?, ?, ?, ?, ?, 'running', ?) ON CONFLICT (rule_name, content_hash) DO NOTHING",
+             VALUES ($1, $2, $3, $4, $5, $6, 'running', $7) ON CONFLICT (rule_name, content_hash) DO NOTHING",
         )
         .bind(&id)
         .bind(run.rule_name)
@@ -162,7 +165,7 @@ impl Db {
     }
 
     pub async fn set_run_job(&self, run_id: &str, job: JobId) -> Result<(), DbError> {
-        sqlx::query("UPDATE rule_runs SET job_id = ? WHERE id = ?")
+        query("UPDATE rule_runs SET job_id = $1 WHERE id = $2")
             .bind(job.to_string())
             .bind(run_id)
             .execute(&self.pool)
@@ -176,7 +179,7 @@ impl Db {
         state: RunState,
         error: Option<&Problem>,
     ) -> Result<(), DbError> {
-        sqlx::query("UPDATE rule_runs SET state = ?, error = COALESCE(?, error) WHERE id = ?")
+        query("UPDATE rule_runs SET state = $1, error = COALESCE($2, error) WHERE id = $3")
             .bind(state.as_str())
             .bind(error.map(to_json))
             .bind(run_id)
@@ -196,15 +199,16 @@ impl Db {
         destinations: &[String],
         error: Option<&Problem>,
     ) -> Result<Option<Vec<String>>, DbError> {
-        let mut tx = self.write_tx().await?;
-        let r = sqlx::query(
-            "UPDATE rule_runs SET state = 'done', error = COALESCE(?, error) WHERE id = ? AND state = 'running'",
+        let mut tx = self.pool.begin().await?;
+        let r = query(
+            "UPDATE rule_runs SET state = 'done', error = COALESCE($1, error) WHERE id = $2 AND state = 'running'",
         )
         .bind(error.map(to_json))
         .bind(&run.id)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         if r.rows_affected() != 1 {
+            tx.rollback().await?;
             return Ok(None);
         }
         let mut ids = Vec::with_capacity(destinations.len());
@@ -217,7 +221,7 @@ impl Db {
 
     /// Runs whose job has finished but whose deliveries were not made yet, with the job's status.
     pub async fn runs_with_finished_jobs(&self) -> Result<Vec<(RuleRun, JobStatus)>, DbError> {
-        let rows = sqlx::query(
+        let rows = query(
             "SELECT r.*, j.status AS job_status FROM rule_runs r JOIN jobs j ON j.id = r.job_id
              WHERE r.state = 'running' AND j.status IN ('succeeded', 'failed', 'canceled')
              ORDER BY r.created_us LIMIT 100",
@@ -235,9 +239,9 @@ impl Db {
 
     /// The newest runs of a rule (all rules when `rule` is `None`).
     pub async fn list_runs(&self, rule: Option<&str>, limit: u32) -> Result<Vec<RuleRun>, DbError> {
-        let rows = sqlx::query(
-            "SELECT * FROM rule_runs WHERE (? IS NULL OR rule_name = ?) ORDER BY created_us DESC, id DESC
-             LIMIT ?",
+        let rows = query(
+            "SELECT * FROM rule_runs WHERE (CAST($1 AS TEXT) IS NULL OR rule_name = $2) ORDER BY created_us DESC, id DESC
+             LIMIT $3",
         )
         .bind(rule)
         .bind(rule)
@@ -249,7 +253,7 @@ impl Db {
 
     /// The run that started `job`, if a rule did.
     pub async fn run_of_job(&self, job: JobId) -> Result<Option<RuleRun>, DbError> {
-        let row = sqlx::query("SELECT * FROM rule_runs WHERE job_id = ?")
+        let row = query("SELECT * FROM rule_runs WHERE job_id = $1")
             .bind(job.to_string())
             .fetch_optional(&self.pool)
             .await?;

@@ -1,22 +1,17 @@
-//! Uploads (open and completed) and the series assembled from them, on PostgreSQL.
+//! Uploads and the series assembled from them: an upload completed in one request with its series, an open
+//! upload that instances are appended to and that is completed later, and the series records.
 
-use sqlx::Row;
-
-use super::{
-    Appended, Completed, DbError, IdempotencyKey, Inserted, PgDb, UploadDeleted, json_col,
-    opt_json_col,
-};
-use crate::jobs::model::{SeriesRecord, UploadRecord, now_us};
+use super::driver::{Tx, assembled, query};
+use super::rows::{json_col, opt_json_col};
+use super::{Appended, Completed, Database, DbError, UploadDeleted};
+use crate::jobs::model::{IdempotencyKey, Inserted, SeriesRecord, UploadRecord, now_us};
 use crate::jobs::store::to_json;
 use crate::storage::{SeriesId, UploadId};
 
-impl PgDb {
-    async fn insert_series(
-        tx: &mut sqlx::PgConnection,
-        series: &[SeriesRecord],
-    ) -> Result<(), DbError> {
+impl Database {
+    async fn insert_series(tx: &mut Tx, series: &[SeriesRecord]) -> Result<(), DbError> {
         for r in series {
-            sqlx::query(
+            query(
                 "INSERT INTO series (id, upload_id, series_uid, record, created_us) VALUES ($1, $2, $3, $4, $5)",
             )
             .bind(r.id.to_string())
@@ -45,7 +40,7 @@ impl PgDb {
             Err(existing) => return Ok(existing),
         };
         let now = now_us();
-        sqlx::query(
+        query(
             "INSERT INTO uploads (id, status, instances, bytes, outcome, created_us, completed_us)
              VALUES ($1, 'completed', $2, $3, $4, $5, $6)",
         )
@@ -55,7 +50,7 @@ impl PgDb {
         .bind(outcome.to_string())
         .bind(now)
         .bind(now)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         Self::insert_series(&mut tx, series).await?;
         tx.commit().await?;
@@ -72,17 +67,17 @@ impl PgDb {
             Ok(tx) => tx,
             Err(existing) => return Ok(existing),
         };
-        sqlx::query("INSERT INTO uploads (id, status, created_us) VALUES ($1, 'open', $2)")
+        query("INSERT INTO uploads (id, status, created_us) VALUES ($1, 'open', $2)")
             .bind(id.to_string())
             .bind(now_us())
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?;
         tx.commit().await?;
         Ok(Inserted::New)
     }
 
     pub async fn get_upload(&self, id: UploadId) -> Result<Option<UploadRecord>, DbError> {
-        let row = sqlx::query("SELECT * FROM uploads WHERE id = $1")
+        let row = query("SELECT * FROM uploads WHERE id = $1")
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
@@ -113,14 +108,17 @@ impl PgDb {
         max_bytes: u64,
     ) -> Result<Appended, DbError> {
         let mut tx = self.pool.begin().await?;
-        // The row stays locked to the end: an append and a completion through two processes take turns, so
+        // The row stays locked to the end (on SQLite the transaction holds the one write lock): an append and a completion through two processes take turns, so
         // the completion either sees this instance counted (and refuses a changed upload) or this append
         // sees the upload closed; an instance is never acknowledged into an upload already assembled.
-        let Some(row) =
-            sqlx::query("SELECT status, instances, bytes FROM uploads WHERE id = $1 FOR UPDATE")
-                .bind(id.to_string())
-                .fetch_optional(&mut *tx)
-                .await?
+        let sql = format!(
+            "SELECT status, instances, bytes FROM uploads WHERE id = $1{}",
+            self.dialect().for_update()
+        );
+        let Some(row) = assembled(sql)
+            .bind(id.to_string())
+            .fetch_optional(&mut tx)
+            .await?
         else {
             return Ok(Appended::NotFound);
         };
@@ -130,10 +128,10 @@ impl PgDb {
         if status != "open" {
             return Ok(Appended::Closed);
         }
-        let known = sqlx::query("SELECT 1 FROM upload_files WHERE upload_id = $1 AND sha256 = $2")
+        let known = query("SELECT 1 FROM upload_files WHERE upload_id = $1 AND sha256 = $2")
             .bind(id.to_string())
             .bind(sha256)
-            .fetch_optional(&mut *tx)
+            .fetch_optional(&mut tx)
             .await?;
         if known.is_some() {
             return Ok(Appended::Duplicate(instances.max(0) as u32));
@@ -141,7 +139,7 @@ impl PgDb {
         if (total.max(0) as u64).saturating_add(bytes) > max_bytes {
             return Ok(Appended::TooLarge(max_bytes));
         }
-        sqlx::query(
+        query(
             "INSERT INTO upload_files (upload_id, sha256, label, bytes, series_uid, created_us)
              VALUES ($1, $2, $3, $4, $5, $6)",
         )
@@ -151,15 +149,15 @@ impl PgDb {
         .bind(bytes as i64)
         .bind(series_uid)
         .bind(now_us())
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
-        sqlx::query(
+        query(
             "UPDATE uploads SET instances = instances + 1, bytes = bytes + $1
              WHERE id = $2 AND status = 'open'",
         )
         .bind(bytes as i64)
         .bind(id.to_string())
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         tx.commit().await?;
         Ok(Appended::Added(instances.max(0) as u32 + 1))
@@ -167,14 +165,14 @@ impl PgDb {
 
     /// Delete the open upload `id` with its instance rows (a completed upload goes with its series).
     pub async fn delete_open_upload(&self, id: UploadId) -> Result<UploadDeleted, DbError> {
-        let gone = sqlx::query("DELETE FROM uploads WHERE id = $1 AND status = 'open'")
+        let gone = query("DELETE FROM uploads WHERE id = $1 AND status = 'open'")
             .bind(id.to_string())
             .execute(&self.pool)
             .await?;
         if gone.rows_affected() > 0 {
             return Ok(UploadDeleted::Done);
         }
-        let known = sqlx::query("SELECT 1 FROM uploads WHERE id = $1")
+        let known = query("SELECT 1 FROM uploads WHERE id = $1")
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
@@ -187,12 +185,14 @@ impl PgDb {
 
     /// The instances of an upload: `(sha256, label)` in order of arrival.
     pub async fn upload_files(&self, id: UploadId) -> Result<Vec<(String, String)>, DbError> {
-        let rows = sqlx::query(
-            "SELECT sha256, label FROM upload_files WHERE upload_id = $1 ORDER BY created_us, seq",
-        )
-        .bind(id.to_string())
-        .fetch_all(&self.pool)
-        .await?;
+        let sql = format!(
+            "SELECT sha256, label FROM upload_files WHERE upload_id = $1 ORDER BY created_us, {}",
+            self.dialect().insertion_order()
+        );
+        let rows = assembled(sql)
+            .bind(id.to_string())
+            .fetch_all(&self.pool)
+            .await?;
         rows.iter()
             .map(|r| Ok((r.try_get("sha256")?, r.try_get("label")?)))
             .collect()
@@ -207,7 +207,7 @@ impl PgDb {
         series: &[SeriesRecord],
     ) -> Result<Completed, DbError> {
         let mut tx = self.pool.begin().await?;
-        let done = sqlx::query(
+        let done = query(
             "UPDATE uploads SET status = 'completed', outcome = $1, completed_us = $2
              WHERE id = $3 AND status = 'open' AND instances = $4",
         )
@@ -215,12 +215,12 @@ impl PgDb {
         .bind(now_us())
         .bind(id.to_string())
         .bind(instances as i64)
-        .execute(&mut *tx)
+        .execute(&mut tx)
         .await?;
         if done.rows_affected() == 0 {
-            let open = sqlx::query("SELECT 1 FROM uploads WHERE id = $1 AND status = 'open'")
+            let open = query("SELECT 1 FROM uploads WHERE id = $1 AND status = 'open'")
                 .bind(id.to_string())
-                .fetch_optional(&mut *tx)
+                .fetch_optional(&mut tx)
                 .await?;
             return Ok(if open.is_some() {
                 Completed::Changed
@@ -234,7 +234,7 @@ impl PgDb {
     }
 
     pub async fn get_series(&self, id: SeriesId) -> Result<Option<SeriesRecord>, DbError> {
-        let row = sqlx::query("SELECT record, created_us FROM series WHERE id = $1")
+        let row = query("SELECT record, created_us FROM series WHERE id = $1")
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
@@ -248,7 +248,7 @@ impl PgDb {
 
     /// The stored series of Series Instance UID `series_uid`, newest first.
     pub async fn series_with_uid(&self, series_uid: &str) -> Result<Vec<SeriesRecord>, DbError> {
-        let rows = sqlx::query(
+        let rows = query(
             "SELECT record, created_us FROM series WHERE series_uid = $1 ORDER BY created_us DESC, id DESC",
         )
         .bind(series_uid)

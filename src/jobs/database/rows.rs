@@ -1,15 +1,15 @@
-//! Rows of the SQLite job database decoded into the model: datasets, jobs and job summaries.
+//! Rows of the job database as domain values: datasets, jobs and job summaries (JSON columns are text
+//! holding the typed API objects).
 
-use sqlx::Row;
-use sqlx::sqlite::SqliteRow;
-
-use super::{DbError, corrupt, product_indexes};
+use super::DbError;
+use super::driver::Row;
 use crate::error_code::Problem;
 use crate::jobs::model::{Dataset, DatasetKind, Job, JobResult, JobSpec, JobStatus, JobSummary};
+use crate::jobs::store::{corrupt, product_indexes};
 use crate::storage::{DatasetId, JobId};
 
 pub(super) fn json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
+    row: &Row,
     col: &str,
     table: &'static str,
 ) -> Result<T, DbError> {
@@ -18,7 +18,7 @@ pub(super) fn json_col<T: serde::de::DeserializeOwned>(
 }
 
 pub(super) fn opt_json_col<T: serde::de::DeserializeOwned>(
-    row: &SqliteRow,
+    row: &Row,
     col: &str,
     table: &'static str,
 ) -> Result<Option<T>, DbError> {
@@ -27,7 +27,7 @@ pub(super) fn opt_json_col<T: serde::de::DeserializeOwned>(
         .transpose()
 }
 
-pub(super) fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
+pub(super) fn dataset_from_row(row: &Row) -> Result<Dataset, DbError> {
     let id: String = row.try_get("id")?;
     let kind: String = row.try_get("kind")?;
     let bytes: i64 = row.try_get("bytes")?;
@@ -51,19 +51,15 @@ pub(super) fn dataset_from_row(row: &SqliteRow) -> Result<Dataset, DbError> {
     })
 }
 
-pub(super) fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
+pub(super) fn job_from_row(row: &Row) -> Result<Job, DbError> {
     let estimate: i64 = row.try_get("estimate_bytes")?;
     let attempts: i64 = row.try_get("attempts")?;
     let cancel: i64 = row.try_get("cancel_requested")?;
     Ok(Job {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        id: row.parsed("id", "jobs", JobId::parse)?,
         kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
+        status: status_col(row)?,
+        progress: progress_col(row)?,
         stage: row.try_get("stage")?,
         request: json_col::<JobSpec>(row, "spec", "jobs")?,
         estimate_bytes: estimate.max(0) as u64,
@@ -77,32 +73,30 @@ pub(super) fn job_from_row(row: &SqliteRow) -> Result<Job, DbError> {
     })
 }
 
-/// The columns of a job summary: the job's own, whether its result has metrics, and its products' indexes
-/// (comma-separated).
-pub(super) const SUMMARY_COLUMNS: &str =
-    "id, kind, status, progress, stage, created_us, started_us, finished_us,
-    json_extract(result, '$.metrics') IS NOT NULL AS has_metrics,
-    (SELECT group_concat(json_extract(value, '$.index')) FROM json_each(result, '$.products'))
-        AS product_indexes";
-
-pub(super) fn summary_from_row(row: &SqliteRow) -> Result<JobSummary, DbError> {
-    let id: String = row.try_get("id")?;
-    let status: String = row.try_get("status")?;
-    let progress: i64 = row.try_get("progress")?;
-    let has_metrics: i64 = row.try_get("has_metrics")?;
+pub(super) fn summary_from_row(row: &Row) -> Result<JobSummary, DbError> {
     let products: Option<String> = row.try_get("product_indexes")?;
-    let product_indexes = product_indexes(products.as_deref())?;
     Ok(JobSummary {
-        id: JobId::parse(&id).map_err(|e| corrupt("jobs", e))?,
+        id: row.parsed("id", "jobs", JobId::parse)?,
         kind: row.try_get("kind")?,
-        status: JobStatus::parse(&status)
-            .ok_or_else(|| corrupt("jobs", format!("status {status}")))?,
-        progress: progress.clamp(0, 100) as u8,
+        status: status_col(row)?,
+        progress: progress_col(row)?,
         stage: row.try_get("stage")?,
         created_us: row.try_get("created_us")?,
         started_us: row.try_get("started_us")?,
         finished_us: row.try_get("finished_us")?,
-        has_metrics: has_metrics != 0,
-        product_indexes,
+        has_metrics: row.try_get("has_metrics")?,
+        product_indexes: product_indexes(products.as_deref())?,
     })
+}
+
+/// A job's `status` column.
+fn status_col(row: &Row) -> Result<JobStatus, DbError> {
+    let status: String = row.try_get("status")?;
+    JobStatus::parse(&status).ok_or_else(|| corrupt("jobs", format!("status {status}")))
+}
+
+/// A job's `progress` column, in percent.
+fn progress_col(row: &Row) -> Result<u8, DbError> {
+    let progress: i64 = row.try_get("progress")?;
+    Ok(progress.clamp(0, 100) as u8)
 }

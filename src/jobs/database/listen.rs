@@ -4,7 +4,7 @@
 
 use sqlx::postgres::PgListener;
 
-use super::{CANCEL_CHANNEL, DbError, EVENTS_CHANNEL, PgDb, QUEUED_CHANNEL};
+use super::{CANCEL_CHANNEL, Database, DbError, EVENTS_CHANNEL, QUEUED_CHANNEL};
 use crate::storage::JobId;
 
 /// What a notification announces.
@@ -24,13 +24,17 @@ pub struct Listener {
 }
 
 impl Listener {
-    /// Connect and listen on the job channels.
-    pub async fn connect(db: &PgDb) -> Result<Self, DbError> {
-        let mut inner = PgListener::connect(db.url()).await?;
+    /// Connect and listen on the job channels of a shared database; `None` on a database no other process
+    /// uses (nothing is announced there).
+    pub async fn connect(db: &Database) -> Result<Option<Self>, DbError> {
+        let Some(url) = db.url.as_deref() else {
+            return Ok(None);
+        };
+        let mut inner = PgListener::connect(url).await?;
         inner
             .listen_all([QUEUED_CHANNEL, CANCEL_CHANNEL, EVENTS_CHANNEL])
             .await?;
-        Ok(Self { inner })
+        Ok(Some(Self { inner }))
     }
 
     /// The next wake-up (queue and cancel notifications with a payload that is not a job id are skipped). A lost

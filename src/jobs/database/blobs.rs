@@ -1,19 +1,18 @@
-//! Rows that own blob files, on SQLite: the ids the start-up sweep ([`crate::jobs::sweep`]) pairs files with,
-//! the rows it marks, and the deletion of series and datasets that no queued or running job uses.
+//! Rows that own blob files: what the start-up sweep ([`crate::jobs::sweep::sweep_blobs`]) reads and
+//! marks, and the deletion of series and datasets that no queued or running job uses.
 
 use std::collections::HashSet;
 
-use sqlx::Row;
-
-use super::{Db, DbError, Deleted};
+use super::driver::{assembled, query};
+use super::{Database, DbError, Deleted};
 use crate::jobs::model::now_us;
 use crate::storage::sweep::BlobKind;
 use crate::storage::{DatasetId, SeriesId};
 
 const ACTIVE_INPUT: &str =
-    "EXISTS (SELECT 1 FROM jobs WHERE dataset_id = ? AND status IN ('queued', 'running'))";
+    "EXISTS (SELECT 1 FROM jobs WHERE dataset_id = $1 AND status IN ('queued', 'running'))";
 
-impl Db {
+impl Database {
     /// The ids of the rows that own a file of `kind` (for uploads: the open ones; for results: every job).
     pub(crate) async fn owner_ids(&self, kind: BlobKind) -> Result<HashSet<String>, DbError> {
         let sql = match kind {
@@ -22,16 +21,16 @@ impl Db {
             BlobKind::Upload => "SELECT id FROM uploads WHERE status = 'open'",
             BlobKind::Results => "SELECT id FROM jobs",
         };
-        let rows = sqlx::query(sql).fetch_all(&self.pool).await?;
+        let rows = query(sql).fetch_all(&self.pool).await?;
         rows.iter()
-            .map(|r| r.try_get::<String, _>("id").map_err(DbError::from))
+            .map(|r| r.try_get::<String>("id").map_err(DbError::from))
             .collect()
     }
 
     /// Record that the file of row `id` is gone.
     pub(crate) async fn mark_missing(&self, kind: BlobKind, id: &str) -> Result<(), DbError> {
-        sqlx::query(
-            "INSERT INTO missing_blobs (kind, id, detected_us) VALUES (?, ?, ?)
+        query(
+            "INSERT INTO missing_blobs (kind, id, detected_us) VALUES ($1, $2, $3)
              ON CONFLICT (kind, id) DO NOTHING",
         )
         .bind(kind.as_str())
@@ -44,7 +43,7 @@ impl Db {
 
     /// Whether the sweep found the file of this series or dataset missing.
     pub async fn blob_missing(&self, kind: BlobKind, id: &str) -> Result<bool, DbError> {
-        let row = sqlx::query("SELECT 1 FROM missing_blobs WHERE kind = ? AND id = ?")
+        let row = query("SELECT 1 FROM missing_blobs WHERE kind = $1 AND id = $2")
             .bind(kind.as_str())
             .bind(id)
             .fetch_optional(&self.pool)
@@ -59,29 +58,22 @@ impl Db {
         kind: BlobKind,
         id: &str,
     ) -> Result<Deleted, DbError> {
-        let mut tx = self.write_tx().await?;
-        let sql = format!("DELETE FROM {table} WHERE id = ? AND NOT {ACTIVE_INPUT}");
-        let done = sqlx::query(sqlx::AssertSqlSafe(sql))
-            .bind(id)
-            .bind(id)
-            .execute(&mut *tx)
-            .await?;
+        let mut tx = self.pool.begin().await?;
+        let sql = format!("DELETE FROM {table} WHERE id = $1 AND NOT {ACTIVE_INPUT}");
+        let done = assembled(sql).bind(id).execute(&mut tx).await?;
         if done.rows_affected() == 0 {
-            let sql = format!("SELECT 1 FROM {table} WHERE id = ?");
-            let exists = sqlx::query(sqlx::AssertSqlSafe(sql))
-                .bind(id)
-                .fetch_optional(&mut *tx)
-                .await?;
+            let sql = format!("SELECT 1 FROM {table} WHERE id = $1");
+            let exists = assembled(sql).bind(id).fetch_optional(&mut tx).await?;
             return Ok(if exists.is_some() {
                 Deleted::InUse
             } else {
                 Deleted::NotFound
             });
         }
-        sqlx::query("DELETE FROM missing_blobs WHERE kind = ? AND id = ?")
+        query("DELETE FROM missing_blobs WHERE kind = $1 AND id = $2")
             .bind(kind.as_str())
             .bind(id)
-            .execute(&mut *tx)
+            .execute(&mut tx)
             .await?;
         tx.commit().await?;
         Ok(Deleted::Done)

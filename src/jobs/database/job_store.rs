@@ -1,21 +1,21 @@
-//! The PostgreSQL adapter of the [`JobStore`] port. Each transition is one `UPDATE … WHERE status IN (…)`
-//! whose guard comes from the lifecycle table ([`sources`]); when it matches no row, the job's current
-//! status says why, as an [`IllegalTransition`]. A claim skips a row another worker is claiming at the
-//! same moment (`FOR UPDATE SKIP LOCKED`) instead of waiting for it.
+//! The [`JobStore`] port on the job database. Each transition is one `UPDATE … WHERE status IN (…)` whose
+//! guard comes from the lifecycle table ([`sources`]); when it matches no row, the job's current status
+//! says why, as an [`IllegalTransition`]. On PostgreSQL a claim skips a row another worker is claiming at
+//! the same moment (`FOR UPDATE SKIP LOCKED`, [`Dialect::skip_locked`](super::Dialect::skip_locked))
+//! instead of waiting for it; on SQLite the claim's transaction holds the one write lock.
 
-use futures_util::FutureExt;
-use futures_util::future::BoxFuture;
-use sqlx::{AssertSqlSafe, Row};
-
-use super::{DbError, IdempotencyKey, Inserted, JobFilter, PgDb, QUEUED_CHANNEL};
+use super::driver::{Row, assembled, query};
+use super::{Database, DbError, QUEUED_CHANNEL};
 use crate::error_code::{ErrorCode, Problem};
 use crate::jobs::lifecycle::{
     IllegalTransition, JobState, Lease, Outcome, Transition, sources, transition,
 };
-use crate::jobs::model::{Job, JobStatus, now_us};
+use crate::jobs::model::{IdempotencyKey, Inserted, Job, JobFilter, JobStatus, now_us};
 use crate::jobs::store::{Expired, JobStore, Renewed, StoreError, StoreResult};
 use crate::jobs::store::{corrupt, to_json};
 use crate::storage::JobId;
+use futures_util::FutureExt;
+use futures_util::future::BoxFuture;
 
 /// `status IN ('…', …)` for the statuses `event` is legal from (fixed words from the lifecycle table).
 fn guard(event: Transition) -> String {
@@ -25,7 +25,13 @@ fn guard(event: Transition) -> String {
     format!("status IN ({})", list.join(", "))
 }
 
-impl PgDb {
+impl From<DbError> for StoreError {
+    fn from(e: DbError) -> Self {
+        StoreError::Backend(Box::new(e))
+    }
+}
+
+impl Database {
     /// The status of job `id` now, for explaining a guarded update that matched nothing.
     async fn illegal(&self, id: JobId, event: Transition) -> StoreError {
         let from = match self.get_job(id).await {
@@ -40,21 +46,29 @@ impl PgDb {
         let sql = format!(
             "UPDATE jobs SET status = 'running', attempts = attempts + 1, started_us = $1,
                     progress = 0, stage = 'starting', lease_expires_us = $2
-             WHERE id = (SELECT id FROM jobs WHERE id = $3 AND {} FOR UPDATE SKIP LOCKED)
+             WHERE id = (SELECT id FROM jobs WHERE id = $3 AND {}{})
              RETURNING attempts",
-            guard(Transition::Claim)
+            guard(Transition::Claim),
+            self.dialect().skip_locked()
         );
-        let row = sqlx::query(AssertSqlSafe(sql))
+        let row = assembled(sql)
             .bind(now_us())
             .bind(lease.map(|l| l.expires_us))
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
+        self.invalidate(id);
         row.map(|r| {
             let n: i64 = r.try_get("attempts")?;
             Ok(n.max(0) as u32)
         })
         .transpose()
+    }
+
+    /// `queued → running` without a lease (a single process owns the database: a crash is found at the next
+    /// start, not by a lease). False when the job was not queued.
+    pub async fn claim(&self, id: JobId) -> Result<bool, DbError> {
+        Ok(self.claim_row(id, None).await?.is_some())
     }
 
     async fn claim_leased(&self, id: JobId, lease: Option<Lease>) -> StoreResult<u32> {
@@ -65,7 +79,7 @@ impl PgDb {
     }
 
     async fn lease_of(&self, id: JobId) -> Result<Option<Lease>, DbError> {
-        let row = sqlx::query("SELECT lease_expires_us FROM jobs WHERE id = $1")
+        let row = query("SELECT lease_expires_us FROM jobs WHERE id = $1")
             .bind(id.to_string())
             .fetch_optional(&self.pool)
             .await?;
@@ -96,7 +110,7 @@ impl PgDb {
     }
 
     async fn heartbeat_row(&self, id: JobId, attempt: u32, lease: Lease) -> StoreResult<Renewed> {
-        let row = sqlx::query(
+        let row = query(
             "UPDATE jobs SET lease_expires_us = $1 WHERE id = $2 AND status = 'running' AND attempts = $3
              RETURNING cancel_requested",
         )
@@ -137,16 +151,13 @@ impl PgDb {
             ErrorCode::AttemptsExhausted,
             format!("the job's worker was lost while running it {max_attempts} times"),
         );
-        let ids = |rows: Vec<sqlx::postgres::PgRow>| {
+        let ids = |rows: Vec<Row>| {
             rows.iter()
-                .map(|r| {
-                    let id: String = r.try_get("id")?;
-                    JobId::parse(&id).map_err(|e| corrupt("jobs", e))
-                })
+                .map(|r| r.parsed("id", "jobs", JobId::parse))
                 .collect::<Result<Vec<_>, DbError>>()
         };
         let mut tx = self.pool.begin().await?;
-        let failed = sqlx::query(
+        let failed = query(
             "UPDATE jobs SET status = 'failed', stage = 'failed', finished_us = $1, error = $2,
                     lease_expires_us = NULL
              WHERE status = 'running' AND lease_expires_us < $3 AND attempts >= $4 RETURNING id",
@@ -155,29 +166,28 @@ impl PgDb {
         .bind(to_json(&problem))
         .bind(now)
         .bind(max_attempts as i64)
-        .fetch_all(&mut *tx)
+        .fetch_all(&mut tx)
         .await?;
-        let requeued: Vec<sqlx::postgres::PgRow> = sqlx::query(
+        let requeued: Vec<Row> = query(
             "UPDATE jobs SET status = 'queued', stage = 'requeued', progress = 0, started_us = NULL,
                     lease_expires_us = NULL
              WHERE status = 'running' AND lease_expires_us < $1 RETURNING id",
         )
         .bind(now)
-        .fetch_all(&mut *tx)
+        .fetch_all(&mut tx)
         .await?;
         for r in &requeued {
             let id: String = r.try_get("id")?;
-            sqlx::query("SELECT pg_notify($1, $2)")
-                .bind(QUEUED_CHANNEL)
-                .bind(id)
-                .execute(&mut *tx)
-                .await?;
+            tx.notify(QUEUED_CHANNEL, &id).await?;
         }
         tx.commit().await?;
         let e = Expired {
             requeued: ids(requeued)?,
             failed: ids(failed)?,
         };
+        for id in e.requeued.iter().chain(&e.failed) {
+            self.invalidate(*id);
+        }
         Ok(e)
     }
 
@@ -192,7 +202,7 @@ impl PgDb {
             Outcome::Canceled => (None, None),
         };
         let status = outcome.status();
-        let done = sqlx::query(
+        let done = query(
             "UPDATE jobs SET status = $1, stage = $2, error = $3, result = $4, finished_us = $5,
                     progress = CASE WHEN $6 THEN 100 ELSE progress END, lease_expires_us = NULL
              WHERE id = $7 AND status = 'running' AND attempts = $8",
@@ -208,6 +218,7 @@ impl PgDb {
         .execute(&self.pool)
         .await
         .map_err(DbError::from)?;
+        self.invalidate(id);
         if done.rows_affected() == 1 {
             Ok(())
         } else {
@@ -230,7 +241,7 @@ impl PgDb {
     }
 }
 
-impl JobStore for PgDb {
+impl JobStore for Database {
     fn insert<'a>(
         &'a self,
         job: &'a Job,
@@ -252,7 +263,7 @@ impl JobStore for PgDb {
     }
 
     fn queued(&self, limit: u32) -> BoxFuture<'_, StoreResult<Vec<(JobId, u64)>>> {
-        async move { Ok(PgDb::queued(self, limit).await?) }.boxed()
+        async move { Ok(Database::queued(self, limit).await?) }.boxed()
     }
 
     fn claim(&self, id: JobId, lease: Lease) -> BoxFuture<'_, StoreResult<u32>> {
@@ -275,12 +286,12 @@ impl JobStore for PgDb {
         progress: u8,
         stage: &'a str,
     ) -> BoxFuture<'a, StoreResult<()>> {
-        async move { Ok(PgDb::set_progress(self, id, attempt, progress, stage).await?) }.boxed()
+        async move { Ok(Database::set_progress(self, id, attempt, progress, stage).await?) }.boxed()
     }
 
     fn hand_back(&self, id: JobId, attempt: u32) -> BoxFuture<'_, StoreResult<()>> {
         async move {
-            if PgDb::hand_back(self, id, attempt).await? {
+            if Database::hand_back(self, id, attempt).await? {
                 Ok(())
             } else {
                 Err(self.refused(id, attempt, Transition::HandBack).await)
@@ -304,17 +315,17 @@ impl JobStore for PgDb {
 
     fn cancel_queued(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>> {
         async move {
-            let done = PgDb::cancel_queued(self, id).await;
+            let done = Database::cancel_queued(self, id).await;
             self.applied(id, Transition::Cancel, done).await
         }
         .boxed()
     }
 
     fn request_cancel(&self, id: JobId) -> BoxFuture<'_, StoreResult<()>> {
-        async move { Ok(PgDb::request_cancel(self, id).await?) }.boxed()
+        async move { Ok(Database::request_cancel(self, id).await?) }.boxed()
     }
 
     fn delete_finished(&self, id: JobId) -> BoxFuture<'_, StoreResult<bool>> {
-        async move { Ok(PgDb::delete_finished(self, id).await?) }.boxed()
+        async move { Ok(Database::delete_finished(self, id).await?) }.boxed()
     }
 }

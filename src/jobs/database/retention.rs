@@ -1,9 +1,9 @@
-//! Deletions of the SQLite repository: finished jobs, and what retention removes once it aged out (jobs,
-//! datasets, series and uploads, each unless still in use).
+//! Retention: deleting what is older than its retention period, except the inputs of queued
+//! and running jobs, with the Idempotency-Key records that name what is deleted.
 
-use sqlx::Row;
-
-use super::{Db, DbError, corrupt};
+use super::driver::query;
+use super::{Database, DbError};
+use crate::jobs::store::corrupt;
 use crate::storage::{DatasetId, JobId, SeriesId, UploadId};
 
 /// The inputs (datasets, series, jobs) of queued and running jobs: never removed.
@@ -13,19 +13,7 @@ macro_rules! active_inputs {
     };
 }
 
-impl Db {
-    /// Delete a finished job. False when it does not exist or is still queued or running.
-    pub async fn delete_finished(&self, id: JobId) -> Result<bool, DbError> {
-        let done = sqlx::query(
-            "DELETE FROM jobs WHERE id = ? AND status IN ('succeeded', 'failed', 'canceled')",
-        )
-        .bind(id.to_string())
-        .execute(&self.pool)
-        .await?;
-        self.cache.invalidate(id);
-        Ok(done.rows_affected() == 1)
-    }
-
+impl Database {
     /// Delete the rows that `sql` (a `DELETE … WHERE … < ? … RETURNING id`) selects with `before_us`, and
     /// the Idempotency-Key records that name them, in one transaction; returns the ids deleted.
     async fn delete_returning(
@@ -33,16 +21,16 @@ impl Db {
         sql: &'static str,
         before_us: i64,
     ) -> Result<Vec<String>, DbError> {
-        let mut tx = self.write_tx().await?;
-        let rows = sqlx::query(sql).bind(before_us).fetch_all(&mut *tx).await?;
+        let mut tx = self.pool.begin().await?;
+        let rows = query(sql).bind(before_us).fetch_all(&mut tx).await?;
         let ids = rows
             .iter()
-            .map(|r| r.try_get::<String, _>("id"))
+            .map(|r| r.try_get::<String>("id"))
             .collect::<Result<Vec<_>, _>>()?;
         for id in &ids {
-            sqlx::query("DELETE FROM idempotency_keys WHERE resource_id = ?")
+            query("DELETE FROM idempotency_keys WHERE resource_id = $1")
                 .bind(id)
-                .execute(&mut *tx)
+                .execute(&mut tx)
                 .await?;
         }
         tx.commit().await?;
@@ -55,7 +43,7 @@ impl Db {
         let ids = self
             .delete_returning(
                 concat!(
-                    "DELETE FROM jobs WHERE status IN ('succeeded', 'failed', 'canceled') AND finished_us < ?
+                    "DELETE FROM jobs WHERE status IN ('succeeded', 'failed', 'canceled') AND finished_us < $1
                      AND id NOT IN (",
                     active_inputs!(),
                     ") RETURNING id"
@@ -68,7 +56,7 @@ impl Db {
             .map(|id| JobId::parse(id).map_err(|e| corrupt("jobs", e)))
             .collect::<Result<Vec<_>, _>>()?;
         for id in &ids {
-            self.cache.invalidate(*id);
+            self.invalidate(*id);
         }
         Ok(ids)
     }
@@ -81,7 +69,7 @@ impl Db {
         let ids = self
             .delete_returning(
                 concat!(
-                    "DELETE FROM datasets WHERE created_us < ? AND id NOT IN (",
+                    "DELETE FROM datasets WHERE created_us < $1 AND id NOT IN (",
                     active_inputs!(),
                     ") RETURNING id"
                 ),
@@ -101,7 +89,7 @@ impl Db {
         let ids = self
             .delete_returning(
                 concat!(
-                    "DELETE FROM series WHERE created_us < ? AND id NOT IN (",
+                    "DELETE FROM series WHERE created_us < $1 AND id NOT IN (",
                     active_inputs!(),
                     ") RETURNING id"
                 ),
@@ -121,27 +109,14 @@ impl Db {
     ) -> Result<Vec<UploadId>, DbError> {
         let ids = self
             .delete_returning(
-                "DELETE FROM uploads WHERE status = 'completed' AND completed_us < ?
+                "DELETE FROM uploads WHERE status = 'completed' AND completed_us < $1
                  AND id NOT IN (SELECT upload_id FROM series)
-                 AND id NOT IN (SELECT upload_id FROM instances WHERE upload_id IS NOT NULL) RETURNING id",
+                 AND NOT EXISTS (SELECT 1 FROM instances i WHERE i.upload_id = uploads.id) RETURNING id",
                 before_us,
             )
             .await?;
         ids.iter()
             .map(|id| UploadId::parse(id).map_err(|e| corrupt("uploads", e)))
-            .collect()
-    }
-
-    /// Ids of jobs that are not `succeeded` (their result directories may hold partial files).
-    pub async fn unfinished_ids(&self) -> Result<Vec<JobId>, DbError> {
-        let rows = sqlx::query("SELECT id FROM jobs WHERE status != 'succeeded'")
-            .fetch_all(&self.pool)
-            .await?;
-        rows.iter()
-            .map(|r| {
-                let id: String = r.try_get("id")?;
-                JobId::parse(&id).map_err(|e| corrupt("jobs", e))
-            })
             .collect()
     }
 }
