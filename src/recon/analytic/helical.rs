@@ -49,7 +49,7 @@ fn row_weight(q: f32) -> f32 {
 }
 
 /// Most conjugate views a voxel's line is weighted against.
-const MAX_CONJUGATES: usize = 8;
+const MAX_CONJUGATES: usize = 16;
 
 /// What the helical back projection refuses about `views`, checked without data.
 pub fn check(views: &Views3, params: &FbpParams) -> Result<(), ReconError> {
@@ -398,28 +398,39 @@ fn conjugates(
     let beta1 = beta + (opposite - beta).rem_euclid(tau);
     let turns = (span / tau).ceil() as i64 + 1;
     let mut n = 0;
-    for m_turn in -turns..=turns {
-        for candidate in [beta + m_turn as f64 * tau, beta1 + m_turn as f64 * tau] {
-            if candidate == beta
+    // Views a whole number of turns apart share the source's (x, y): one row line per base angle, its
+    // offset moved by the source's rise per turn.
+    for base in [beta, beta1] {
+        let sxy = if base == beta {
+            s
+        } else {
+            helix.source_xy(base)
+        };
+        let normal = [
+            (helix.centre[0] - sxy[0]) / helix.radius,
+            (helix.centre[1] - sxy[1]) / helix.radius,
+        ];
+        let source = [sxy[0], sxy[1], helix.z(base)];
+        let Some((q, _)) = row_line(p, source, normal, m, det, grid) else {
+            continue;
+        };
+        let per_turn = f64::from(q.b) / grid.spacing_mm[2] * helix.slope * tau;
+        for m_turn in -turns..=turns {
+            let candidate = base + m_turn as f64 * tau;
+            if (base == beta && m_turn == 0)
                 || (candidate - beta).abs() > span
                 || candidate < helix.lo
                 || candidate > helix.hi
-                || n == MAX_CONJUGATES
             {
                 continue;
             }
-            let sxy = helix.source_xy(candidate);
-            let normal = [
-                (helix.centre[0] - sxy[0]) / helix.radius,
-                (helix.centre[1] - sxy[1]) / helix.radius,
-            ];
-            let source = [sxy[0], sxy[1], helix.z(candidate)];
-            let Some((q, _)) = row_line(p, source, normal, m, det, grid) else {
-                continue;
+            let shifted = Affine {
+                a: (f64::from(q.a) - per_turn * m_turn as f64) as f32,
+                b: q.b,
             };
-            let (lo, hi) = q.inside(grid.nz);
-            if lo.max(range.0) < hi.min(range.1) {
-                out[n] = q;
+            let (lo, hi) = shifted.inside(grid.nz);
+            if lo.max(range.0) < hi.min(range.1) && n < MAX_CONJUGATES {
+                out[n] = shifted;
                 n += 1;
             }
         }
