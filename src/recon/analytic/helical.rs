@@ -48,7 +48,8 @@ fn row_weight(q: f32) -> f32 {
     1.0 - s * s * (3.0 - 2.0 * s)
 }
 
-/// Most conjugate views a voxel's line is weighted against.
+/// Most conjugate views a voxel's line is weighted against (enough for pitches down to about 0.15; below,
+/// the weights of a line add up to less than 1).
 const MAX_CONJUGATES: usize = 16;
 
 /// What the helical back projection refuses about `views`, checked without data.
@@ -330,15 +331,22 @@ fn back_project_line(
         let n = conjugates(p, m, helix, det, grid, span, (lo, hi), &mut conj);
         let post = (1.0 / (lc * lc)) as f32;
         // The weight of every voxel of the range: W(q₀)/(W(q₀) + Σ W(q_k)), times 1/lc².
+        // Indices go through i32 so that these loops vectorise (the grid's axes are far below 2³¹).
         let weights = &mut scratch.weights[..hi - lo];
         weights.fill(0.0);
         for c in &conj[..n] {
-            for (k, w) in weights.iter_mut().enumerate() {
-                *w += row_weight(c.a + c.b * (lo + k) as f32);
+            // Each conjugate only over the part of the range where it sees the line (W = 0 elsewhere).
+            let (clo, chi) = c.inside(nz);
+            let (clo, chi) = (clo.max(lo), chi.min(hi));
+            if clo >= chi {
+                continue;
+            }
+            for (k, w) in weights[clo - lo..chi - lo].iter_mut().enumerate() {
+                *w += row_weight(c.a + c.b * (clo + k) as i32 as f32);
             }
         }
         for (k, w) in weights.iter_mut().enumerate() {
-            let w0 = row_weight(q0.a + q0.b * (lo + k) as f32);
+            let w0 = row_weight(q0.a + q0.b * (lo + k) as i32 as f32);
             *w = w0 * post / (w0 + *w).max(f32::MIN_POSITIVE);
         }
         // The two detector columns around the line's position, blended once.
@@ -355,7 +363,7 @@ fn back_project_line(
         }
         for (k, w) in weights.iter().enumerate() {
             let iz = lo + k;
-            let row = (q0.a + q0.b * iz as f32) * half + half;
+            let row = (q0.a + q0.b * iz as i32 as f32) * half + half;
             let i = (row.max(0.0) as usize).min(nv - 2);
             let f = (row - i as f32).clamp(0.0, 1.0);
             acc[iz] += (column[i] + f * (column[i + 1] - column[i])) * w;
@@ -386,7 +394,7 @@ fn conjugates(
     let tau = std::f64::consts::TAU;
     let beta = m.angle;
     // Where the line from the nominal source through p meets the orbit again.
-    let s = helix.source_xy(beta);
+    let s = m.nominal;
     let d = [p[0] - s[0], p[1] - s[1]];
     let len = d[0].hypot(d[1]);
     if len <= 0.0 {
@@ -394,18 +402,16 @@ fn conjugates(
     }
     let d = [d[0] / len, d[1] / len];
     let t = 2.0 * (d[0] * (helix.centre[0] - s[0]) + d[1] * (helix.centre[1] - s[1]));
-    let opposite = helix.angle_of(s[0] + t * d[0], s[1] + t * d[1]);
+    let far = [s[0] + t * d[0], s[1] + t * d[1]];
+    let opposite = helix.angle_of(far[0], far[1]);
     let beta1 = beta + (opposite - beta).rem_euclid(tau);
     let turns = (span / tau).ceil() as i64 + 1;
     let mut n = 0;
     // Views a whole number of turns apart share the source's (x, y): one row line per base angle, its
     // offset moved by the source's rise per turn.
     for base in [beta, beta1] {
-        let sxy = if base == beta {
-            s
-        } else {
-            helix.source_xy(base)
-        };
+        // The opposite source is where the line meets the orbit again.
+        let sxy = if base == beta { s } else { far };
         let normal = [
             (helix.centre[0] - sxy[0]) / helix.radius,
             (helix.centre[1] - sxy[1]) / helix.radius,

@@ -39,6 +39,8 @@ pub(super) struct ViewMap {
     pub angle: f64,
     /// Angular step Δβ of the view (radians).
     pub step: f64,
+    /// The nominal helix's source (x, y) at `angle` (mm): what the conjugate views are found from.
+    pub nominal: [f64; 2],
 }
 
 /// The nominal helix: `source(β) = (centre + R·(sin β, −cos β), z0 + slope·β)`.
@@ -199,7 +201,7 @@ pub(super) fn helix_of(views: &Views3) -> Result<(Helix, Vec<ViewMap>), ReconErr
     }
     let slope = saz / saa;
     let z0 = mz - slope * ma;
-    let mut maps = Vec::with_capacity(views.views.len());
+    let mut maps: Vec<ViewMap> = Vec::with_capacity(views.views.len());
     let steps = angular_steps(&angles);
     let cylindrical = det.shape == PanelShape::Cylindrical;
     for ((v, &angle), &step) in views.views.iter().zip(&angles).zip(&steps) {
@@ -237,6 +239,7 @@ pub(super) fn helix_of(views: &Views3) -> Result<(Helix, Vec<ViewMap>), ReconErr
             v0: dot3(r, v.det_v),
             angle,
             step,
+            nominal: [0.0; 2],
         });
     }
     let dsd = maps[0].dsd;
@@ -263,5 +266,8 @@ pub(super) fn helix_of(views: &Views3) -> Result<(Helix, Vec<ViewMap>), ReconErr
         lo: first.min(last) - half,
         hi: first.max(last) + half,
     };
+    for m in &mut maps {
+        m.nominal = helix.source_xy(m.angle);
+    }
     Ok((helix, maps))
 }
