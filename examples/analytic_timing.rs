@@ -2,12 +2,14 @@
 //! criterion's wall-clock figures overstate the cost: CPU time (user + system of this process, from
 //! `/proc/self/stat`) divided by the thread count estimates the wall time on an idle machine.
 //!
-//! `cargo run --release --example analytic_timing -- [parallel|fan_arc|fan_flat|fdk128|fdk256|cone_pair] [runs]`;
+//! `cargo run --release --example analytic_timing -- [parallel|fan_arc|fan_flat|fdk128|fdk256|helical|cone_pair] [runs]`;
 //! under `/usr/bin/time -v` the maximum resident set size is the peak memory. `cone_pair` times one
 //! forward and one back projection of the matched cone-beam pair, apart, on the peers' cone case
 //! (`benches/peers/`: 128³ of 1 mm from 360 views of 256², magnification 1.5), the two passes of
 //! every iteration of the cone-beam iterative methods, and FDK of the same projections (its voxel-driven
-//! back projection of the same voxel updates, with the filtering).
+//! back projection of the same voxel updates, with the filtering). `helical` runs the helical weighted
+//! FBP ([`helical`]: 128³ of 2 mm from 5 turns of 360 views at pitch 1 on a 256 × 64 panel) and counts
+//! its voxel updates exactly: the (voxel, view) pairs where the voxel projects inside the panel.
 
 use std::time::Instant;
 
@@ -16,7 +18,7 @@ use ctrecon::recon::analytic::{fbp_2d, fdk};
 use ctrecon::recon::control::Cancel;
 use ctrecon::recon::control::unattended;
 use ctrecon::recon::geometry::{
-    Angles, ConeBeam, FanBeam, FanDetector, Panel, ParallelBeam, Views2,
+    Angles, ConeBeam, FanBeam, FanDetector, Geometry, Panel, ParallelBeam, Views, Views2, Views3,
 };
 use ctrecon::recon::grid::{ImageGrid, VolumeGrid};
 use ctrecon::recon::projector::{Operator, Projector3};
@@ -63,6 +65,54 @@ fn cone(n: usize) -> (ConeBeam, VolumeGrid) {
         },
     };
     (g, VolumeGrid::cube(n, 256.0 / n as f64))
+}
+
+/// The helical case: 5 turns of 360 views at pitch 1 (DSO 1000 mm, DSD 1500 mm, 256 × 64 elements
+/// of 1.6 mm, 68 mm at the rotation axis) through a 128³ volume of 2 mm.
+fn helical() -> (Views3, VolumeGrid) {
+    let json = r#"{"type": "helical", "dso_mm": 1000, "dsd_mm": 1500, "pitch": 1.0, "turns": 5,
+        "views_per_turn": 360, "z_start_mm": -170.7,
+        "detector": {"nu": 256, "nv": 64, "du_mm": 1.6, "dv_mm": 1.6}}"#;
+    let g: Geometry = serde_json::from_str(json).expect("valid helical JSON");
+    match g.to_views().expect("valid helical geometry") {
+        Views::D3(v) => (v, VolumeGrid::cube(128, 2.0)),
+        _ => unreachable!("a helical geometry is a cone beam"),
+    }
+}
+
+/// (voxel, view) pairs of `grid` where the voxel's centre projects inside the panel (rows within the
+/// outer row centres, columns within the outer column centres): the updates the helical FBP makes.
+fn helical_updates(views: &Views3, grid: &VolumeGrid) -> f64 {
+    let d = views.detector;
+    let (half_u, half_v) = (
+        (d.nu as f64 - 1.0) / 2.0 * d.du_mm,
+        (d.nv as f64 - 1.0) / 2.0 * d.dv_mm,
+    );
+    let mut n = 0u64;
+    for v in &views.views {
+        let dsd = ((v.det_centre[0] - v.source[0]).powi(2)
+            + (v.det_centre[1] - v.source[1]).powi(2))
+        .sqrt();
+        let normal = [
+            (v.det_centre[0] - v.source[0]) / dsd,
+            (v.det_centre[1] - v.source[1]) / dsd,
+        ];
+        for y in 0..grid.ny {
+            for x in 0..grid.nx {
+                let r = [grid.x(x) - v.source[0], grid.y(y) - v.source[1]];
+                let lc = r[0] * normal[0] + r[1] * normal[1];
+                let lat = r[0] * v.det_u[0] + r[1] * v.det_u[1];
+                if lc <= 0.0 || (dsd * lat / lc).abs() > half_u {
+                    continue;
+                }
+                let reach = half_v * lc / dsd;
+                n += (0..grid.nz)
+                    .filter(|&z| (grid.z(z) - v.source[2]).abs() < reach)
+                    .count() as u64;
+            }
+        }
+    }
+    n as f64
 }
 
 /// CPU and wall seconds of `f`.
@@ -171,6 +221,25 @@ fn main() {
                 updates,
                 Box::new(move || {
                     fbp_2d(&views, sino.view(), &grid, &params, unattended()).expect("FBP runs");
+                }),
+            )
+        }
+        "helical" => {
+            let (views, vol) = helical();
+            let proj = Array3::from_shape_fn(views.shape(), |(k, r, i)| {
+                ((i as f32 * 0.01 + r as f32 * 0.02 + k as f32 * 0.003).sin() + 1.0) * 10.0
+            });
+            let updates = helical_updates(&views, &vol);
+            println!(
+                "helical: {} views, {updates:.4e} voxel updates ({:.0} views per voxel on average)",
+                views.views.len(),
+                updates / vol.voxels() as f64
+            );
+            (
+                updates,
+                Box::new(move || {
+                    fdk(&views, proj.view(), &vol, &params, unattended())
+                        .expect("helical FBP runs");
                 }),
             )
         }

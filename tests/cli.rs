@@ -248,7 +248,7 @@ fn mesh_refuses_bad_input_with_a_message_and_writes_nothing() {
 #[test]
 fn built_in_geometries_work_from_any_folder() {
     let dir = tempfile::tempdir().unwrap();
-    for name in ["parallel", "fan_arc", "cone", "parallel3d"] {
+    for name in ["parallel", "fan_arc", "cone", "parallel3d", "helical"] {
         let run = Command::new(env!("CARGO_BIN_EXE_ctrecon"))
             .args(["phantom", "--geometry", name, "--out", "p.npy"])
             .current_dir(dir.path())

@@ -12,6 +12,7 @@ mod s3;
 mod sse;
 
 mod api_errors;
+mod api_helical;
 mod api_hints;
 mod api_jobs;
 mod api_lifecycle;

@@ -16,7 +16,7 @@ pub fn sidecar(data: &Path) -> PathBuf {
 
 /// The geometries that ship with ctrecon, by name: the files under `docs/geometries/`, so that
 /// `--geometry fan_arc` works from any folder.
-pub const BUILT_IN_GEOMETRIES: [(&str, &str); 4] = [
+pub const BUILT_IN_GEOMETRIES: [(&str, &str); 5] = [
     (
         "parallel",
         include_str!("../../docs/geometries/parallel.json"),
@@ -30,9 +30,13 @@ pub const BUILT_IN_GEOMETRIES: [(&str, &str); 4] = [
         "parallel3d",
         include_str!("../../docs/geometries/parallel3d.json"),
     ),
+    (
+        "helical",
+        include_str!("../../docs/geometries/helical.json"),
+    ),
 ];
 
-/// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`, `parallel3d`) when no file
+/// A geometry JSON file, or the name of a built-in geometry (`parallel`, `fan_arc`, `cone`, `parallel3d`, `helical`) when no file
 /// of that name exists.
 pub fn read_geometry(path: &Path) -> CliResult<Geometry> {
     let ext = path.extension().and_then(|e| e.to_str()).unwrap_or("");

@@ -159,6 +159,15 @@ pub fn run(args: GeometryArgs) -> CliResult<()> {
     let views = geometry
         .to_views()
         .map_err(|e| format!("{}: {e}", args.input.display()))?;
+    if let Views::D3(v) = &views
+        && v.detector.shape != crate::recon::geometry::PanelShape::Flat
+    {
+        return Err(
+            "a cylindrical detector has no per-view (cone_vectors), ASTRA cone_vec or RTK XML form; keep the \
+             parametric JSON"
+                .into(),
+        );
+    }
     let fbp = crate::recon::analytic::check(&views, &FbpParams::default());
     match extension(&args.output).as_str() {
         "json" => {

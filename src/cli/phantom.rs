@@ -45,7 +45,7 @@ pub struct PhantomArgs {
     #[arg(long, default_value_t = 256.0)]
     pub fov_mm: f64,
     /// Write the exact projections for this geometry instead of an image: a geometry JSON file, or a
-    /// built-in geometry by name (`parallel`, `fan_arc`, `cone`, `parallel3d`: the files of docs/geometries/).
+    /// built-in geometry by name (`parallel`, `fan_arc`, `cone`, `parallel3d`, `helical`: the files of docs/geometries/).
     #[arg(long)]
     pub geometry: Option<PathBuf>,
     /// Image side in pixels (image output).

@@ -46,6 +46,9 @@ fn check_cone(views: &Views3, params: &FbpParams) -> Result<(), ReconError> {
     if views.views.is_empty() {
         return Err(ReconError::param("geometry", "no views"));
     }
+    if !super::orbit::is_planar(views) {
+        return super::helical::check(views, params);
+    }
     let det = views.detector;
     let frames = cone_frames(views)?;
     let f0 = frames[0];

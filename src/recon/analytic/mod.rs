@@ -9,7 +9,7 @@
 //!
 //! Every algorithm reads only the canonical per-view geometry; divergent beams must come from a planar
 //! circular orbit with a detector facing the rotation centre (every parametric geometry of ctrecon
-//! does). Unsupported combinations (parallel beams over less than 180°, short scans with an offset
+//! does), or from a helix (`helix`, `helical`: the helical weighted FBP). Unsupported combinations (parallel beams over less than 180°, short scans with an offset
 //! detector, more than one turn, a detector that misses the central ray) are typed errors, never a silently
 //! wrong image. Filtering runs in f64, backprojection in f32. Cancel is checked once per view while
 //! filtering and once per image row / view batch while backprojecting; progress is reported per view.
@@ -25,6 +25,8 @@ mod fbp2d;
 mod fdk;
 mod fdk_filter;
 pub mod filter;
+mod helical;
+mod helix;
 mod orbit;
 mod progress;
 pub mod weights;
@@ -52,7 +54,9 @@ pub fn fbp_2d(
     fbp2d::fbp_2d(views, sinogram, grid, params, ctl)
 }
 
-/// FDK reconstruction of a cone-beam projection stack `[view][v][u]` onto `grid` (`[z][y][x]`).
+/// FDK reconstruction of a cone-beam projection stack `[view][v][u]` onto `grid` (`[z][y][x]`): circular
+/// FDK where the sources lie in one plane, the helical weighted FBP ([`helical_fbp`]) where they climb a
+/// helix.
 pub fn fdk(
     views: &Views3,
     projections: ArrayView3<'_, f32>,
@@ -60,7 +64,23 @@ pub fn fdk(
     params: &FbpParams,
     ctl: Control<'_>,
 ) -> Result<Array3<f32>, ReconError> {
-    fdk::fdk(views, projections, grid, params, ctl)
+    if orbit::is_planar(views) {
+        fdk::fdk(views, projections, grid, params, ctl)
+    } else {
+        helical::helical_fbp(views, projections, grid, params, ctl)
+    }
+}
+
+/// The helical weighted filtered back projection (Stierstorfer-style weights over conjugate views,
+/// voxels beyond the data's z coverage set to 0) of `[view][v][u]` onto `grid`; see `helical`.
+pub fn helical_fbp(
+    views: &Views3,
+    projections: ArrayView3<'_, f32>,
+    grid: &VolumeGrid,
+    params: &FbpParams,
+    ctl: Control<'_>,
+) -> Result<Array3<f32>, ReconError> {
+    helical::helical_fbp(views, projections, grid, params, ctl)
 }
 
 pub use fdk::back_project_voxels;
@@ -82,8 +102,14 @@ pub fn estimate_bytes(
     use crate::recon::algorithm::OutputGrid;
     match (views, grid) {
         (Views::D2(v), OutputGrid::Image(g)) => fbp2d::estimate_bytes(v, g, params),
+        (Views::D3(v), OutputGrid::Volume(g)) if !orbit::is_planar(v) => {
+            helical::estimate_bytes(v, g, params)
+        }
         (Views::D3(v), OutputGrid::Volume(g)) => fdk::estimate_bytes(v, g, params),
         (Views::Slices(_), _) => 0,
         _ => 0,
     }
 }
+
+#[cfg(test)]
+mod helical_tests;

@@ -5,7 +5,7 @@
 
 use crate::recon::error::ReconError;
 use crate::recon::geometry::vectors::{dot3, norm3, scale3, sub3};
-use crate::recon::geometry::{DetectorShape, Source2, Vec3, Views2, Views3};
+use crate::recon::geometry::{DetectorShape, PanelShape, Source2, Vec3, Views2, Views3};
 
 /// One view of a circular orbit.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -165,12 +165,22 @@ pub(crate) fn cone_frames(views: &Views3) -> Result<Vec<Frame>, ReconError> {
         .iter()
         .map(|v| (v.angle_rad, v.source, v.det_centre, v.det_u, v.det_v))
         .collect();
-    let z0 = list.first().map(|l| l.1[2]).unwrap_or(0.0);
-    if list
-        .iter()
-        .any(|l| (l.1[2] - z0).abs() > 1e-9 * (1.0 + z0.abs()))
-    {
-        return Err(unsupported("FDK needs a planar circular orbit"));
+    if !is_planar(views) {
+        return Err(unsupported("FDK needs a planar circular orbit or a helix"));
+    }
+    if views.detector.shape != PanelShape::Flat {
+        return Err(unsupported(
+            "circular FDK needs a flat panel (a cylindrical detector is reconstructed on a helix)",
+        ));
     }
     frames(list.into_iter(), DetectorShape::Flat)
+}
+
+/// Whether every source lies in one plane z = const (within 10⁻⁹ of its height).
+pub(crate) fn is_planar(views: &Views3) -> bool {
+    let z0 = views.views.first().map(|v| v.source[2]).unwrap_or(0.0);
+    views
+        .views
+        .iter()
+        .all(|v| (v.source[2] - z0).abs() <= 1e-9 * (1.0 + z0.abs()))
 }

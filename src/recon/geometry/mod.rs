@@ -7,6 +7,7 @@
 //! the detector u axis is `(cos β, sin β)`; cone beams add a v axis along +z.
 
 pub mod angles;
+pub mod helical;
 pub mod matlab;
 pub mod parallel3d;
 pub mod per_view;
@@ -16,12 +17,13 @@ pub mod vectors;
 use serde::{Deserialize, Serialize};
 
 pub use angles::Angles;
+pub use helical::{FlyingFocalSpot, FocalSpotOffset, Helical, HelicalDetector, Rotation};
 pub use matlab::{MatlabFan, MatlabSensors};
 pub use parallel3d::{Parallel3d, SliceViews};
 pub use per_view::{ConeVectors, FanVectors, VectorPanel, VectorRow, cone_vectors, fan_vectors};
 pub use vectors::{
-    Detector1, Detector2, DetectorShape, Ray2, Ray3, Source2, Vec2, Vec3, View2, View3, Views2,
-    Views3, angular_steps,
+    Detector1, Detector2, DetectorShape, PanelShape, Ray2, Ray3, Source2, Vec2, Vec3, View2, View3,
+    Views2, Views3, angular_steps,
 };
 
 use super::error::{GeometryError, count, finite, positive};
@@ -222,6 +224,7 @@ impl ConeBeam {
             dv_mm: positive("detector.dv_mm", p.dv_mm)?,
             offset_u_mm: finite("detector.offset_u_mm", p.offset_u_mm)?,
             offset_v_mm: finite("detector.offset_v_mm", p.offset_v_mm)?,
+            shape: PanelShape::Flat,
         };
         let row = Detector1 {
             count: detector.nu,
@@ -252,7 +255,7 @@ impl ConeBeam {
 }
 
 /// Any scan geometry. JSON: `{"type": "parallel" | "fan" | "fan_matlab" | "cone" | "fan_vectors" |
-/// "cone_vectors" | "parallel3d", …}`.
+/// "cone_vectors" | "parallel3d" | "helical", …}`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(tag = "type", rename_all = "snake_case")]
 pub enum Geometry {
@@ -263,6 +266,7 @@ pub enum Geometry {
     FanVectors(FanVectors),
     ConeVectors(ConeVectors),
     Parallel3d(Parallel3d),
+    Helical(Helical),
 }
 
 /// A geometry in canonical form: 2D views, cone-beam views, or a stack of 2D parallel-beam slices (a 3D
@@ -296,13 +300,17 @@ impl Geometry {
             Geometry::FanVectors(g) => Views::D2(g.to_views()?),
             Geometry::ConeVectors(g) => Views::D3(g.to_views()?),
             Geometry::Parallel3d(g) => Views::Slices(g.to_views()?),
+            Geometry::Helical(g) => Views::D3(g.to_views()?),
         })
     }
     /// True for 3D data (`[view][v][u]`): cone beams and 3D parallel beams.
     pub fn is_3d(&self) -> bool {
         matches!(
             self,
-            Geometry::Cone(_) | Geometry::ConeVectors(_) | Geometry::Parallel3d(_)
+            Geometry::Cone(_)
+                | Geometry::ConeVectors(_)
+                | Geometry::Parallel3d(_)
+                | Geometry::Helical(_)
         )
     }
     /// Source-to-isocentre distance, if the geometry has a source (for a per-view geometry, the smallest
@@ -313,6 +321,7 @@ impl Geometry {
             Geometry::Fan(g) => Some(g.dso_mm),
             Geometry::FanMatlab(g) => Some(g.d_px * g.pixel_mm),
             Geometry::Cone(g) => Some(g.dso_mm),
+            Geometry::Helical(g) => Some(g.dso_mm),
             Geometry::FanVectors(g) => per_view::nearest_source_2d(g),
             Geometry::ConeVectors(g) => per_view::nearest_source_3d(g),
         }
@@ -343,6 +352,8 @@ pub fn fuzz_entry(data: &[u8]) {
     }
 }
 
+#[cfg(test)]
+mod helical_tests;
 #[cfg(test)]
 mod per_view_tests;
 #[cfg(test)]

@@ -160,6 +160,7 @@ impl ConeVectors {
             dv_mm: dv,
             offset_u_mm: 0.0,
             offset_v_mm: 0.0,
+            shape: super::vectors::PanelShape::Flat,
         };
         Ok(Views3 { detector, views })
     }

@@ -172,6 +172,11 @@ fn normalise_deg(a: f64) -> f64 {
 
 /// The RTK XML of a cone-beam geometry whose projection images have a centred origin.
 pub fn to_rtk_xml(views: &Views3) -> Result<String, GeometryError> {
+    if views.detector.shape != super::vectors::PanelShape::Flat {
+        return Err(GeometryError::Invalid(
+            "RTK's circular geometry XML describes flat panels; a cylindrical detector has no such form".into(),
+        ));
+    }
     let vectors = cone_vectors(views);
     let mut out = String::from(
         "<?xml version=\"1.0\"?>\n<!DOCTYPE RTKGEOMETRY>\n<RTKThreeDCircularGeometry version=\"3\">\n",

@@ -160,8 +160,31 @@ impl Views2 {
     }
 }
 
-/// Sampling of a flat 2D detector (panel), shared by all views. Element `[r][c]` sits at
-/// `u_c = (c − (nu−1)/2)·du + offset_u`, `v_r = (r − (nv−1)/2)·dv + offset_v` (mm).
+/// Shape of a 2D detector (panel).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PanelShape {
+    /// A plane: `u` and `v` are distances (mm) along the panel's axes.
+    #[default]
+    Flat,
+    /// A cylinder whose axis runs along `det_v` through the source (ASTRA `cyl_cone_vec`, a clinical CT
+    /// detector): `u` is the arc length (mm) on the cylinder of radius R, the distance from the source to
+    /// the panel centre across `det_v`, from the panel centre toward `det_u` (made perpendicular to the
+    /// direction source → centre); `v` is a distance along `det_v` as on a flat panel.
+    Cylindrical,
+}
+
+/// The unit vector along `u` made perpendicular to the unit vector `n` (`u` itself where it already is):
+/// the direction in which a cylindrical panel's arc leaves its centre.
+pub fn tangent(u: Vec3, n: Vec3) -> Vec3 {
+    let t = sub3(u, scale3(n, dot3(u, n)));
+    let len = norm3(t);
+    if len > 0.0 { scale3(t, 1.0 / len) } else { u }
+}
+
+/// Sampling of a 2D detector (panel), shared by all views. Element `[r][c]` sits at
+/// `u_c = (c − (nu−1)/2)·du + offset_u`, `v_r = (r − (nv−1)/2)·dv + offset_v` (mm); on a cylindrical
+/// panel `u` is an arc length ([`PanelShape`]).
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Detector2 {
     pub nu: usize,
@@ -170,6 +193,7 @@ pub struct Detector2 {
     pub dv_mm: f64,
     pub offset_u_mm: f64,
     pub offset_v_mm: f64,
+    pub shape: PanelShape,
 }
 
 impl Detector2 {
@@ -186,6 +210,31 @@ impl Detector2 {
     /// Fractional row of coordinate `v` (mm).
     pub fn row_of(&self, v: f64) -> f64 {
         (v - self.offset_v_mm) / self.dv_mm + (self.nv as f64 - 1.0) / 2.0
+    }
+    /// The vector from `view`'s source to the point of column `col` with v = 0 (mm); see
+    /// [`Views3::column_vector`].
+    pub fn column_vector(&self, view: &View3, col: usize) -> Vec3 {
+        let u = self.u(col);
+        let w0 = sub3(view.det_centre, view.source);
+        match self.shape {
+            PanelShape::Flat => add3(w0, scale3(view.det_u, u)),
+            PanelShape::Cylindrical => {
+                // The panel centre's offset along the cylinder's axis, and its direction across it.
+                let along = dot3(w0, view.det_v);
+                let across = sub3(w0, scale3(view.det_v, along));
+                let r = norm3(across);
+                if r <= 0.0 {
+                    return w0;
+                }
+                let n = scale3(across, 1.0 / r);
+                let t = tangent(view.det_u, n);
+                let g = u / r;
+                add3(
+                    scale3(view.det_v, along),
+                    add3(scale3(n, r * g.cos()), scale3(t, r * g.sin())),
+                )
+            }
+        }
     }
 }
 
@@ -220,10 +269,22 @@ impl Views3 {
     pub fn shape(&self) -> [usize; 3] {
         [self.views.len(), self.detector.nv, self.detector.nu]
     }
+    /// Position (mm) of element `[row][col]` of `view`: on the plane through `det_centre` spanned by
+    /// `det_u`, `det_v`, or on the cylinder of [`PanelShape::Cylindrical`].
     pub fn element_position(&self, view: &View3, row: usize, col: usize) -> Vec3 {
-        let u = scale3(view.det_u, self.detector.u(col));
         let v = scale3(view.det_v, self.detector.v(row));
-        add3(view.det_centre, add3(u, v))
+        match self.detector.shape {
+            PanelShape::Flat => {
+                let u = scale3(view.det_u, self.detector.u(col));
+                add3(view.det_centre, add3(u, v))
+            }
+            PanelShape::Cylindrical => add3(view.source, add3(self.column_vector(view, col), v)),
+        }
+    }
+    /// The vector from the source to the point of column `col` with v = 0: every element of the column
+    /// sits at `source + column_vector + v·det_v`.
+    pub fn column_vector(&self, view: &View3, col: usize) -> Vec3 {
+        self.detector.column_vector(view, col)
     }
     /// The ray from the source through element `[row][col]`.
     pub fn ray(&self, view: &View3, row: usize, col: usize) -> Ray3 {

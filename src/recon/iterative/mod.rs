@@ -65,9 +65,17 @@ fn voxel_back(spec: &AlgorithmSpec) -> bool {
     matches!(spec, AlgorithmSpec::Cgls(p) if p.back_projector == params::BackProjector::Voxel)
 }
 
-/// What `spec` needs of the views beyond [`validate`]: the voxel-driven back projector is FDK's, so it
-/// takes the cone beams FDK takes.
+/// What `spec` needs of the views beyond [`validate`]: the ray-driven projectors of cone beams read flat
+/// panels; the voxel-driven back projector is FDK's, so it takes the cone beams FDK takes.
 pub fn check_views(spec: &AlgorithmSpec, views: &Views) -> Result<(), ReconError> {
+    if let Views::D3(v) = views
+        && v.detector.shape != crate::recon::geometry::PanelShape::Flat
+    {
+        return Err(ReconError::param(
+            "geometry",
+            "the iterative methods project onto flat panels; a cylindrical detector is reconstructed with              `fdk` (the helical filtered back projection)",
+        ));
+    }
     if !voxel_back(spec) {
         return Ok(());
     }

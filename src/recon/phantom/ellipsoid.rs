@@ -10,7 +10,7 @@ use super::{MAX_BODIES, Table3, check_scale, finite_field, positive_field};
 use crate::recon::control::{Control, unattended};
 use crate::recon::error::ReconError;
 use crate::recon::geometry::vectors::{add3, dot3, norm3, scale3, sub3};
-use crate::recon::geometry::{Detector2, SliceViews, Vec3, View3, Views3};
+use crate::recon::geometry::{Detector2, PanelShape, SliceViews, Vec3, View3, Views3};
 use crate::recon::grid::VolumeGrid;
 
 /// One filled ellipsoid in phantom units (the cube [−1, 1]³, scaled by the phantom's `scale_mm`), as in
@@ -336,6 +336,21 @@ fn footprint(body: &Quadric<3>, det: &Detector2, view: &View3) -> Footprint {
         }
         Some(Some((lo.max(0.0) as usize, hi.min(last) as usize)))
     };
+    if det.shape == PanelShape::Cylindrical {
+        // The shadow on the plane tangent to the cylinder at the panel centre, mapped onto the
+        // cylinder: u = R·atan(u_plane/R); heights above the source shrink by cos(atan(u_plane/R)).
+        let along = dot3(w0, ev);
+        let r = norm3(sub3(w0, scale3(ev, along)));
+        if dot3(w0, eu).abs() > 1e-9 * r || r <= 0.0 || guv.abs() > 1e-9 {
+            return Footprint::All;
+        }
+        let c_min = 1.0 / (1.0 + (umin.abs().max(umax.abs()) / r).powi(2)).sqrt();
+        let (hmin, hmax) = (vmin + along, vmax + along);
+        vmin = hmin.min(hmin * c_min) - along;
+        vmax = hmax.max(hmax * c_min) - along;
+        umin = r * (umin / r).atan();
+        umax = r * (umax / r).atan();
+    }
     let cols = range(det.col_of(umin), det.col_of(umax), det.nu);
     let rows = range(det.row_of(vmin), det.row_of(vmax), det.nv);
     match (rows, cols) {
@@ -345,16 +360,17 @@ fn footprint(body: &Quadric<3>, det: &Detector2, view: &View3) -> Footprint {
     }
 }
 
-/// One cone-beam view. The ray through element `(u, v)` is `s + λ w` with `w = w0 + u·e_u + v·e_v`, which
-/// maps linearly into each body's unit-ball frame; the chord in λ times `|w|` is the length in mm.
+/// One cone-beam view. The ray through element `(c, v)` is `s + λ w` with `w = w_c + v·e_v` (`w_c` the
+/// column's vector from the source, [`Detector2::column_vector`], flat or cylindrical), which maps
+/// linearly into each body's unit-ball frame; the chord in λ times `|w|` is the length in mm.
 fn project_view(bodies: &[Quadric<3>], det: &Detector2, view: &View3, mut img: ArrayViewMut2<f32>) {
     let (nu, nv) = (det.nu, det.nv);
     if nu == 0 || nv == 0 {
         return;
     }
     let s = view.source;
-    let w0 = sub3(view.det_centre, s);
-    let us: Vec<f64> = (0..nu).map(|c| det.u(c)).collect();
+    let columns: Vec<Vec3> = (0..nu).map(|c| det.column_vector(view, c)).collect();
+    let mut mapped = vec![[0.0f64; 3]; nu];
     let mut acc = vec![0.0f64; nu * nv];
     for body in bodies {
         let [r0, r1, c0, c1] = match footprint(body, det, view) {
@@ -363,15 +379,15 @@ fn project_view(bodies: &[Quadric<3>], det: &Detector2, view: &View3, mut img: A
             Footprint::All => [0, nv - 1, 0, nu - 1],
         };
         let q = body.unit_frame(&s);
-        let a = mul(&body.m, &w0);
-        let b = mul(&body.m, &view.det_u);
+        for col in c0..=c1 {
+            mapped[col] = mul(&body.m, &columns[col]);
+        }
         let c = mul(&body.m, &view.det_v);
         for row in r0..=r1 {
-            let base = add3(a, scale3(c, det.v(row)));
+            let dv = scale3(c, det.v(row));
             let line = &mut acc[row * nu..(row + 1) * nu];
             for col in c0..=c1 {
-                let u = us[col];
-                let r = [base[0] + u * b[0], base[1] + u * b[1], base[2] + u * b[2]];
+                let r = add3(mapped[col], dv);
                 if let Some((_, half)) = mapped_interval(&q, &r) {
                     line[col] += body.value * 2.0 * half;
                 }
@@ -379,9 +395,9 @@ fn project_view(bodies: &[Quadric<3>], det: &Detector2, view: &View3, mut img: A
         }
     }
     for (row, mut out_row) in img.axis_iter_mut(Axis(0)).enumerate() {
-        let wv = add3(w0, scale3(view.det_v, det.v(row)));
+        let dv = scale3(view.det_v, det.v(row));
         for (col, o) in out_row.iter_mut().enumerate() {
-            let w = add3(wv, scale3(view.det_u, us[col]));
+            let w = add3(columns[col], dv);
             *o = (acc[row * nu + col] * norm3(w)) as f32;
         }
     }
