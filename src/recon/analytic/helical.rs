@@ -25,7 +25,7 @@ use ndarray::{Array3, ArrayView3};
 use rayon::prelude::*;
 
 use super::filter::{Kernel, RowFilter, padded_len};
-use super::helix::{Helix, ViewMap, flat_panel, helix_of};
+use super::helix::{Helix, ViewMap, flat_panel, helix_of, turned, visible_span};
 use super::progress::Ticker;
 use crate::recon::algorithm::FbpParams;
 use crate::recon::control::Control;
@@ -227,22 +227,6 @@ fn filter_view(
             panel[(c + 1) * rows + r] = (q * post) as f32;
         }
     }
-}
-
-/// The widest angle range over which one voxel of the grid can stay in a view's cone (radians), plus
-/// a turn: conjugate views farther from a view than this never see the same voxel.
-fn visible_span(helix: &Helix, det: &Detector2, maps: &[ViewMap], grid: &VolumeGrid) -> f64 {
-    let reach = [grid.x(0), grid.x(grid.nx.saturating_sub(1))]
-        .iter()
-        .flat_map(|&x| {
-            [grid.y(0), grid.y(grid.ny.saturating_sub(1))]
-                .map(|y| (x - helix.centre[0]).hypot(y - helix.centre[1]))
-        })
-        .fold(0.0f64, f64::max);
-    let dsd = maps.iter().map(|m| m.dsd).fold(f64::MAX, f64::min);
-    let height =
-        (det.nv as f64 * det.dv_mm + 2.0 * det.offset_v_mm.abs()) * (helix.radius + reach) / dsd;
-    height / helix.slope.abs() + std::f64::consts::TAU
 }
 
 /// Row coordinate of a line: `q(iz) = a + b·iz`, scaled to ±1 at the outer row centres.
@@ -478,15 +462,6 @@ fn assemble(
             }
         });
     volume
-}
-
-/// How far the ray through `p` turns from view `a` to view `b` (radians, ≥ 0).
-fn turned(p: [f64; 2], a: &ViewMap, b: &ViewMap) -> f64 {
-    let dir = |m: &ViewMap| (p[1] - m.source[1]).atan2(p[0] - m.source[0]);
-    let turn = b.angle - a.angle;
-    let extra = (dir(b) - dir(a) - turn + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
-        - std::f64::consts::PI;
-    (turn + extra).abs()
 }
 
 /// Bytes the helical FBP allocates: the lines, their first and last views, the volume, the filtered

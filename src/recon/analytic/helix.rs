@@ -8,6 +8,7 @@
 use crate::recon::error::ReconError;
 use crate::recon::geometry::vectors::{cross3, dot3, norm3, scale3, sub3, tangent};
 use crate::recon::geometry::{Detector2, PanelShape, Vec3, Views3, angular_steps};
+use crate::recon::grid::VolumeGrid;
 
 fn unsupported(reason: &str) -> ReconError {
     ReconError::param(
@@ -270,4 +271,34 @@ pub(super) fn helix_of(views: &Views3) -> Result<(Helix, Vec<ViewMap>), ReconErr
         m.nominal = helix.source_xy(m.angle);
     }
     Ok((helix, maps))
+}
+
+/// The widest angle range over which one voxel of the grid can stay in a view's cone (radians), plus
+/// a turn: conjugate views farther from a view than this never see the same voxel.
+pub(super) fn visible_span(
+    helix: &Helix,
+    det: &Detector2,
+    maps: &[ViewMap],
+    grid: &VolumeGrid,
+) -> f64 {
+    let reach = [grid.x(0), grid.x(grid.nx.saturating_sub(1))]
+        .iter()
+        .flat_map(|&x| {
+            [grid.y(0), grid.y(grid.ny.saturating_sub(1))]
+                .map(|y| (x - helix.centre[0]).hypot(y - helix.centre[1]))
+        })
+        .fold(0.0f64, f64::max);
+    let dsd = maps.iter().map(|m| m.dsd).fold(f64::MAX, f64::min);
+    let height =
+        (det.nv as f64 * det.dv_mm + 2.0 * det.offset_v_mm.abs()) * (helix.radius + reach) / dsd;
+    height / helix.slope.abs() + std::f64::consts::TAU
+}
+
+/// How far the ray through `p` turns from view `a` to view `b` (radians, ≥ 0).
+pub(super) fn turned(p: [f64; 2], a: &ViewMap, b: &ViewMap) -> f64 {
+    let dir = |m: &ViewMap| (p[1] - m.source[1]).atan2(p[0] - m.source[0]);
+    let turn = b.angle - a.angle;
+    let extra = (dir(b) - dir(a) - turn + std::f64::consts::PI).rem_euclid(std::f64::consts::TAU)
+        - std::f64::consts::PI;
+    (turn + extra).abs()
 }
