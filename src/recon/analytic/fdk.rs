@@ -80,15 +80,7 @@ fn run(
     along_z: Option<bool>,
     filtered: bool,
 ) -> Result<Array3<f32>, ReconError> {
-    grid.validate()?;
-    params.validate()?;
-    let expected = views.shape();
-    if proj.shape() != expected {
-        return Err(ReconError::ShapeMismatch {
-            expected: expected.to_vec(),
-            got: proj.shape().to_vec(),
-        });
-    }
+    super::check_stack(views, proj, grid, params)?;
     if views.views.is_empty() {
         return Err(ReconError::param("geometry", "no views"));
     }

@@ -67,15 +67,7 @@ pub fn helical_fbp(
     params: &FbpParams,
     ctl: Control<'_>,
 ) -> Result<Array3<f32>, ReconError> {
-    grid.validate()?;
-    params.validate()?;
-    let expected = views.shape();
-    if proj.shape() != expected {
-        return Err(ReconError::ShapeMismatch {
-            expected: expected.to_vec(),
-            got: proj.shape().to_vec(),
-        });
-    }
+    super::check_stack(views, proj, grid, params)?;
     let (helix, maps) = helix_of(views)?;
     let measured = views.detector;
     let det = flat_panel(&measured, maps[0].dsd)?;

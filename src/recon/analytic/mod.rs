@@ -55,8 +55,8 @@ pub fn fbp_2d(
 }
 
 /// FDK reconstruction of a cone-beam projection stack `[view][v][u]` onto `grid` (`[z][y][x]`): circular
-/// FDK where the sources lie in one plane, the helical weighted FBP ([`helical_fbp`]) where they climb a
-/// helix.
+/// FDK where the sources lie in one plane, the helical weighted FBP (Stierstorfer-style weights over
+/// conjugate views, voxels beyond the data's z coverage set to 0; see `helical`) where they climb a helix.
 pub fn fdk(
     views: &Views3,
     projections: ArrayView3<'_, f32>,
@@ -71,16 +71,24 @@ pub fn fdk(
     }
 }
 
-/// The helical weighted filtered back projection (Stierstorfer-style weights over conjugate views,
-/// voxels beyond the data's z coverage set to 0) of `[view][v][u]` onto `grid`; see `helical`.
-pub fn helical_fbp(
+/// The checks every cone-beam analytic method makes first: a valid grid and parameters, and a projection
+/// stack of the geometry's shape.
+fn check_stack(
     views: &Views3,
-    projections: ArrayView3<'_, f32>,
+    proj: ArrayView3<'_, f32>,
     grid: &VolumeGrid,
     params: &FbpParams,
-    ctl: Control<'_>,
-) -> Result<Array3<f32>, ReconError> {
-    helical::helical_fbp(views, projections, grid, params, ctl)
+) -> Result<(), ReconError> {
+    grid.validate()?;
+    params.validate()?;
+    let expected = views.shape();
+    if proj.shape() != expected {
+        return Err(ReconError::ShapeMismatch {
+            expected: expected.to_vec(),
+            got: proj.shape().to_vec(),
+        });
+    }
+    Ok(())
 }
 
 pub use fdk::back_project_voxels;
